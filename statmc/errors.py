@@ -1,0 +1,66 @@
+"""Exception types and shared input checks.
+
+Every check raises :class:`InputError` (a ``ValueError``) whose message names the
+parameter, what was expected, what was given, and how to fix it, so the CLI can print
+it as one line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """A caller's input is wrong: bad shape, NaN/Inf, negative counts or variances."""
+
+
+class FileFormatError(InputError):
+    """A file is unreadable, corrupt, or lacks channels that are needed."""
+
+
+def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
+                   dtype=None) -> np.ndarray:
+    """Return ``a`` as a float ndarray (ints become ``float64``; float32 stays float32).
+
+    Raises :class:`InputError` when it is not numeric or has the wrong number of dims.
+    """
+    arr = np.asarray(a)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise InputError(f"`{name}` must be a numeric array; got dtype {arr.dtype}.")
+    if dtype is not None:
+        arr = arr.astype(dtype, copy=False)
+    elif not np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float64)
+    if ndim is not None:
+        dims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+        if arr.ndim not in dims:
+            want = " or ".join(str(d) for d in dims)
+            raise InputError(f"`{name}` must have {want} dimensions; got shape {arr.shape}.")
+    return arr
+
+
+def check_finite(name: str, a: np.ndarray) -> None:
+    """Raise :class:`InputError` when ``a`` holds NaN or Inf, saying how many."""
+    bad = ~np.isfinite(a)
+    if bad.any():
+        n_nan = int(np.isnan(a).sum())
+        n_inf = int(bad.sum()) - n_nan
+        raise InputError(
+            f"`{name}` holds {n_nan} NaN and {n_inf} Inf values; expected finite numbers "
+            "(replace them first, e.g. `statmc.stats.replace_nonfinite`)."
+        )
+
+
+def check_nonnegative(name: str, a: np.ndarray) -> None:
+    """Raise :class:`InputError` when ``a`` has negative entries."""
+    if a.size and np.nanmin(a) < 0:
+        n = int((a < 0).sum())
+        raise InputError(f"`{name}` must be >= 0; got {n} negative values (min {np.nanmin(a):.4g}).")
+
+
+def check_same_shape(name: str, a: np.ndarray, ref_name: str, ref_shape: tuple) -> None:
+    """Raise :class:`InputError` unless ``a.shape == ref_shape``."""
+    if a.shape != tuple(ref_shape):
+        raise InputError(
+            f"`{name}` must have the shape of `{ref_name}` {tuple(ref_shape)}; got {a.shape}."
+        )

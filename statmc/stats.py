@@ -1,0 +1,252 @@
+"""Per-pixel sufficient statistics of Monte Carlo samples, merged exactly.
+
+A render is summarised per pixel by the sample count ``n``, the mean and ``M2`` (the sum
+of squared deviations from the mean).  Two names for variance are used throughout, never
+mixed up:
+
+* **sample variance** ``s² = M2 / (n − 1)``: the variance of *one* sample
+  (:attr:`PixelStats.sample_var`; pbrt-v4's ``Variance.*`` channels);
+* **variance of the mean** ``s² / n``: the variance of the pixel estimate
+  (:attr:`PixelStats.mean_var`).
+
+Passes are combined with the parallel update of Chan, Golub and LeVeque (1979), which is
+exact: merging any split of the samples gives the single-pass statistics up to rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import (InputError, as_float_array, check_finite, check_nonnegative,
+                     check_same_shape)
+
+__all__ = ["PixelStats", "replace_nonfinite"]
+
+
+def _check_feature(name, a, hw):
+    if a is None:
+        return None
+    arr = as_float_array(name, a, ndim=(2, 3)).astype(np.float32, copy=False)
+    if arr.shape[:2] != tuple(hw):
+        raise InputError(f"feature `{name}` must be {tuple(hw)} in height and width; got {arr.shape}.")
+    return arr
+
+
+@dataclass(eq=False)
+class PixelStats:
+    """Sample count, mean and M2 per pixel, plus optional feature buffers.
+
+    Parameters
+    ----------
+    n : (H, W) ndarray
+        Samples in each pixel (non-negative integers, stored as ``int64``).
+    mean : (H, W, C) ndarray
+        Mean of the samples in each pixel (``float64``).
+    m2 : (H, W, C) ndarray
+        Sum of squared deviations from the mean (``float64``, ``>= 0``).
+    albedo, normal : (H, W, 3) ndarray, optional
+        Feature buffers (``float32``), carried along unchanged by merges.
+    depth : (H, W) ndarray, optional
+        Depth buffer (``float32``).
+
+    Notes
+    -----
+    Pixels with ``n == 0`` have mean and M2 equal to 0.  :attr:`sample_var` is 0 where
+    ``n < 2`` (no spread can be measured from one sample): check :attr:`n` before trusting it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> x = rng.normal(size=(8, 2, 3, 1))          # 8 samples of a 2x3 image
+    >>> a = PixelStats.from_samples(x[:3]).merge(PixelStats.from_samples(x[3:]))
+    >>> bool(np.allclose(a.sample_var, x.var(axis=0, ddof=1)))
+    True
+    """
+
+    n: np.ndarray
+    mean: np.ndarray
+    m2: np.ndarray
+    albedo: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        n = np.asarray(self.n)
+        if n.ndim != 2:
+            raise InputError(f"`n` must be an (H, W) count map; got shape {n.shape}.")
+        n_f = as_float_array("n", n)
+        check_finite("n", n_f)
+        check_nonnegative("n", n_f)
+        if np.any(n_f != np.round(n_f)):
+            raise InputError("`n` must hold whole sample counts; got fractional values.")
+        self.n = n_f.astype(np.int64)
+        self.mean = as_float_array("mean", self.mean, ndim=3, dtype=np.float64)
+        if self.mean.shape[:2] != self.n.shape:
+            raise InputError(f"`mean` must be (H, W, C) with (H, W) = {self.n.shape}; got {self.mean.shape}.")
+        self.m2 = as_float_array("m2", self.m2, ndim=3, dtype=np.float64)
+        check_same_shape("m2", self.m2, "mean", self.mean.shape)
+        check_finite("mean", self.mean)
+        check_finite("m2", self.m2)
+        check_nonnegative("m2", self.m2)
+        hw = self.n.shape
+        self.albedo = _check_feature("albedo", self.albedo, hw)
+        self.normal = _check_feature("normal", self.normal, hw)
+        self.depth = _check_feature("depth", self.depth, hw)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def empty(cls, height: int, width: int, channels: int = 3) -> "PixelStats":
+        """Statistics of no samples at all (``n = 0`` everywhere)."""
+        return cls(np.zeros((height, width), np.int64), np.zeros((height, width, channels)),
+                   np.zeros((height, width, channels)))
+
+    @classmethod
+    def from_samples(cls, samples) -> "PixelStats":
+        """Statistics of ``S`` samples in every pixel, ``samples`` of shape ``(S, H, W, C)``."""
+        x = as_float_array("samples", samples, ndim=4, dtype=np.float64)
+        check_finite("samples", x)
+        s = x.shape[0]
+        mean = x.mean(axis=0) if s else np.zeros(x.shape[1:])
+        m2 = ((x - mean) ** 2).sum(axis=0)
+        return cls(np.full(x.shape[1:3], s, np.int64), mean, m2)
+
+    @classmethod
+    def from_pixel_samples(cls, pixel_index, values, shape: tuple[int, int]) -> "PixelStats":
+        """Statistics of samples with any number per pixel.
+
+        Parameters
+        ----------
+        pixel_index : (N,) int ndarray
+            Flat (row-major) pixel index of each sample, in ``[0, H*W)``.
+        values : (N, C) ndarray
+            The samples.
+        shape : (H, W)
+            Image size.
+
+        Notes
+        -----
+        Two passes (means first, then squared deviations), so no cancellation.
+        """
+        h, w = (int(v) for v in shape)
+        idx = np.asarray(pixel_index)
+        if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
+            raise InputError(f"`pixel_index` must be a 1-D integer array; got {idx.dtype} {idx.shape}.")
+        vals = as_float_array("values", values, ndim=2, dtype=np.float64)
+        if vals.shape[0] != idx.shape[0]:
+            raise InputError(f"`values` must have one row per index ({idx.shape[0]}); got {vals.shape}.")
+        if idx.size and (idx.min() < 0 or idx.max() >= h * w):
+            raise InputError(f"`pixel_index` must lie in [0, {h * w}); got [{idx.min()}, {idx.max()}].")
+        check_finite("values", vals)
+        c = vals.shape[1]
+        n = np.bincount(idx, minlength=h * w)
+        safe = np.maximum(n, 1)[:, None]
+        mean = np.stack([np.bincount(idx, vals[:, k], minlength=h * w) for k in range(c)], 1) / safe
+        dev = (vals - mean[idx]) ** 2
+        m2 = np.stack([np.bincount(idx, dev[:, k], minlength=h * w) for k in range(c)], 1)
+        return cls(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c))
+
+    @classmethod
+    def from_sums(cls, n, sum_x, sum_x2) -> "PixelStats":
+        """Statistics from per-pixel sums ``Σx`` and ``Σx²`` (e.g. one render pass).
+
+        ``M2 = Σx² − (Σx)²/n``, clipped at 0.  Pass float64 sums: in float32 this
+        difference cancels catastrophically at high sample counts.
+        """
+        n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
+        s1 = as_float_array("sum_x", sum_x, ndim=3, dtype=np.float64)
+        s2 = as_float_array("sum_x2", sum_x2, ndim=3, dtype=np.float64)
+        check_same_shape("sum_x2", s2, "sum_x", s1.shape)
+        if s1.shape[:2] != n_a.shape:
+            raise InputError(f"`sum_x` must be (H, W, C) with (H, W) = {n_a.shape}; got {s1.shape}.")
+        safe = np.maximum(n_a, 1)[..., None]
+        mean = s1 / safe
+        m2 = np.maximum(s2 - s1 * mean, 0.0)
+        return cls(n_a, mean, m2)
+
+    @classmethod
+    def from_mean_var(cls, mean, sample_var, n, **features) -> "PixelStats":
+        """Statistics from a mean image, its *sample* variance and the counts (EXR files)."""
+        mean = as_float_array("mean", mean, ndim=3, dtype=np.float64)
+        var = as_float_array("sample_var", sample_var, ndim=3, dtype=np.float64)
+        check_same_shape("sample_var", var, "mean", mean.shape)
+        check_finite("sample_var", var)
+        check_nonnegative("sample_var", var)
+        n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
+        m2 = var * np.maximum(n_a - 1, 0)[..., None]
+        return cls(n_a, mean, m2, **features)
+
+    # ------------------------------------------------------------------ shape
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(H, W, C)``."""
+        return self.mean.shape
+
+    @property
+    def total_samples(self) -> int:
+        return int(self.n.sum())
+
+    # ------------------------------------------------------------------ variances
+    @property
+    def sample_var(self) -> np.ndarray:
+        """Sample variance ``M2/(n−1)`` of one sample, ``(H, W, C)``; 0 where ``n < 2``."""
+        return self.m2 / np.maximum(self.n - 1, 1)[..., None]
+
+    @property
+    def mean_var(self) -> np.ndarray:
+        """Variance of the mean ``sample_var / n``, ``(H, W, C)``; 0 where ``n < 2``."""
+        return self.sample_var / np.maximum(self.n, 1)[..., None]
+
+    # ------------------------------------------------------------------ merging
+    def merge(self, other: "PixelStats") -> "PixelStats":
+        """Exact union of two independent sets of samples (Chan et al. 1979).
+
+        ``δ = mean_b − mean_a``, ``n = n_a + n_b``,
+        ``mean = mean_a + δ n_b/n``, ``M2 = M2_a + M2_b + δ² n_a n_b / n``.
+        Features are taken from ``self`` when present, else from ``other``.
+        """
+        if not isinstance(other, PixelStats):
+            raise InputError(f"can only merge PixelStats with PixelStats; got {type(other).__name__}.")
+        if other.shape != self.shape:
+            raise InputError(f"cannot merge statistics of shape {other.shape} into {self.shape}.")
+        na = self.n.astype(np.float64)[..., None]
+        nb = other.n.astype(np.float64)[..., None]
+        n = na + nb
+        safe = np.where(n > 0, n, 1.0)
+        delta = other.mean - self.mean
+        mean = self.mean + delta * (nb / safe)
+        m2 = self.m2 + other.m2 + delta * delta * (na * nb / safe)
+        return PixelStats(
+            self.n + other.n, mean, m2,
+            albedo=self.albedo if self.albedo is not None else other.albedo,
+            normal=self.normal if self.normal is not None else other.normal,
+            depth=self.depth if self.depth is not None else other.depth,
+            meta={**other.meta, **self.meta},
+        )
+
+    __add__ = merge
+
+    def with_features(self, **features) -> "PixelStats":
+        """A copy with feature buffers (``albedo``, ``normal``, ``depth``) set or replaced."""
+        unknown = set(features) - {"albedo", "normal", "depth"}
+        if unknown:
+            raise InputError(f"unknown feature buffers {sorted(unknown)}; expected albedo, normal, depth.")
+        return replace(self, **features)
+
+    def copy(self) -> "PixelStats":
+        return PixelStats(self.n.copy(), self.mean.copy(), self.m2.copy(),
+                          albedo=None if self.albedo is None else self.albedo.copy(),
+                          normal=None if self.normal is None else self.normal.copy(),
+                          depth=None if self.depth is None else self.depth.copy(),
+                          meta=dict(self.meta))
+
+
+def replace_nonfinite(a, value: float = 0.0):
+    """Return ``(copy of a with NaN/Inf replaced by value, number replaced)``."""
+    arr = np.array(a, copy=True)
+    bad = ~np.isfinite(arr)
+    arr[bad] = value
+    return arr, int(bad.sum())
