@@ -1,0 +1,60 @@
+"""Integer counts from a sampling map: exact budget, unbiased rounding, bad input."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy import stats as sps
+
+from statmc import InputError
+from statmc.sampling import counts_from_density
+
+
+@settings(max_examples=80, deadline=None)
+@given(d=arrays(np.float64, st.tuples(st.integers(1, 9), st.integers(1, 9)),
+                elements=st.floats(0, 1e6, allow_nan=False)),
+       budget=st.integers(0, 5000), seed=st.integers(0, 2**31))
+def test_budget_is_met_exactly_and_counts_bracket_target(d, budget, seed):
+    c = counts_from_density(d, budget, rng=seed)
+    assert c.dtype == np.int64 and c.shape == d.shape
+    assert c.sum() == budget and c.min() >= 0
+    if d.sum() > 0:
+        t = d / d.sum() * budget
+        assert np.all(c >= np.floor(t) - 1e-9) and np.all(c <= np.ceil(t) + 1e-9 + 1)
+
+
+def test_rounding_is_unbiased():
+    rng = np.random.default_rng(0)
+    d = rng.uniform(0, 1, size=(6, 7))
+    budget = 100
+    t = d / d.sum() * budget
+    reps = 4000
+    acc = np.zeros_like(d)
+    for s in range(reps):
+        acc += counts_from_density(d, budget, rng=s)
+    avg = acc / reps
+    # each count is floor(t)+Bernoulli(frac); per-pixel z-scores of the average
+    frac = t - np.floor(t)
+    se = np.sqrt(np.maximum(frac * (1 - frac), 1e-12) / reps)
+    z = ((avg - t) / se)[frac > 0.02]
+    p = sps.kstest(z, "norm").pvalue
+    assert p > 1e-3, f"rounding looks biased, KS p = {p:.2g}"
+
+
+def test_min_count_and_uniform_for_zero_map():
+    c = counts_from_density(np.zeros((4, 4)), 37, min_count=1, rng=0)
+    assert c.sum() == 37 and c.min() >= 1
+    with pytest.raises(InputError, match="min_count"):
+        counts_from_density(np.ones((4, 4)), 10, min_count=1)
+
+
+@pytest.mark.parametrize("d, match", [
+    (np.full((2, 2), np.nan), "NaN"), (-np.ones((2, 2)), ">= 0"), (np.ones(3), "dimensions")])
+def test_bad_density(d, match):
+    with pytest.raises(InputError, match=match):
+        counts_from_density(d, 10)
+
+
+def test_negative_budget():
+    with pytest.raises(InputError, match="budget"):
+        counts_from_density(np.ones((2, 2)), -1)
