@@ -1,0 +1,267 @@
+"""The ``statmc`` command line.
+
+Every command validates its input and exits non-zero with one line naming what is wrong
+(``--debug`` shows the traceback).  Outputs are written atomically and never onto an input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+from . import __version__
+from .errors import InputError
+
+EXIT_USAGE = 2
+
+
+# ---------------------------------------------------------------------------- helpers
+def _parse_size(text: str | None):
+    if text is None:
+        return None, None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size must look like WIDTHxHEIGHT (e.g. 128x96); got {text!r}.") from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"--size must be positive; got {text!r}.")
+    return w, h
+
+
+def _positive_int(name: str, value) -> int:
+    if value is None or int(value) != value or value < 0:
+        raise InputError(f"{name} must be a non-negative integer; got {value!r}.")
+    return int(value)
+
+
+def load_sample_map(path: str) -> np.ndarray:
+    """A per-pixel sample map ``(H, W)`` from a ``.npy`` file or a one-channel EXR."""
+    if not os.path.exists(path):
+        raise InputError(f"sample map {path} does not exist.")
+    if path.lower().endswith(".npy"):
+        try:
+            m = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise InputError(f"cannot read sample map {path} as .npy: {e}") from None
+    elif path.lower().endswith(".exr"):
+        from .exr import read_channels
+        ch = read_channels(path)
+        for name in ("SampleCount", "Y", "A", "R"):
+            if name in ch:
+                m = ch[name]
+                break
+        else:
+            if len(ch) != 1:
+                raise InputError(f"sample map {path} has channels {sorted(ch)}; expected "
+                                 "'SampleCount' or a single channel.")
+            m = next(iter(ch.values()))
+    else:
+        raise InputError(f"sample map {path} must be a .npy or .exr file.")
+    m = np.asarray(m)
+    if m.ndim == 3 and m.shape[2] == 1:
+        m = m[..., 0]
+    if m.ndim != 2 or not np.issubdtype(m.dtype, np.number):
+        raise InputError(f"sample map {path} must be a numeric (H, W) array; got {m.dtype} {m.shape}.")
+    m = m.astype(np.float64)
+    bad = ~np.isfinite(m)
+    if bad.any():
+        raise InputError(f"sample map {path} holds {int(bad.sum())} NaN/Inf values.")
+    if (m < 0).any():
+        raise InputError(f"sample map {path} holds {int((m < 0).sum())} negative values.")
+    return m
+
+
+def counts_for_render(height, width, *, spp=None, sample_map=None, seed=0) -> np.ndarray:
+    """The integer count map a render uses: uniform ``spp``, or a sample map.
+
+    A map of whole numbers is used as counts; a real-valued map is a density scaled to
+    the budget ``spp × H × W`` (exact total, unbiased rounding).
+    """
+    from .sampling import counts_from_density
+    if sample_map is None:
+        if spp is None:
+            raise InputError("give --spp (samples per pixel) or --sample-map.")
+        return np.full((height, width), _positive_int("--spp", spp), np.int64)
+    if sample_map.shape != (height, width):
+        raise InputError(f"sample map is {sample_map.shape[1]}x{sample_map.shape[0]} (WxH) but the "
+                         f"render is {width}x{height}; pass a matching --size.")
+    if np.all(sample_map == np.round(sample_map)) and spp is None:
+        return sample_map.astype(np.int64)
+    if spp is None:
+        raise InputError("a real-valued sample map needs --spp to set the budget.")
+    return counts_from_density(sample_map, _positive_int("--spp", spp) * height * width, rng=seed)
+
+
+def _write_json(path, obj, protect=()):
+    from ._atomic import write_text
+    write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n", protect=protect)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+# ---------------------------------------------------------------------------- commands
+def cmd_render(args) -> int:
+    from .exr import read_image, write_exr, write_png_preview
+    from .metrics import all_metrics
+    from .renderers import make_renderer
+
+    width, height = _parse_size(args.size)
+    sample_map = load_sample_map(args.sample_map) if args.sample_map else None
+    if sample_map is not None and width is None:
+        height, width = sample_map.shape
+    ref = read_image(args.reference) if args.reference else None
+    renderer = make_renderer(args.scene, width=width, height=height)
+    counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
+                               sample_map=sample_map, seed=args.seed)
+    if ref is not None and ref.shape[:2] != (renderer.height, renderer.width):
+        raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} but the render "
+                         f"is {renderer.width}x{renderer.height}.")
+    inputs = [p for p in (args.sample_map, args.reference) if p]
+    os.makedirs(args.out, exist_ok=True)
+    t0 = time.perf_counter()
+    stats = renderer.render(counts, seed=args.seed, progress=not args.quiet)
+    seconds = time.perf_counter() - t0
+    exr_path = os.path.join(args.out, "render.exr")
+    write_exr(exr_path, stats, protect=inputs)
+    write_png_preview(os.path.join(args.out, "render.png"), stats.mean, protect=inputs)
+    report = {
+        "scene": args.scene, "renderer": type(renderer).__name__,
+        "width": renderer.width, "height": renderer.height, "seed": args.seed,
+        "spp": float(counts.mean()), "total_samples": int(counts.sum()),
+        "spp_min": int(counts.min()), "spp_max": int(counts.max()),
+        "seconds": seconds, "samples_per_second": counts.sum() / max(seconds, 1e-12),
+        "renderer_info": {k: v for k, v in stats.meta.items() if np.isscalar(v) or isinstance(v, str)},
+    }
+    if ref is not None:
+        report["reference"] = args.reference
+        report["metrics"] = all_metrics(stats.mean.astype(np.float32), ref)
+    _write_json(os.path.join(args.out, "report.json"), report, protect=inputs)
+    if not args.quiet:
+        msg = f"wrote {exr_path} ({report['total_samples']} samples, {seconds:.2f} s"
+        msg += f", {report['samples_per_second'] / 1e6:.2f} M samples/s)"
+        if ref is not None:
+            msg += f"; relMSE {report['metrics']['relmse']:.4g}"
+        print(msg)
+    return 0
+
+
+def cmd_reference(args) -> int:
+    from tqdm import tqdm
+
+    from .exr import write_exr, write_png_preview
+    from .renderers import make_renderer
+
+    width, height = _parse_size(args.size)
+    spp = _positive_int("--spp", args.spp)
+    if spp == 0:
+        raise InputError("--spp must be positive for a reference.")
+    renderer = make_renderer(args.scene, width=width, height=height)
+    per_pass = min(spp, args.pass_spp)
+    passes = [per_pass] * (spp // per_pass) + ([spp % per_pass] if spp % per_pass else [])
+    stats = None
+    for k, s in enumerate(tqdm(passes, desc="reference passes", unit="pass", disable=args.quiet)):
+        counts = np.full((renderer.height, renderer.width), s, np.int64)
+        part = renderer.render(counts, seed=args.seed + 7919 * k, features=(k == 0))
+        stats = part if stats is None else stats.merge(part)
+    write_exr(args.out, stats)
+    write_png_preview(os.path.splitext(args.out)[0] + ".png", stats.mean)
+    if not args.quiet:
+        print(f"wrote {args.out} ({spp} spp in {len(passes)} passes)")
+    return 0
+
+
+def cmd_metrics(args) -> int:
+    from .exr import read_image
+    from .metrics import all_metrics
+    img = read_image(args.image)
+    ref = read_image(args.reference)
+    if img.shape != ref.shape:
+        raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
+                         f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
+    print(json.dumps(all_metrics(img, ref), indent=2, default=_json_default))
+    return 0
+
+
+def cmd_info(args) -> int:
+    from .exr import exr_info
+    print(json.dumps(exr_info(args.file), indent=2, default=_json_default))
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    from .renderers import list_scenes
+    for name, desc in list_scenes().items():
+        print(f"{name:24s} {desc}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="statmc", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"statmc {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("render", help="render a scene with uniform or mapped per-pixel sample counts")
+    r.add_argument("scene", help="built-in scene name (see `statmc scenes`), toy:NAME, or Mitsuba XML path")
+    r.add_argument("--spp", type=int, help="samples per pixel (the budget for a real-valued --sample-map)")
+    r.add_argument("--out", required=True, help="output directory")
+    r.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
+    r.add_argument("--reference", help="reference EXR: metrics go into report.json")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_render)
+
+    ref = sub.add_parser("reference", help="render a high-spp reference in passes")
+    ref.add_argument("scene")
+    ref.add_argument("--spp", type=int, required=True)
+    ref.add_argument("--out", required=True, help="output EXR path")
+    ref.add_argument("--size")
+    ref.add_argument("--seed", type=int, default=1_000_003)
+    ref.add_argument("--pass-spp", type=int, default=256, help="samples per pixel per pass")
+    ref.add_argument("-q", "--quiet", action="store_true")
+    ref.set_defaults(func=cmd_reference)
+
+    m = sub.add_parser("metrics", help="error metrics of an image against a reference (JSON)")
+    m.add_argument("image")
+    m.add_argument("reference")
+    m.set_defaults(func=cmd_metrics)
+
+    i = sub.add_parser("info", help="channels, size, sample counts and NaN/Inf counts of an EXR")
+    i.add_argument("file")
+    i.set_defaults(func=cmd_info)
+
+    s = sub.add_parser("scenes", help="list built-in scenes")
+    s.set_defaults(func=cmd_scenes)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("statmc: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, MemoryError) as e:  # InputError and FileFormatError are ValueErrors
+        if args.debug:
+            raise
+        print(f"statmc {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
