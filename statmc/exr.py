@@ -1,0 +1,585 @@
+"""OpenEXR files in pbrt-v4's gbuffer-film layout, read and written safely.
+
+The channel layout (``docs/file-format.md`` has the full table):
+
+=====================================  ==============================================
+``R, G, B``                            mean radiance of the pixel
+``Variance.R, Variance.G, Variance.B`` **sample variance** ``M2/(n-1)`` of *one* sample
+``SampleCount``                        samples in the pixel (statmc; pbrt-v4 omits it)
+``Albedo.R, Albedo.G, Albedo.B``       albedo feature
+``N.X, N.Y, N.Z``                      normal feature
+``Z`` (else pbrt-v4's ``P.Z``)         depth feature
+``Y``, ``Variance.Y``                  one-channel images instead of ``R, G, B``
+=====================================  ==============================================
+
+pbrt-v4's ``gbuffer`` film writes exactly these names (plus ``P.*``, ``dzdx``, ``dzdy``,
+``Ns.*``, ``u``, ``v`` and ``RelativeVariance.*``, which are kept as extra channels), so
+its output loads directly with :func:`read_exr`; since it stores no ``SampleCount``,
+pass the render's uniform ``spp``.
+
+Every failure to read raises :class:`~statmc.errors.FileFormatError` naming the file.
+Writes are atomic (temporary file beside the target, then ``os.replace``) and refuse
+to overwrite any path listed in ``protect``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .errors import FileFormatError, InputError, as_float_array, check_finite
+from .stats import PixelStats
+
+__all__ = ["read_exr", "read_image", "read_channels", "exr_info", "write_exr",
+           "write_png_preview", "to_display", "SAMPLE_COUNT"]
+
+SAMPLE_COUNT = "SampleCount"
+_RGB = ("R", "G", "B")
+_ALBEDO = ("Albedo.R", "Albedo.G", "Albedo.B")
+_NORMAL = ("N.X", "N.Y", "N.Z")
+_DEPTH = ("Z", "P.Z")            # preference order: our own ``Z``, then pbrt-v4's camera-space P.Z
+_MAX_F32_COUNT = 2 ** 24         # integers above this are not all representable in float32
+_TONEMAPS = ("srgb", "reinhard", "aces")
+
+
+# ---------------------------------------------------------------------------- reading
+def _name(path) -> str:
+    return os.fspath(path) if not isinstance(path, (bytes, bytearray)) else path.decode()
+
+
+def _open(path):
+    """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``."""
+    import OpenEXR
+
+    p = _name(path)
+    if not os.path.exists(p):
+        raise FileFormatError(f"EXR file {p!r} does not exist.")
+    if os.path.isdir(p):
+        raise FileFormatError(f"{p!r} is a directory, not an EXR file.")
+    try:
+        f = OpenEXR.File(p, separate_channels=True)
+        n_parts = len(f.parts)
+        header = f.header(0)
+        chans = f.channels(0)
+    except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
+        raise FileFormatError(f"{p!r} is not a readable OpenEXR file (corrupt, truncated or "
+                              f"another format): {e}") from None
+    storage = str(header.get("type", ""))
+    if "deep" in storage:
+        raise FileFormatError(f"{p!r} is a deep EXR ({storage}); only flat images are supported.")
+    (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
+    hw = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
+    arrays, types = {}, {}
+    for name, ch in chans.items():
+        px = np.asarray(ch.pixels)
+        if ch.xSampling != 1 or ch.ySampling != 1 or px.shape != hw:
+            raise FileFormatError(
+                f"{p!r}: channel {name!r} has size {px.shape} (sampling {ch.xSampling}x"
+                f"{ch.ySampling}) but the image is {hw[0]}x{hw[1]} (H x W); channels of "
+                "inconsistent sizes (subsampled channels) are not supported.")
+        arrays[name] = np.array(px, copy=True)           # own the data beyond the File object
+        types[name] = str(ch.type()).rsplit(".", 1)[-1].lower()
+    header = dict(header)
+    header["_parts"] = n_parts
+    return header, arrays, types
+
+
+def _group(p, arrays, names, what):
+    """Stack channels ``names`` as (H, W, k) float64, None when all are absent."""
+    present = [n for n in names if n in arrays]
+    if not present:
+        return None
+    if len(present) != len(names):
+        missing = [n for n in names if n not in arrays]
+        raise FileFormatError(f"{p!r} has only part of the {what} channels: missing {missing}; "
+                              f"channels present: {sorted(arrays)}.")
+    return np.stack([arrays[n].astype(np.float64) for n in names], axis=-1)
+
+
+def _color_names(p, arrays):
+    if any(n in arrays for n in _RGB):
+        if not all(n in arrays for n in _RGB):
+            missing = [n for n in _RGB if n not in arrays]
+            raise FileFormatError(f"{p!r} lacks colour channel(s) {missing}; expected R, G, B "
+                                  f"(or Y). Channels present: {sorted(arrays)}.")
+        return _RGB
+    if "Y" in arrays:
+        return ("Y",)
+    raise FileFormatError(f"{p!r} has no colour channels R, G, B (or Y); channels present: "
+                          f"{sorted(arrays)}.")
+
+
+def _count_nonfinite(a) -> tuple[int, int]:
+    if a is None or not np.issubdtype(a.dtype, np.floating):
+        return 0, 0
+    n_nan = int(np.isnan(a).sum())
+    return n_nan, int((~np.isfinite(a)).sum()) - n_nan
+
+
+def _check_policy(nonfinite, replace_value):
+    if nonfinite not in ("error", "replace"):
+        raise InputError(f"`nonfinite` must be 'error' or 'replace'; got {nonfinite!r}.")
+    if not np.isfinite(replace_value):
+        raise InputError(f"`replace_value` must be a finite number; got {replace_value!r}.")
+
+
+def _handle_nonfinite(p, groups: dict, nonfinite, replace_value):
+    """Count NaN/Inf per channel group; raise or replace in place. Returns counts."""
+    counts = {}
+    for key, a in groups.items():
+        n_nan, n_inf = _count_nonfinite(a)
+        if n_nan or n_inf:
+            counts[key] = {"nan": n_nan, "inf": n_inf}
+    if counts and nonfinite == "error":
+        detail = "; ".join(f"{k}: {v['nan']} NaN, {v['inf']} Inf" for k, v in counts.items())
+        raise FileFormatError(f"{p!r} holds non-finite values ({detail}); pass "
+                              "nonfinite='replace' to replace them by `replace_value`.")
+    for key in counts:
+        a = groups[key]
+        a[~np.isfinite(a)] = replace_value
+    return counts
+
+
+def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = "error",
+             replace_value: float = 0.0) -> PixelStats:
+    """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    spp : int or (H, W) array of int, optional
+        Samples per pixel, needed when the file has no ``SampleCount`` channel (pbrt-v4
+        output).  When the file has one, ``spp`` must agree with it or be omitted.
+    require_variance : bool, default True
+        Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
+        them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
+    nonfinite : {"error", "replace"}, default "error"
+        NaN/Inf pixels raise :class:`FileFormatError` with counts per channel group, or
+        are replaced by ``replace_value`` and counted in ``meta["nonfinite_replaced"]``.
+    replace_value : float, default 0.0
+        Replacement for non-finite values.
+
+    Returns
+    -------
+    PixelStats
+        ``n`` from ``SampleCount`` (or ``spp``); ``mean`` from ``R, G, B`` (or ``Y``);
+        ``M2 = Variance · (n − 1)`` since ``Variance.*`` holds the *sample* variance;
+        albedo, normal and depth when present.  ``meta`` holds ``source``, ``channels``,
+        ``extra_channels`` (present but unused), ``has_variance``, ``depth_channel``,
+        ``sample_count_source`` (``"file"`` or ``"spp"``), ``nonfinite_replaced`` and
+        ``nonfinite_by_group``.
+
+    Raises
+    ------
+    FileFormatError
+        Missing or unreadable file; missing colour, variance (unless allowed) or partial
+        feature channels; inconsistent channel sizes; no ``SampleCount`` and no ``spp``;
+        NaN/Inf (with ``nonfinite="error"``); negative variance; negative or fractional
+        sample counts.
+
+    Notes
+    -----
+    Pixels with ``n < 2`` keep no spread (``M2 = 0``); pbrt-v4 writes variance 0 there.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> s = PixelStats.from_mean_var(np.ones((2, 3, 3)), np.full((2, 3, 3), 0.25),
+    ...                              np.full((2, 3), 4))
+    >>> path = os.path.join(tempfile.mkdtemp(), "a.exr")
+    >>> write_exr(path, s)
+    >>> t = read_exr(path)
+    >>> float(t.sample_var[0, 0, 0]), int(t.n[0, 0])
+    (0.25, 4)
+    """
+    p = _name(path)
+    _check_policy(nonfinite, replace_value)
+    _, arrays, _ = _open(p)
+    color = _color_names(p, arrays)
+    mean = _group(p, arrays, color, "colour")
+    var_names = tuple("Variance." + c for c in color)
+    var = _group(p, arrays, var_names, "variance")
+    if var is None and require_variance:
+        raise FileFormatError(
+            f"{p!r} has no {', '.join(var_names)} channels (the sample variance per sample, "
+            f"as pbrt-v4's gbuffer film writes). Channels present: {sorted(arrays)}. Pass "
+            "require_variance=False to read it with zero variance, or use read_image().")
+    albedo = _group(p, arrays, _ALBEDO, "albedo")
+    normal = _group(p, arrays, _NORMAL, "normal")
+    depth_name = next((d for d in _DEPTH if d in arrays), None)
+    depth = arrays[depth_name].astype(np.float64) if depth_name else None
+    count = arrays[SAMPLE_COUNT].astype(np.float64) if SAMPLE_COUNT in arrays else None
+    if count is None and spp is None:
+        raise FileFormatError(
+            f"{p!r} has no {SAMPLE_COUNT} channel, so the samples per pixel are unknown "
+            f"(pbrt-v4 does not write them): pass the render's uniform spp=. Channels present: "
+            f"{sorted(arrays)}.")
+
+    groups = {"+".join(color): mean, "Variance": var, "Albedo": albedo, "N": normal,
+              depth_name or "Z": depth, SAMPLE_COUNT: count}
+    groups = {k: v for k, v in groups.items() if v is not None}
+    by_group = _handle_nonfinite(p, groups, nonfinite, replace_value)
+
+    if var is not None and var.size and var.min() < 0:
+        raise FileFormatError(f"{p!r}: Variance channels hold {int((var < 0).sum())} negative "
+                              f"values (min {var.min():.4g}); a variance is >= 0.")
+    if count is not None:
+        _check_counts(p, count)
+        if spp is not None:
+            want = np.broadcast_to(_spp_map(spp, count.shape), count.shape)
+            if np.any(want != count):
+                raise InputError(f"`spp` disagrees with the {SAMPLE_COUNT} channel of {p!r} in "
+                                 f"{int((want != count).sum())} pixels; omit spp= to use the file's counts.")
+        n, source = count, "file"
+    else:
+        n, source = _spp_map(spp, mean.shape[:2]).astype(np.float64), "spp"
+    if var is None:
+        var = np.zeros_like(mean)
+    stats = PixelStats.from_mean_var(mean, var, n, albedo=albedo, normal=normal, depth=depth)
+    stats.meta.update({
+        "source": p, "channels": sorted(arrays),
+        "extra_channels": sorted(set(arrays) - set(color) - set(var_names) - set(_ALBEDO)
+                                 - set(_NORMAL) - {depth_name, SAMPLE_COUNT}),
+        "has_variance": bool(all(v in arrays for v in var_names)),
+        "depth_channel": depth_name, "sample_count_source": source,
+        "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
+        "nonfinite_by_group": by_group,
+    })
+    return stats
+
+
+def _check_counts(p, count):
+    if count.size and count.min() < 0:
+        raise FileFormatError(f"{p!r}: {SAMPLE_COUNT} holds {int((count < 0).sum())} negative "
+                              f"values (min {count.min():.4g}); sample counts are >= 0.")
+    frac = count != np.round(count)
+    if frac.any():
+        raise FileFormatError(f"{p!r}: {SAMPLE_COUNT} holds {int(frac.sum())} non-integer values "
+                              f"(e.g. {count[frac].flat[0]:.6g}); sample counts are whole numbers.")
+
+
+def _spp_map(spp, hw):
+    a = np.asarray(spp)
+    if a.dtype == bool or not np.issubdtype(a.dtype, np.number):
+        raise InputError(f"`spp` must be a whole number of samples per pixel; got {spp!r}.")
+    if a.ndim not in (0, 2) or (a.ndim == 2 and a.shape != tuple(hw)):
+        raise InputError(f"`spp` must be a number or an {tuple(hw)} count map; got shape {a.shape}.")
+    af = a.astype(np.float64)
+    if not np.all(np.isfinite(af)) or np.any(af < 0) or np.any(af != np.round(af)):
+        raise InputError(f"`spp` must hold whole numbers >= 0; got {spp!r}." if a.ndim == 0 else
+                         "`spp` must hold whole numbers >= 0; the map has other values.")
+    return np.broadcast_to(af, tuple(hw))
+
+
+def read_image(path, *, nonfinite: str = "error", replace_value: float = 0.0) -> np.ndarray:
+    """Read the colour of an EXR file as an ``(H, W, 3)`` (or ``(H, W, 1)`` for ``Y``) float32 array.
+
+    For plain images such as references; variance and counts are ignored.  NaN/Inf follow
+    ``nonfinite`` as in :func:`read_exr`.
+    """
+    p = _name(path)
+    _check_policy(nonfinite, replace_value)
+    _, arrays, _ = _open(p)
+    color = _color_names(p, arrays)
+    img = np.stack([arrays[c].astype(np.float32) for c in color], axis=-1)
+    _handle_nonfinite(p, {"+".join(color): img}, nonfinite, replace_value)
+    return img
+
+
+def read_channels(path, names=None) -> dict:
+    """Raw channels of an EXR file: ``{name: (H, W) array}`` (all, or those in ``names``).
+
+    Values are returned as stored (float16/float32/uint32), NaN/Inf included.
+    """
+    p = _name(path)
+    _, arrays, _ = _open(p)
+    if names is None:
+        return arrays
+    names = [names] if isinstance(names, str) else list(names)
+    missing = [n for n in names if n not in arrays]
+    if missing:
+        raise FileFormatError(f"{p!r} lacks channel(s) {missing}; channels present: {sorted(arrays)}.")
+    return {n: arrays[n] for n in names}
+
+
+def _group_of(name: str) -> str:
+    if name in _RGB:
+        return "R+G+B"
+    return name.rsplit(".", 1)[0] if "." in name else name
+
+
+def exr_info(path) -> dict:
+    """A JSON-ready summary of an EXR file (for ``statmc info``).
+
+    Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
+    ``compression``, ``parts``, ``channels`` (name → pixel type), ``groups`` (group →
+    channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
+    ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
+    (group → NaN and Inf counts, only groups that have any).
+    """
+    p = _name(path)
+    header, arrays, types = _open(p)
+    (x0, y0), (x1, y1) = (np.asarray(v).tolist() for v in header["dataWindow"])
+    groups: dict[str, list[str]] = {}
+    for n in sorted(arrays):
+        groups.setdefault(_group_of(n), []).append(n)
+    nonfinite = {}
+    for g, names in groups.items():
+        c = np.array([_count_nonfinite(arrays[n]) for n in names]).sum(axis=0)
+        if c.any():
+            nonfinite[g] = {"nan": int(c[0]), "inf": int(c[1])}
+    sc = None
+    if SAMPLE_COUNT in arrays:
+        a = arrays[SAMPLE_COUNT].astype(np.float64)
+        fin = a[np.isfinite(a)]
+        sc = {"min": float(fin.min()), "mean": float(fin.mean()), "max": float(fin.max()),
+              "total": float(fin.sum())} if fin.size else None
+    disp = header.get("displayWindow", header["dataWindow"])
+    return {
+        "path": p, "width": int(x1 - x0 + 1), "height": int(y1 - y0 + 1),
+        "data_window": [int(x0), int(y0), int(x1), int(y1)],
+        "display_window": [int(v) for v in np.concatenate([np.asarray(d) for d in disp])],
+        "compression": str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0],
+        "parts": int(header["_parts"]),
+        "channels": {n: types[n] for n in sorted(arrays)},
+        "groups": groups,
+        "layout": {
+            "color": "R,G,B" if all(c in arrays for c in _RGB) else ("Y" if "Y" in arrays else None),
+            "variance": any(n.startswith("Variance.") for n in arrays),
+            "sample_count": SAMPLE_COUNT in arrays,
+            "albedo": all(c in arrays for c in _ALBEDO),
+            "normal": all(c in arrays for c in _NORMAL),
+            "depth": next((d for d in _DEPTH if d in arrays), None),
+        },
+        "sample_count": sc,
+        "nonfinite": nonfinite,
+    }
+
+
+# ---------------------------------------------------------------------------- writing
+def _as_protect(protect):
+    if protect is None:
+        return ()
+    if isinstance(protect, (str, bytes, os.PathLike)):
+        return (protect,)
+    return tuple(protect)
+
+
+def _refuse_inputs(path: str, protect) -> None:
+    """Raise :class:`InputError` when ``path`` names the same file as any of ``protect``."""
+    real = os.path.realpath(path)
+    for q in _as_protect(protect):
+        if q is None:
+            continue
+        q = _name(q)
+        same = os.path.realpath(q) == real
+        if not same and os.path.exists(path) and os.path.exists(q):
+            try:
+                same = os.path.samefile(path, q)        # hard links
+            except OSError:
+                pass
+        if same:
+            raise InputError(f"refusing to write {path!r}: it is the input file {q!r}; "
+                             "choose another output path (statmc never overwrites an input).")
+
+
+def _final_mode(path: str) -> int:
+    """Permissions for a new file: those of the file being replaced, else 0o666 & ~umask."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
+def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
+    """Call ``write(tmp)`` on a temporary path beside ``path``, then rename it onto ``path``.
+
+    On any failure the temporary file is removed and an existing ``path`` is untouched.
+    """
+    from ._atomic import atomic_path
+
+    p = _name(path)
+    _refuse_inputs(p, protect)
+    if os.path.isdir(p):
+        raise InputError(f"cannot write {p!r}: it is a directory.")
+    if not overwrite and os.path.lexists(p):
+        raise InputError(f"{p!r} exists and overwrite=False; choose another path or allow overwriting.")
+    mode = _final_mode(p)
+    with atomic_path(p, protect=_as_protect(protect)) as tmp:
+        write(tmp)
+        os.chmod(tmp, mode)
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+
+
+def _write_exr_file(tmp: str, channels: dict) -> None:
+    """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, channels).write(tmp)
+
+
+def _f32(name, a):
+    out = np.ascontiguousarray(a, dtype=np.float32)
+    check_finite(name + " (as float32)", out)
+    return out
+
+
+def _image_channels(image) -> dict:
+    img = as_float_array("image", image, ndim=(2, 3))
+    if img.ndim == 2:
+        img = img[..., None]
+    c = img.shape[2]
+    if c not in (1, 3):
+        raise InputError(f"`image` must have 1 or 3 channels (Y or R, G, B); got shape {img.shape}.")
+    names = ("Y",) if c == 1 else _RGB
+    return {n: _f32("image", img[..., k]) for k, n in enumerate(names)}
+
+
+def _stats_channels(stats: PixelStats) -> dict:
+    c = stats.shape[2]
+    if c not in (1, 3):
+        raise InputError(f"PixelStats to write must have 1 or 3 channels (Y or R, G, B); got {stats.shape}.")
+    color = ("Y",) if c == 1 else _RGB
+    var = stats.sample_var
+    out = {}
+    for k, n in enumerate(color):
+        out[n] = _f32("mean", stats.mean[..., k])
+        out["Variance." + n] = _f32("sample_var", var[..., k])
+    nmax = int(stats.n.max()) if stats.n.size else 0
+    if nmax <= _MAX_F32_COUNT:
+        out[SAMPLE_COUNT] = stats.n.astype(np.float32)
+    elif nmax <= np.iinfo(np.uint32).max:
+        out[SAMPLE_COUNT] = stats.n.astype(np.uint32)   # exact beyond float32's 2**24
+    else:
+        raise InputError(f"sample counts up to {nmax} do not fit an EXR channel (max 2**32 - 1).")
+    for feat, names in (("albedo", _ALBEDO), ("normal", _NORMAL)):
+        a = getattr(stats, feat)
+        if a is not None:
+            if a.ndim != 3 or a.shape[2] != 3:
+                raise InputError(f"feature `{feat}` must be (H, W, 3) to be written; got {a.shape}.")
+            for k, n in enumerate(names):
+                out[n] = _f32(feat, a[..., k])
+    if stats.depth is not None:
+        d = stats.depth
+        if d.ndim == 3 and d.shape[2] == 1:
+            d = d[..., 0]
+        if d.ndim != 2:
+            raise InputError(f"feature `depth` must be (H, W) to be written; got {d.shape}.")
+        out["Z"] = _f32("depth", d)
+    return out
+
+
+def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> None:
+    """Write per-pixel statistics or a plain image as an EXR file, atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file.
+    data : PixelStats or (H, W, 3) / (H, W) ndarray
+        Statistics are written with all channels of the layout (float32, with the
+        *sample* variance in ``Variance.*`` and ``SampleCount`` as float32, or uint32
+        beyond 2**24 samples); a plain image as ``R, G, B`` (or ``Y``) only.
+    extra : dict of str to (H, W) ndarray, optional
+        Further channels, e.g. selected filter scales; names must not clash with the layout.
+    overwrite : bool, default True
+        With ``False``, an existing ``path`` raises :class:`InputError`.
+    protect : path or sequence of paths
+        Files that must never be overwritten (the command's inputs): writing onto any of
+        them (same path, symlink or hard link) raises :class:`InputError`.
+
+    Notes
+    -----
+    The file is first written beside ``path`` under a temporary name and then renamed
+    onto it (``os.replace``), so readers see the old or the new file, never a partial one;
+    on failure the temporary file is removed and an existing file stays as it was.
+    Values are stored as float32: float32-representable data round-trips bit-exactly.
+    """
+    if isinstance(data, PixelStats):
+        channels = _stats_channels(data)
+    else:
+        channels = _image_channels(data)
+    hw = next(iter(channels.values())).shape
+    for name, a in (extra or {}).items():
+        if not isinstance(name, str) or not name or name in channels:
+            raise InputError(f"`extra` channel names must be new non-empty strings; got {name!r} "
+                             f"(already used: {sorted(channels)}).")
+        arr = as_float_array(f"extra[{name!r}]", a, ndim=2)
+        if arr.shape != hw:
+            raise InputError(f"`extra[{name!r}]` must have the image size {hw}; got {arr.shape}.")
+        channels[name] = _f32(f"extra[{name!r}]", arr)
+
+    def write(tmp):
+        try:
+            _write_exr_file(tmp, channels)
+        except OSError:
+            raise
+        except Exception as e:
+            raise FileFormatError(f"could not write EXR file {_name(path)!r}: {e}") from e
+
+    _atomic_write(path, write, overwrite=overwrite, protect=protect)
+
+
+# ---------------------------------------------------------------------------- previews
+def _srgb_encode(x):
+    """sRGB transfer function (IEC 61966-2-1) of linear values clamped to [0, 1]."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def to_display(image, *, exposure: float = 0.0, tonemap: str = "srgb") -> np.ndarray:
+    """Linear radiance to display values in [0, 1]: exposure, tone curve, sRGB encoding.
+
+    Parameters
+    ----------
+    image : (H, W, C) or (H, W) ndarray or PixelStats (its mean)
+    exposure : float
+        Stops: the image is scaled by ``2**exposure`` first.
+    tonemap : {"srgb", "reinhard", "aces"}
+        ``"srgb"`` clamps to [0, 1]; ``"reinhard"`` applies ``x / (1 + x)`` per channel
+        (Reinhard et al. 2002, Eq. 3); ``"aces"`` applies Narkowicz's (2015) fit
+        ``x(2.51x + 0.03) / (x(2.43x + 0.59) + 0.14)`` of the ACES curve.  The sRGB
+        transfer function follows in all cases.
+    """
+    if isinstance(image, PixelStats):
+        image = image.mean
+    x = as_float_array("image", image, ndim=(2, 3))
+    check_finite("image", x)
+    if not np.isfinite(exposure):
+        raise InputError(f"`exposure` must be a finite number of stops; got {exposure!r}.")
+    if tonemap not in _TONEMAPS:
+        raise InputError(f"`tonemap` must be one of {_TONEMAPS}; got {tonemap!r}.")
+    x = np.maximum(x.astype(np.float64) * 2.0 ** exposure, 0.0)
+    if tonemap == "reinhard":
+        x = x / (1.0 + x)
+    elif tonemap == "aces":
+        x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)
+    return _srgb_encode(x)
+
+
+def write_png_preview(path, image, *, exposure: float = 0.0, tonemap: str = "srgb",
+                      overwrite: bool = True, protect=()) -> None:
+    """Write an 8-bit sRGB PNG preview of a linear image, atomically (see :func:`to_display`).
+
+    ``image`` is ``(H, W, 3)``, ``(H, W, 1)``, ``(H, W)`` or a :class:`PixelStats`.
+    ``overwrite`` and ``protect`` behave as in :func:`write_exr`.
+    """
+    from PIL import Image
+
+    disp = to_display(image, exposure=exposure, tonemap=tonemap)
+    if disp.ndim == 3 and disp.shape[2] == 1:
+        disp = disp[..., 0]
+    if disp.ndim == 3 and disp.shape[2] != 3:
+        raise InputError(f"`image` must have 1 or 3 channels for a PNG preview; got {disp.shape}.")
+    u8 = np.round(disp * 255.0).astype(np.uint8)
+
+    def write(tmp):
+        Image.fromarray(u8).save(tmp, format="PNG")
+
+    _atomic_write(path, write, overwrite=overwrite, protect=protect)
