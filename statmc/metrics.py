@@ -1,0 +1,354 @@
+"""Image error metrics against a reference: relMSE, MSE, RMSE, SMAPE, logLoss, 1−SSIM, FLIP.
+
+All take the test image ``x`` first and the reference ``ref`` second, both ``(H, W, C)``
+(or ``(H, W)``, read as one channel) of the same shape and finite.  Each returns the
+mean over pixels and channels as a Python ``float``; ``per_pixel=True`` returns instead
+the ``(H, W)`` map averaged over channels (for RMSE the root of the per-pixel MSE).
+Computations run in float64.
+
+References
+----------
+.. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and Reconstruction using
+   Greedy Error Minimization", ACM TOG 30(6), 2011. doi:10.1145/2070781.2024193
+.. [2] F. Salehi, M. Manzi, G. Roethlin, R. Weber, C. Schroers, M. Papas, "Deep Adaptive
+   Sampling and Reconstruction using Analytic Distributions", ACM TOG 41(6), 2022.
+   doi:10.1145/3550454.3555515
+.. [3] Z. Wang, A. C. Bovik, H. R. Sheikh, E. P. Simoncelli, "Image Quality Assessment:
+   From Error Visibility to Structural Similarity", IEEE TIP 13(4), 2004.
+   doi:10.1109/TIP.2003.819861
+.. [4] P. Andersson, J. Nilsson, T. Akenine-Möller, M. Oskarsson, K. Åström,
+   M. D. Fairchild, "FLIP: A Difference Evaluator for Alternating Images", Proc. ACM
+   Comput. Graph. Interact. Tech. 3(2), 2020. doi:10.1145/3406183
+.. [5] T. Vogels, F. Rousselle, B. McWilliams, G. Röthlin, A. Harvill, D. Adler, M. Meyer,
+   J. Novák, "Denoising with Kernel Prediction and Asymmetric Loss Functions", ACM TOG
+   37(4), 2018. doi:10.1145/3197517.3201388
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import InputError, as_float_array, check_finite
+
+__all__ = ["relmse", "mse", "rmse", "smape", "logloss", "one_minus_ssim", "ssim_map", "flip",
+           "all_metrics", "METRICS"]
+
+_FLT_EPS = float(np.finfo(np.float32).eps)
+# Tone-curve coefficients FLIP uses to pick its exposure range (flip_evaluator, HDR-FLIP [4] §4).
+_FLIP_TONEMAP = {
+    "aces": (0.6 * 0.6 * 2.51, 0.6 * 0.03, 0.0, 0.6 * 0.6 * 2.43, 0.6 * 0.59, 0.14),
+    "hable": (0.231683, 0.013791, 0.0, 0.18, 0.3, 0.018),
+    "reinhard": (0.0, 1.0, 0.0, 0.0, 1.0, 1.0),
+}
+
+
+def _pair(x, ref):
+    """Validate a test/reference pair; return float64 (H, W, C) copies."""
+    xa = as_float_array("x", x, ndim=(2, 3))
+    ra = as_float_array("ref", ref, ndim=(2, 3))
+    if xa.shape != ra.shape:
+        raise InputError(f"`x` and `ref` must have the same shape; got x {xa.shape} and ref {ra.shape}.")
+    if xa.size == 0:
+        raise InputError(f"`x` and `ref` must not be empty; got shape {xa.shape}.")
+    check_finite("x", xa)
+    check_finite("ref", ra)
+    if xa.ndim == 2:
+        xa, ra = xa[..., None], ra[..., None]
+    return xa.astype(np.float64), ra.astype(np.float64)
+
+
+def _eps(eps, name="eps"):
+    e = float(eps)
+    if not np.isfinite(e) or e < 0:
+        raise InputError(f"`{name}` must be a finite number >= 0; got {eps!r}.")
+    return e
+
+
+def _reduce(err, per_pixel):
+    """Mean over channels per pixel (map) or over everything (float)."""
+    return err.mean(axis=2) if per_pixel else float(err.mean())
+
+
+def relmse(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
+    """Relative mean squared error ``mean((x − r)² / (r² + ε))`` (relMSE, also called MRSE).
+
+    Parameters
+    ----------
+    x, ref : (H, W, C) or (H, W) ndarray
+        Test image and reference.
+    eps : float, default 0.01
+        ``ε`` of §7 of [1]_, which keeps dark pixels from dominating.  ``eps = 0`` needs a
+        reference without zeros.
+    per_pixel : bool, default False
+        Return the ``(H, W)`` map (mean over channels) instead of the mean.
+
+    Notes
+    -----
+    Relative pixel MSE ``(img − ref)²/(ref² + ε)`` averaged over the image, ε = 0.01
+    (§7 "Results" of Rousselle et al. [1]_).
+
+    Examples
+    --------
+    >>> relmse(np.array([[2.0]]), np.array([[1.0]]), eps=0.0)
+    1.0
+    """
+    xa, ra = _pair(x, ref)
+    e = _eps(eps)
+    den = ra * ra + e
+    if e == 0 and np.any(den == 0):
+        raise InputError("`eps` = 0 needs a reference without zeros; got "
+                         f"{int((den == 0).sum())} zero values in `ref`. Use eps > 0.")
+    return _reduce((xa - ra) ** 2 / den, per_pixel)
+
+
+def mse(x, ref, *, per_pixel: bool = False):
+    """Mean squared error ``mean((x − r)²)``."""
+    xa, ra = _pair(x, ref)
+    return _reduce((xa - ra) ** 2, per_pixel)
+
+
+def rmse(x, ref, *, per_pixel: bool = False):
+    """Root mean squared error ``sqrt(mean((x − r)²))``; per pixel the root of the pixel's MSE."""
+    m = mse(x, ref, per_pixel=per_pixel)
+    return np.sqrt(m) if per_pixel else float(np.sqrt(m))
+
+
+def smape(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
+    """Symmetric mean absolute percentage error ``mean(|x − r| / (|x| + |r| + ε))``.
+
+    SMAPE as used for denoiser training by Vogels et al. [5]_ and for evaluation by
+    Firmino et al. (2022); ``ε = 0.01`` avoids division by zero on black pixels.  It is
+    symmetric in ``x`` and ``ref`` and lies in ``[0, 1)``.
+
+    Examples
+    --------
+    >>> round(smape(np.array([[3.0]]), np.array([[1.0]]), eps=0.0), 12)
+    0.5
+    """
+    xa, ra = _pair(x, ref)
+    e = _eps(eps)
+    den = np.abs(xa) + np.abs(ra) + e
+    if e == 0 and np.any(den == 0):
+        raise InputError("`eps` = 0 needs no pixel where both `x` and `ref` are 0; use eps > 0.")
+    return _reduce(np.abs(xa - ra) / den, per_pixel)
+
+
+def _laplacian_of_gaussian(a, sigma):
+    """Laplacian of Gaussian of each channel of ``a`` (H, W, C), reflecting at borders.
+
+    Separable: ``g'' ⊗ g + g ⊗ g''`` with ``g`` the normalised Gaussian sampled on
+    ``[−4σ, 4σ]`` and ``g''(t) = (t² − σ²)/σ⁴ · g(t)``, made zero-sum by subtracting
+    ``(Σ g'') g`` so that constants map to 0 as for the continuous operator (the plain
+    sampled kernel of ``scipy.ndimage.gaussian_laplace`` leaves a ~1e-4 residue).
+    """
+    rad = int(4.0 * sigma + 0.5)
+    t = np.arange(-rad, rad + 1, dtype=np.float64)
+    g = np.exp(-0.5 * t * t / (sigma * sigma))
+    g /= g.sum()
+    g2 = (t * t - sigma * sigma) / sigma ** 4 * g
+    g2 -= g2.sum() * g
+
+    def sep(a, k0, k1):
+        return ndimage.correlate1d(ndimage.correlate1d(a, k0, axis=0, mode="reflect"),
+                                   k1, axis=1, mode="reflect")
+
+    return sep(a, g2, g) + sep(a, g, g2)
+
+
+def logloss(x, ref, eps: float = 0.01, *, sigma: float = 1.0, per_pixel: bool = False):
+    """logLoss of Eq. 12 of Salehi et al. [2]_ (after Kuznetsov et al. 2018).
+
+    With ``x' = log(1 + x)`` and ``r' = log(1 + ref)``::
+
+        ℓ = 0.5 |x' − r'| / (r' + ε) + 0.5 |L(x') − L(r')| / (r' + ε)
+
+    where ``L`` is the Laplacian-of-Gaussian operator, applied per channel; the loss is
+    the mean of ``ℓ`` over pixels and channels ("the mean of the logLoss over all image
+    pixels", §4.5 of [2]_).
+
+    Parameters
+    ----------
+    x, ref : (H, W, C) or (H, W) ndarray
+        Test image (values > −1) and reference (values >= 0).
+    eps : float, default 0.01
+        ``ε`` of Eq. 12 of [2]_.
+    sigma : float, default 1.0
+        Standard deviation (pixels) of the LoG.  [2]_ does not state it; 1 px is our
+        choice.  See :func:`_laplacian_of_gaussian` for the discrete kernel.
+    per_pixel : bool, default False
+        Return the ``(H, W)`` map of ``ℓ`` averaged over channels.
+    """
+    xa, ra = _pair(x, ref)
+    e = _eps(eps)
+    if not np.isfinite(sigma) or sigma <= 0:
+        raise InputError(f"`sigma` must be a positive number of pixels; got {sigma!r}.")
+    if xa.min() <= -1:
+        raise InputError(f"`x` must be > -1 for log(1 + x); got min {xa.min():.4g}.")
+    if ra.min() < 0:
+        raise InputError(f"`ref` must be >= 0 (radiance) for logLoss; got min {ra.min():.4g}.")
+    xl, rl = np.log1p(xa), np.log1p(ra)
+    den = rl + e
+    if e == 0 and np.any(den == 0):
+        raise InputError("`eps` = 0 needs a reference without zeros; use eps > 0.")
+    lap = _laplacian_of_gaussian(xl - rl, sigma)           # L is linear: L(x') − L(r')
+    err = 0.5 * np.abs(xl - rl) / den + 0.5 * np.abs(lap) / den
+    return _reduce(err, per_pixel)
+
+
+def ssim_map(x, ref, *, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01,
+             k2: float = 0.03) -> np.ndarray:
+    """Per-pixel, per-channel SSIM index (Eq. 13 of Wang et al. [3]_), ``(H, W, C)``.
+
+    ``SSIM = (2 μx μy + C1)(2 σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2))`` with
+    ``C1 = (k1 L)²``, ``C2 = (k2 L)²``, ``L = data_range``, and local moments weighted by
+    a Gaussian window of standard deviation ``sigma`` (1.5 px, truncated at 3.5σ: the
+    11×11 window of §III.C of [3]_), normalised, without the ``N/(N−1)`` correction.
+    Borders use reflection, so the map covers the whole image.
+    """
+    xa, ra = _pair(x, ref)
+    if not np.isfinite(data_range) or data_range <= 0:
+        raise InputError(f"`data_range` must be a positive number; got {data_range!r}.")
+    if not np.isfinite(sigma) or sigma <= 0:
+        raise InputError(f"`sigma` must be a positive number of pixels; got {sigma!r}.")
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+
+    def blur(a):
+        return ndimage.gaussian_filter(a, sigma=(sigma, sigma, 0), mode="reflect", truncate=3.5)
+
+    mx, my = blur(xa), blur(ra)
+    vx = blur(xa * xa) - mx * mx
+    vy = blur(ra * ra) - my * my
+    cxy = blur(xa * ra) - mx * my
+    return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+
+
+def one_minus_ssim(x, ref, *, data_range: float = 1.0, sigma: float = 1.5,
+                   per_pixel: bool = False):
+    """``1 − SSIM`` (Wang et al. [3]_), mean over pixels and channels; see :func:`ssim_map`.
+
+    ``data_range`` is the dynamic range ``L`` (1 for display-referred images in [0, 1]);
+    for linear HDR radiance tone-map first (e.g. :func:`statmc.exr.to_display`) or pass
+    the range you compare at.
+    """
+    s = ssim_map(x, ref, data_range=data_range, sigma=sigma)
+    return _reduce(1.0 - s, per_pixel)
+
+
+def _flip_exposures(ref_rgb, test_rgb, tonemapper):
+    """FLIP's exposure range for a (near-)black reference, or None to let FLIP choose.
+
+    HDR-FLIP ([4]_, flip_evaluator) starts at ``log2(x_max / Y_max)`` and stops at
+    ``log2(x_max / Y_median)`` of the reference luminance, the median clamped at float32
+    epsilon, ``x_max`` being where the tone curve reaches 0.85.  When ``Y_max`` is below
+    that epsilon the start exceeds the stop (or is infinite) and flip_evaluator ends the
+    process.  We then keep FLIP's start, anchored at the test image's maximum when the
+    reference is all black, and raise the stop to the start; FLIP's scale invariance
+    (``FLIP(c x, c r) = FLIP(x, r)``) is kept.  Returns ``"zero"`` when both images are black.
+    """
+    w = np.array([0.2126, 0.7152, 0.0722])               # linear sRGB luminance, as FLIP
+    y_ref = ref_rgb @ w
+    y_max = float(y_ref.max())
+    if y_max > 4 * _FLT_EPS:
+        return None
+    anchor = y_max if y_max > 0 else float((test_rgb @ w).max())
+    if anchor <= 0:
+        return "zero"
+    a0, b0, c0, d0, e0, f0 = _FLIP_TONEMAP[tonemapper]
+    t = 0.85
+    a, b, c = a0 - t * d0, b0 - t * e0, c0 - t * f0
+    xmax = -c / b if a == 0 else float(max(np.roots([a, b, c]).real))
+    start = float(np.log2(xmax / anchor))
+    stop = max(start, float(np.log2(xmax / max(float(np.median(y_ref)), _FLT_EPS))))
+    return start, stop
+
+
+def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
+         per_pixel: bool = False):
+    """HDR-FLIP error of ``x`` against ``ref`` (Andersson et al. [4]_), via ``flip_evaluator``.
+
+    Parameters
+    ----------
+    x, ref : (H, W, 3) or (H, W) / (H, W, 1) ndarray
+        Linear radiance (>= 0); one channel is repeated to grey RGB.
+    tonemapper : {"aces", "hable", "reinhard"}
+        Tone curve HDR-FLIP assumes.
+    ppd : float, optional
+        Pixels per degree of visual angle (FLIP's default, about 67, when None).
+    per_pixel : bool
+        Return FLIP's ``(H, W)`` error map instead of its mean.
+
+    Notes
+    -----
+    The parameters are validated here because flip_evaluator ends the process
+    (``sys.exit``) on invalid ones, and an all-black reference (which it cannot handle)
+    gets an explicit exposure range (see ``_flip_exposures``).
+    """
+    import flip_evaluator
+
+    xa, ra = _pair(x, ref)
+    if xa.shape[2] == 1:
+        xa, ra = np.repeat(xa, 3, axis=2), np.repeat(ra, 3, axis=2)
+    if xa.shape[2] != 3:
+        raise InputError(f"`x` and `ref` must have 1 or 3 channels for FLIP; got {xa.shape}.")
+    for name, a in (("x", xa), ("ref", ra)):
+        if a.min() < 0:
+            raise InputError(f"`{name}` must be >= 0 for HDR-FLIP (linear radiance); got "
+                             f"{int((a < 0).sum())} negative values (min {a.min():.4g}); "
+                             "clip them first, e.g. np.maximum(x, 0).")
+    if tonemapper not in _FLIP_TONEMAP:
+        raise InputError(f"`tonemapper` must be one of {sorted(_FLIP_TONEMAP)}; got {tonemapper!r}.")
+    params = {"tonemapper": tonemapper}
+    if ppd is not None:
+        if not np.isfinite(ppd) or ppd <= 0:
+            raise InputError(f"`ppd` must be a positive number of pixels per degree; got {ppd!r}.")
+        params["ppd"] = float(ppd)
+    exposures = _flip_exposures(ra, xa, tonemapper)
+    if isinstance(exposures, str):                       # both images black: no difference
+        return np.zeros(xa.shape[:2]) if per_pixel else 0.0
+    if exposures is not None:
+        params["startExposure"], params["stopExposure"] = exposures
+    xf = np.ascontiguousarray(xa, dtype=np.float32)
+    rf = np.ascontiguousarray(ra, dtype=np.float32)
+    check_finite("x (as float32)", xf)
+    check_finite("ref (as float32)", rf)
+    err_map, mean_err, _ = flip_evaluator.evaluate(rf, xf, "HDR", applyMagma=False,
+                                                   computeMeanError=True, parameters=params)
+    err_map = np.asarray(err_map, dtype=np.float64).reshape(xa.shape[:2])
+    return err_map if per_pixel else float(mean_err)
+
+
+METRICS = {
+    "relmse": relmse,
+    "mse": mse,
+    "rmse": rmse,
+    "smape": smape,
+    "logloss": logloss,
+    "one_minus_ssim": one_minus_ssim,
+    "flip": flip,
+}
+
+
+def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
+    """All metrics of ``x`` against ``ref`` with their default parameters.
+
+    Parameters
+    ----------
+    x, ref : (H, W, C) or (H, W) ndarray
+    per_pixel : bool
+        Maps ``(H, W)`` instead of floats.
+    include : iterable of str, optional
+        Names from :data:`METRICS` to compute (all by default).  FLIP needs non-negative
+        1- or 3-channel images; leave it out otherwise.
+
+    Returns
+    -------
+    dict
+        ``{name: value}`` in the order of :data:`METRICS`.
+    """
+    names = list(METRICS) if include is None else list(include)
+    unknown = [n for n in names if n not in METRICS]
+    if unknown:
+        raise InputError(f"unknown metric(s) {unknown}; expected names from {list(METRICS)}.")
+    _pair(x, ref)                      # validate once with a clear message
+    return {n: METRICS[n](x, ref, per_pixel=per_pixel) for n in METRICS if n in names}

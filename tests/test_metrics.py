@@ -1,0 +1,255 @@
+"""Metrics: closed forms on tiny arrays, symmetry, zero on equality, scaling, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+from statmc.errors import InputError
+from statmc.metrics import (METRICS, all_metrics, flip, logloss, mse, one_minus_ssim, relmse,
+                            rmse, smape, ssim_map)
+
+
+@pytest.fixture
+def pair():
+    rng = np.random.default_rng(1)
+    ref = rng.uniform(0.05, 2.0, size=(24, 20, 3))
+    x = np.abs(ref + 0.2 * rng.standard_normal(ref.shape))
+    return x, ref
+
+
+# ---------------------------------------------------------------------------- closed forms
+def test_relmse_closed_form():
+    x = np.array([[[2.0, 0.0]], [[1.0, 3.0]]])          # (2, 1, 2)
+    r = np.array([[[1.0, 0.0]], [[1.0, 1.0]]])
+    eps = 0.01
+    terms = [1 / (1 + eps), 0 / eps, 0 / (1 + eps), 4 / (1 + eps)]
+    assert relmse(x, r, eps) == pytest.approx(np.mean(terms), rel=1e-15)
+    m = relmse(x, r, eps, per_pixel=True)
+    assert m.shape == (2, 1)
+    np.testing.assert_allclose(m[:, 0], [np.mean(terms[:2]), np.mean(terms[2:])], rtol=1e-15)
+
+
+def test_mse_rmse_closed_form():
+    x = np.array([[1.0, 2.0], [3.0, 4.0]])
+    r = np.array([[1.0, 0.0], [0.0, 0.0]])
+    assert mse(x, r) == pytest.approx((0 + 4 + 9 + 16) / 4)
+    assert rmse(x, r) == pytest.approx(math.sqrt(29 / 4))
+    np.testing.assert_allclose(rmse(x, r, per_pixel=True), [[0, 2], [3, 4]])
+
+
+def test_smape_closed_form():
+    x = np.array([[3.0, 0.0]])
+    r = np.array([[1.0, 2.0]])
+    eps = 0.01
+    want = np.mean([2 / (4 + eps), 2 / (2 + eps)])
+    assert smape(x, r, eps) == pytest.approx(want, rel=1e-15)
+
+
+def test_logloss_constant_images_closed_form():
+    a, b, eps = 3.0, 1.0, 0.01
+    x, r = np.full((9, 9, 3), a), np.full((9, 9, 3), b)
+    want = 0.5 * abs(math.log1p(a) - math.log1p(b)) / (math.log1p(b) + eps)
+    assert logloss(x, r, eps) == pytest.approx(want, rel=1e-12)
+
+
+def test_logloss_edge_term_vanishes_for_constant_log_offset():
+    # LoG is linear and annihilates constants, so with log1p(x) = log1p(r) + c only the
+    # first term of Salehi Eq. 12 remains: 0.5 mean(|c| / (r' + eps)).
+    rng = np.random.default_rng(2)
+    r = rng.uniform(0, 3, size=(16, 12, 2))
+    c = 0.3
+    x = np.expm1(np.log1p(r) + c)
+    want = np.mean(0.5 * c / (np.log1p(r) + 0.01))
+    assert logloss(x, r) == pytest.approx(want, rel=1e-10)
+
+
+def test_logloss_edge_term_matches_definition():
+    # Eq. 12 written out with an explicitly sampled, normalised LoG kernel at an interior pixel.
+    rng = np.random.default_rng(3)
+    r = rng.uniform(0, 2, size=(15, 15, 1))
+    x = rng.uniform(0, 2, size=(15, 15, 1))
+    sigma, eps = 1.0, 0.01
+    rad = int(4 * sigma + 0.5)                                # scipy's default truncation
+    t = np.arange(-rad, rad + 1)
+    g = np.exp(-t ** 2 / (2 * sigma ** 2))
+    g /= g.sum()
+    g2 = g * (t ** 2 - sigma ** 2) / sigma ** 4               # d²/dt² of the Gaussian
+    g2 -= g2.sum() * g                                       # zero sum: constants map to 0
+    kernel = np.outer(g2, g) + np.outer(g, g2)
+    xl, rl = np.log1p(x[..., 0]), np.log1p(r[..., 0])
+    i = j = 7
+    win = np.s_[i - rad:i + rad + 1, j - rad:j + rad + 1]
+    lx, lr = (kernel * xl[win]).sum(), (kernel * rl[win]).sum()
+    want = 0.5 * abs(xl[i, j] - rl[i, j]) / (rl[i, j] + eps) + 0.5 * abs(lx - lr) / (rl[i, j] + eps)
+    got = logloss(x, r, eps, sigma=sigma, per_pixel=True)[i, j]
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_ssim_constant_images_closed_form():
+    # Constant images: no structure, SSIM reduces to the luminance term (Wang 2004 Eq. 6).
+    a, b, L = 0.3, 0.7, 1.0
+    c1 = (0.01 * L) ** 2
+    want = (2 * a * b + c1) / (a * a + b * b + c1)
+    got = ssim_map(np.full((12, 12, 1), a), np.full((12, 12, 1), b), data_range=L)
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+def test_ssim_interior_pixel_by_hand():
+    rng = np.random.default_rng(4)
+    x = rng.random((21, 21))
+    y = 0.6 * x + 0.2 * rng.random((21, 21))
+    sigma, L = 1.5, 1.0
+    rad = int(3.5 * sigma + 0.5)                              # 11 x 11 window (Wang §III.C)
+    t = np.arange(-rad, rad + 1)
+    g = np.exp(-t ** 2 / (2 * sigma ** 2))
+    w = np.outer(g, g)
+    w /= w.sum()
+    i, j = 10, 9
+    xs, ys = x[i - rad:i + rad + 1, j - rad:j + rad + 1], y[i - rad:i + rad + 1, j - rad:j + rad + 1]
+    mx, my = (w * xs).sum(), (w * ys).sum()
+    vx, vy = (w * (xs - mx) ** 2).sum(), (w * (ys - my) ** 2).sum()
+    cxy = (w * (xs - mx) * (ys - my)).sum()
+    c1, c2 = (0.01 * L) ** 2, (0.03 * L) ** 2
+    want = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2))
+    got = ssim_map(x, y, sigma=sigma, data_range=L)[i, j, 0]
+    assert got == pytest.approx(want, rel=1e-10)
+    assert 0 < one_minus_ssim(x, y) < 1
+
+
+# ---------------------------------------------------------------------------- properties
+@pytest.mark.parametrize("name", list(METRICS))
+def test_zero_on_equality(name, pair):
+    x, _ = pair
+    assert METRICS[name](x, x) == pytest.approx(0.0, abs=1e-12)
+    assert np.all(np.abs(METRICS[name](x, x, per_pixel=True)) <= 1e-12)
+
+
+@pytest.mark.parametrize("name", ["mse", "rmse", "smape", "one_minus_ssim"])
+def test_symmetric(name, pair):
+    x, r = pair
+    assert METRICS[name](x, r) == pytest.approx(METRICS[name](r, x), rel=1e-12)
+
+
+@pytest.mark.parametrize("name", list(METRICS))
+def test_positive_on_difference_and_map_mean(name, pair):
+    x, r = pair
+    v = METRICS[name](x, r)
+    m = METRICS[name](x, r, per_pixel=True)
+    assert v > 0
+    assert m.shape == x.shape[:2]
+    if name != "rmse":                                        # rmse = sqrt(mean), not mean(sqrt)
+        assert np.mean(m) == pytest.approx(v, rel=1e-6)
+    else:
+        assert np.sqrt(np.mean(m ** 2)) == pytest.approx(v, rel=1e-12)
+
+
+def test_relmse_scale_invariant_without_eps(pair):
+    x, r = pair
+    for c in (1e-3, 7.0, 1e4):
+        assert relmse(c * x, c * r, eps=0.0) == pytest.approx(relmse(x, r, eps=0.0), rel=1e-12)
+    # with eps > 0 dark images are down-weighted: scaling down lowers relMSE
+    assert relmse(1e-3 * x, 1e-3 * r) < relmse(x, r)
+
+
+def test_smape_scale_invariant_without_eps_and_bounded(pair):
+    x, r = pair
+    assert smape(5 * x, 5 * r, eps=0.0) == pytest.approx(smape(x, r, eps=0.0), rel=1e-12)
+    assert 0 <= smape(x, -x, eps=0.0) <= 1
+
+
+def test_mse_scales_quadratically(pair):
+    x, r = pair
+    assert mse(3 * x, 3 * r) == pytest.approx(9 * mse(x, r), rel=1e-12)
+
+
+def test_flip_identical_zero_and_black_images():
+    rng = np.random.default_rng(5)
+    img = rng.random((16, 16, 3))
+    assert flip(img, img) == 0.0
+    black = np.zeros((16, 16, 3))
+    assert flip(black, black) == 0.0
+    # flip_evaluator ends the process on an all-black reference: we must not
+    assert flip(img, black) > 0.5
+
+
+def test_flip_scale_invariant_incl_near_black_reference():
+    rng = np.random.default_rng(6)
+    r = np.full((24, 24, 3), 0.5)
+    x = np.abs(r + 0.2 * rng.standard_normal(r.shape))
+    base = flip(x, r)
+    assert 0 < base < 1
+    for c in (1e-3, 1e-9):                                  # 1e-9: below FLIP's epsilon clamp
+        assert flip(c * x, c * r) == pytest.approx(base, rel=1e-5)
+
+
+def test_flip_grey_channel_and_map():
+    rng = np.random.default_rng(7)
+    r = rng.random((16, 16))
+    x = r * 1.2
+    assert flip(x, r) == pytest.approx(flip(np.repeat(x[..., None], 3, 2), np.repeat(r[..., None], 3, 2)))
+    assert flip(x, r, per_pixel=True).shape == (16, 16)
+
+
+def test_all_metrics_keys_and_include(pair):
+    x, r = pair
+    out = all_metrics(x, r)
+    assert list(out) == list(METRICS)
+    assert all(isinstance(v, float) for v in out.values())
+    assert out["relmse"] == relmse(x, r)
+    assert list(all_metrics(x, r, include=["mse", "flip"])) == ["mse", "flip"]
+    maps = all_metrics(x, r, per_pixel=True, include=["smape"])
+    assert maps["smape"].shape == (24, 20)
+
+
+# ---------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("name", list(METRICS))
+def test_shape_mismatch_names_both_shapes(name):
+    with pytest.raises(InputError, match=r"x \(4, 5, 3\) and ref \(4, 6, 3\)"):
+        METRICS[name](np.ones((4, 5, 3)), np.ones((4, 6, 3)))
+
+
+@pytest.mark.parametrize("name", list(METRICS))
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nonfinite_rejected(name, bad):
+    x = np.ones((8, 8, 3))
+    r = x.copy()
+    r[2, 3, 1] = bad
+    with pytest.raises(InputError, match="`ref` holds"):
+        METRICS[name](x, r)
+    with pytest.raises(InputError, match="`x` holds"):
+        METRICS[name](r, x)
+
+
+def test_other_bad_inputs():
+    x = np.ones((8, 8, 3))
+    with pytest.raises(InputError, match="`x` must have 2 or 3 dimensions"):
+        relmse(np.ones(5), np.ones(5))
+    with pytest.raises(InputError, match="`eps` must be a finite number >= 0"):
+        relmse(x, x, eps=-1)
+    with pytest.raises(InputError, match="reference without zeros"):
+        relmse(x, 0 * x, eps=0.0)
+    with pytest.raises(InputError, match="must be >= 0 for HDR-FLIP"):
+        flip(-x, x)
+    with pytest.raises(InputError, match="1 or 3 channels"):
+        flip(np.ones((8, 8, 2)), np.ones((8, 8, 2)))
+    with pytest.raises(InputError, match="`tonemapper`"):
+        flip(x, x, tonemapper="filmic")
+    with pytest.raises(InputError, match="`ppd`"):
+        flip(x, x, ppd=0)
+    with pytest.raises(InputError, match=r"`x` must be > -1"):
+        logloss(-2 * x, x)
+    with pytest.raises(InputError, match="`ref` must be >= 0"):
+        logloss(x, -x)
+    with pytest.raises(InputError, match="`data_range`"):
+        one_minus_ssim(x, x, data_range=0)
+    with pytest.raises(InputError, match="unknown metric"):
+        all_metrics(x, x, include=["psnr"])
+    with pytest.raises(InputError, match="numeric"):
+        mse(np.array([["a"]]), np.array([["b"]]))
+
+
+def test_ssim_map_covers_whole_image():
+    # reflecting borders: the map covers every pixel (no cropping)
+    x = np.random.default_rng(8).random((6, 7, 2))
+    assert ssim_map(x, 0.5 * x).shape == (6, 7, 2)
