@@ -425,8 +425,12 @@ def _write_exr_file(tmp: str, channels: dict) -> None:
 
 
 def _f32(name, a):
-    out = np.ascontiguousarray(a, dtype=np.float32)
-    check_finite(name + " (as float32)", out)
+    check_finite(name, np.asarray(a))
+    with np.errstate(over="ignore"):
+        out = np.ascontiguousarray(a, dtype=np.float32)
+    if not np.isfinite(out).all():
+        raise InputError(f"`{name}` overflows float32 in {int((~np.isfinite(out)).sum())} values "
+                         f"(max |value| {np.abs(np.asarray(a)).max():.4g} > 3.4e38).")
     return out
 
 

@@ -264,17 +264,20 @@ def _flip_exposures(ref_rgb, test_rgb, tonemapper):
 
 
 def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
-         per_pixel: bool = False):
+         negative: str = "clip", per_pixel: bool = False):
     """HDR-FLIP error of ``x`` against ``ref`` (Andersson et al. [4]_), via ``flip_evaluator``.
 
     Parameters
     ----------
     x, ref : (H, W, 3) or (H, W) / (H, W, 1) ndarray
-        Linear radiance (>= 0); one channel is repeated to grey RGB.
+        Linear radiance; one channel is repeated to grey RGB.
     tonemapper : {"aces", "hable", "reinhard"}
         Tone curve HDR-FLIP assumes.
     ppd : float, optional
         Pixels per degree of visual angle (FLIP's default, about 67, when None).
+    negative : {"clip", "error"}, default "clip"
+        HDR-FLIP needs non-negative input: negative values (rounding residue such as
+        −1e-16, or signed estimators) are clipped to 0 (no light), or raise InputError.
     per_pixel : bool
         Return FLIP's ``(H, W)`` error map instead of its mean.
 
@@ -291,11 +294,14 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
         xa, ra = np.repeat(xa, 3, axis=2), np.repeat(ra, 3, axis=2)
     if xa.shape[2] != 3:
         raise InputError(f"`x` and `ref` must have 1 or 3 channels for FLIP; got {xa.shape}.")
+    if negative not in ("clip", "error"):
+        raise InputError(f"`negative` must be 'clip' or 'error'; got {negative!r}.")
     for name, a in (("x", xa), ("ref", ra)):
-        if a.min() < 0:
+        if negative == "error" and a.min() < 0:
             raise InputError(f"`{name}` must be >= 0 for HDR-FLIP (linear radiance); got "
                              f"{int((a < 0).sum())} negative values (min {a.min():.4g}); "
-                             "clip them first, e.g. np.maximum(x, 0).")
+                             "clip them first, e.g. np.maximum(x, 0), or pass negative='clip'.")
+    xa, ra = np.maximum(xa, 0.0), np.maximum(ra, 0.0)
     if tonemapper not in _FLIP_TONEMAP:
         raise InputError(f"`tonemapper` must be one of {sorted(_FLIP_TONEMAP)}; got {tonemapper!r}.")
     params = {"tonemapper": tonemapper}
@@ -338,8 +344,8 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
     per_pixel : bool
         Maps ``(H, W)`` instead of floats.
     include : iterable of str, optional
-        Names from :data:`METRICS` to compute (all by default).  FLIP needs non-negative
-        1- or 3-channel images; leave it out otherwise.
+        Names from :data:`METRICS` to compute (all by default).  FLIP needs 1- or
+        3-channel images (and clips negative values to 0); leave it out otherwise.
 
     Returns
     -------

@@ -183,6 +183,14 @@ def test_flip_scale_invariant_incl_near_black_reference():
         assert flip(c * x, c * r) == pytest.approx(base, rel=1e-5)
 
 
+def test_flip_clips_negative_values_to_zero():
+    rng = np.random.default_rng(9)
+    r = rng.random((16, 16, 3))
+    x = r - 0.3
+    assert flip(x, r) == flip(np.maximum(x, 0), r)
+    assert flip(r - 1e-16 * (r < 0.5), r, per_pixel=True).max() == 0.0
+
+
 def test_flip_grey_channel_and_map():
     rng = np.random.default_rng(7)
     r = rng.random((16, 16))
@@ -230,7 +238,9 @@ def test_other_bad_inputs():
     with pytest.raises(InputError, match="reference without zeros"):
         relmse(x, 0 * x, eps=0.0)
     with pytest.raises(InputError, match="must be >= 0 for HDR-FLIP"):
-        flip(-x, x)
+        flip(-x, x, negative="error")
+    with pytest.raises(InputError, match="`negative`"):
+        flip(x, x, negative="abs")
     with pytest.raises(InputError, match="1 or 3 channels"):
         flip(np.ones((8, 8, 2)), np.ones((8, 8, 2)))
     with pytest.raises(InputError, match="`tonemapper`"):

@@ -1,0 +1,443 @@
+"""EXR files: bit-exact round trips, pbrt-v4 gbuffer files, every bad input, atomic writes."""
+
+import os
+import struct
+import tempfile
+
+import numpy as np
+import OpenEXR
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import statmc.exr as exr
+from statmc.errors import FileFormatError, InputError
+from statmc.exr import (exr_info, read_channels, read_exr, read_image, to_display, write_exr,
+                        write_png_preview)
+from statmc.stats import PixelStats
+
+# Channels of pbrt-v4's GBufferFilm::GetImage (src/pbrt/film.cpp), in its order.
+PBRT_V4_GBUFFER = ["R", "G", "B", "Albedo.R", "Albedo.G", "Albedo.B", "P.X", "P.Y", "P.Z",
+                   "dzdx", "dzdy", "N.X", "N.Y", "N.Z", "Ns.X", "Ns.Y", "Ns.Z", "u", "v",
+                   "Variance.R", "Variance.G", "Variance.B",
+                   "RelativeVariance.R", "RelativeVariance.G", "RelativeVariance.B"]
+
+
+def _write_raw(path, channels, dtype=np.float32):
+    """Write channels straight through OpenEXR (as another program would)."""
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {k: np.ascontiguousarray(v, dtype=dtype if v.dtype.kind == "f" else v.dtype)
+                  for k, v in channels.items()}).write(str(path))
+
+
+def _raw_uncompressed_exr(path, channels, h, w, sampling):
+    """A minimal uncompressed scanline EXR written byte by byte (OpenEXR's Python API refuses
+    to write subsampled channels, which we need to test inconsistent channel sizes)."""
+    names = sorted(channels)
+
+    def attr(name, typ, data):
+        return name.encode() + b"\0" + typ.encode() + b"\0" + struct.pack("<i", len(data)) + data
+
+    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", 2, 0, *sampling.get(n, (1, 1)))
+                      for n in names) + b"\0"
+    header = b"".join([
+        attr("channels", "chlist", chlist),
+        attr("compression", "compression", b"\0"),
+        attr("dataWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1)),
+        attr("displayWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1)),
+        attr("lineOrder", "lineOrder", b"\0"),
+        attr("pixelAspectRatio", "float", struct.pack("<f", 1.0)),
+        attr("screenWindowCenter", "v2f", struct.pack("<2f", 0, 0)),
+        attr("screenWindowWidth", "float", struct.pack("<f", 1.0)),
+    ]) + b"\0"
+    head = struct.pack("<ii", 20000630, 2) + header
+    chunks = []
+    for y in range(h):
+        data = b"".join(np.asarray(channels[n], "<f4")[y // sampling.get(n, (1, 1))[1]].tobytes()
+                        for n in names if y % sampling.get(n, (1, 1))[1] == 0)
+        chunks.append(struct.pack("<ii", y, len(data)) + data)
+    offsets, off = [], len(head) + 8 * h
+    for c in chunks:
+        offsets.append(off)
+        off += len(c)
+    with open(path, "wb") as f:
+        f.write(head + struct.pack(f"<{h}Q", *offsets) + b"".join(chunks))
+
+
+def _stats(rng, h=5, w=4, c=3, features=True):
+    f32 = lambda a: a.astype(np.float32).astype(np.float64)       # float32-representable
+    n = rng.integers(2, 300, size=(h, w))
+    s = PixelStats.from_mean_var(f32(rng.normal(size=(h, w, c))),
+                                 f32(rng.exponential(size=(h, w, c))), n)
+    if features:
+        s = s.with_features(albedo=rng.random((h, w, 3)), normal=rng.normal(size=(h, w, 3)),
+                            depth=rng.random((h, w)) * 10)
+    return s
+
+
+def _assert_same(a: PixelStats, b: PixelStats):
+    np.testing.assert_array_equal(a.n, b.n)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.sample_var, b.sample_var)
+    np.testing.assert_array_equal(a.m2, b.m2)
+    for f in ("albedo", "normal", "depth"):
+        fa, fb = getattr(a, f), getattr(b, f)
+        assert (fa is None) == (fb is None)
+        if fa is not None:
+            np.testing.assert_array_equal(fa, fb)
+
+
+# ---------------------------------------------------------------------------- round trips
+def test_round_trip_bit_exact_with_features(tmp_path):
+    s = _stats(np.random.default_rng(0))
+    p = tmp_path / "s.exr"
+    write_exr(p, s)
+    t = read_exr(p)
+    _assert_same(s, t)
+    assert t.meta["sample_count_source"] == "file"
+    assert t.meta["has_variance"] and t.meta["depth_channel"] == "Z"
+    assert t.meta["nonfinite_replaced"] == 0 and t.meta["extra_channels"] == []
+
+
+f32s = st.floats(-1e6, 1e6, width=32, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(h=st.integers(1, 4), w=st.integers(1, 4), c=st.sampled_from([1, 3]),
+       data=st.data())
+def test_round_trip_bit_exact_hypothesis(h, w, c, data):
+    size = h * w * c
+    mean = np.array(data.draw(st.lists(f32s, min_size=size, max_size=size))).reshape(h, w, c)
+    var = np.abs(np.array(data.draw(st.lists(f32s, min_size=size, max_size=size)))).reshape(h, w, c)
+    n = np.array(data.draw(st.lists(st.integers(0, 2 ** 24), min_size=h * w,
+                                    max_size=h * w))).reshape(h, w)
+    var[n < 2] = 0.0                                 # no spread is kept from < 2 samples
+    s = PixelStats.from_mean_var(mean, var, n)
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "h.exr")
+        write_exr(p, s)
+        t = read_exr(p)
+    _assert_same(s, t)
+    assert t.shape == (h, w, c)
+
+
+def test_round_trip_large_counts_use_uint32(tmp_path):
+    rng = np.random.default_rng(1)
+    n = np.array([[2 ** 24 + 1, 3_000_000_000]])
+    s = PixelStats.from_mean_var(np.ones((1, 2, 3)), np.full((1, 2, 3), 0.5), n)
+    write_exr(tmp_path / "big.exr", s)
+    assert exr_info(tmp_path / "big.exr")["channels"]["SampleCount"] == "uint"
+    np.testing.assert_array_equal(read_exr(tmp_path / "big.exr").n, n)
+    del rng
+
+
+def test_plain_image_and_extra_channels(tmp_path):
+    rng = np.random.default_rng(2)
+    img = rng.random((6, 5, 3)).astype(np.float32)
+    scale = rng.integers(0, 4, size=(6, 5)).astype(np.float32)
+    write_exr(tmp_path / "img.exr", img, extra={"scale": scale})
+    np.testing.assert_array_equal(read_image(tmp_path / "img.exr"), img)
+    assert set(read_channels(tmp_path / "img.exr")) == {"R", "G", "B", "scale"}
+    np.testing.assert_array_equal(read_channels(tmp_path / "img.exr", ["scale"])["scale"], scale)
+    with pytest.raises(FileFormatError, match="no Variance.R, Variance.G, Variance.B"):
+        read_exr(tmp_path / "img.exr", spp=4)
+    s = read_exr(tmp_path / "img.exr", spp=4, require_variance=False)
+    assert not s.meta["has_variance"] and np.all(s.m2 == 0) and np.all(s.n == 4)
+    assert s.meta["extra_channels"] == ["scale"]
+    grey = rng.random((3, 2)).astype(np.float32)
+    write_exr(tmp_path / "grey.exr", grey)
+    np.testing.assert_array_equal(read_image(tmp_path / "grey.exr")[..., 0], grey)
+
+
+# ---------------------------------------------------------------------------- pbrt-v4 files
+def _pbrt_file(path, rng, h=6, w=7, dtype=np.float16):
+    ch = {name: rng.random((h, w)) for name in PBRT_V4_GBUFFER}
+    ch["P.Z"] = 1.0 + 5 * rng.random((h, w))                       # camera-space depth
+    _write_raw(path, ch, dtype=dtype)      # pbrt-v4 writes half floats by default (savefp16)
+    return {k: v.astype(dtype).astype(np.float64) for k, v in ch.items()}
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_pbrt_v4_gbuffer_file_loads_with_spp(tmp_path, dtype):
+    p = tmp_path / "pbrt.exr"
+    ch = _pbrt_file(p, np.random.default_rng(3), dtype=dtype)
+    s = read_exr(p, spp=16)
+    np.testing.assert_array_equal(s.n, 16)
+    np.testing.assert_array_equal(s.mean, np.stack([ch[c] for c in "RGB"], -1))
+    np.testing.assert_allclose(s.sample_var, np.stack([ch["Variance." + c] for c in "RGB"], -1),
+                               rtol=1e-15)
+    np.testing.assert_array_equal(s.albedo, np.stack([ch["Albedo." + c] for c in "RGB"], -1))
+    np.testing.assert_array_equal(s.normal, np.stack([ch["N." + c] for c in "XYZ"], -1))
+    np.testing.assert_array_equal(s.depth, ch["P.Z"].astype(np.float32))
+    assert s.meta["depth_channel"] == "P.Z" and s.meta["sample_count_source"] == "spp"
+    assert {"dzdx", "u", "v", "P.X", "Ns.Y", "RelativeVariance.G"} <= set(s.meta["extra_channels"])
+    # a per-pixel count map works too
+    counts = np.arange(42).reshape(6, 7)
+    np.testing.assert_array_equal(read_exr(p, spp=counts).n, counts)
+
+
+def test_pbrt_v4_file_without_spp_says_so(tmp_path):
+    p = tmp_path / "pbrt.exr"
+    _pbrt_file(p, np.random.default_rng(4))
+    with pytest.raises(FileFormatError, match=r"no SampleCount channel.*spp=.*'dzdx'") as e:
+        read_exr(p)
+    assert str(p) in str(e.value)
+
+
+def test_spp_conflicting_with_file_counts(tmp_path):
+    p = tmp_path / "s.exr"
+    write_exr(p, _stats(np.random.default_rng(5), features=False))
+    with pytest.raises(InputError, match="disagrees with the SampleCount"):
+        read_exr(p, spp=1)
+    with pytest.raises(InputError, match="whole numbers"):
+        read_exr(p, spp=2.5)
+
+
+# ---------------------------------------------------------------------------- bad files
+def test_missing_file_and_directory(tmp_path):
+    with pytest.raises(FileFormatError, match="does not exist") as e:
+        read_exr(tmp_path / "nope.exr", spp=1)
+    assert "nope.exr" in str(e.value)
+    with pytest.raises(FileFormatError, match="is a directory"):
+        read_image(tmp_path)
+
+
+@pytest.mark.parametrize("kind", ["random", "empty", "truncated", "truncated_header", "png"])
+def test_corrupt_files(tmp_path, kind):
+    good = tmp_path / "good.exr"
+    write_exr(good, _stats(np.random.default_rng(6), h=32, w=40))
+    data = good.read_bytes()
+    bad = tmp_path / f"{kind}.exr"
+    if kind == "random":
+        bad.write_bytes(np.random.default_rng(7).bytes(4000))
+    elif kind == "empty":
+        bad.write_bytes(b"")
+    elif kind == "truncated":
+        bad.write_bytes(data[: len(data) * 2 // 3])
+    elif kind == "truncated_header":
+        bad.write_bytes(data[:60])
+    else:
+        write_png_preview(tmp_path / "x.png", np.ones((4, 4, 3)))
+        bad.write_bytes((tmp_path / "x.png").read_bytes())
+    for fn in (read_exr, read_image, exr_info, read_channels):
+        with pytest.raises(FileFormatError, match="not a readable OpenEXR file") as e:
+            fn(bad)
+        assert str(bad) in str(e.value)
+
+
+def test_missing_colour_lists_channels(tmp_path):
+    p = tmp_path / "z.exr"
+    _write_raw(p, {"Z": np.ones((3, 3)), "SampleCount": np.ones((3, 3))})
+    with pytest.raises(FileFormatError, match=r"no colour channels R, G, B.*\['SampleCount', 'Z'\]"):
+        read_exr(p)
+    p2 = tmp_path / "rg.exr"
+    _write_raw(p2, {"R": np.ones((3, 3)), "G": np.ones((3, 3))})
+    with pytest.raises(FileFormatError, match=r"lacks colour channel\(s\) \['B'\]"):
+        read_image(p2)
+
+
+def test_partial_groups(tmp_path):
+    base = {c: np.ones((3, 3)) for c in ["R", "G", "B", "SampleCount", "Variance.R", "Variance.G",
+                                         "Variance.B"]}
+    p = tmp_path / "v.exr"
+    _write_raw(p, {k: v for k, v in base.items() if k != "Variance.B"})
+    with pytest.raises(FileFormatError, match=r"part of the variance channels: missing \['Variance.B'\]"):
+        read_exr(p)
+    _write_raw(p, {**base, "N.X": np.ones((3, 3)), "N.Y": np.ones((3, 3))})
+    with pytest.raises(FileFormatError, match=r"normal channels: missing \['N.Z'\]"):
+        read_exr(p)
+
+
+def test_inconsistent_channel_sizes(tmp_path):
+    p = tmp_path / "sub.exr"
+    ch = {c: np.ones((4, 6)) for c in "RGB"}
+    ch["Variance.R"] = np.ones((2, 3))
+    _raw_uncompressed_exr(p, ch, 4, 6, {"Variance.R": (2, 2)})
+    with pytest.raises(FileFormatError, match=r"'Variance.R' has size \(2, 3\).*inconsistent sizes"):
+        read_exr(p, spp=1)
+    # the hand-made writer itself produces valid files
+    ch.pop("Variance.R")
+    _raw_uncompressed_exr(p, ch, 4, 6, {})
+    np.testing.assert_array_equal(read_image(p), 1.0)
+
+
+def test_negative_variance_and_bad_counts(tmp_path):
+    base = {c: np.ones((3, 3)) for c in ["R", "G", "B", "Variance.R", "Variance.G", "Variance.B"]}
+    p = tmp_path / "b.exr"
+    neg = dict(base, **{"Variance.G": -np.ones((3, 3))})
+    _write_raw(p, neg)
+    with pytest.raises(FileFormatError, match="9 negative values"):
+        read_exr(p, spp=4)
+    sc = np.full((3, 3), 4.0)
+    sc[1, 1] = -2
+    _write_raw(p, dict(base, SampleCount=sc))
+    with pytest.raises(FileFormatError, match="SampleCount holds 1 negative"):
+        read_exr(p)
+    sc[1, 1] = 2.5
+    _write_raw(p, dict(base, SampleCount=sc))
+    with pytest.raises(FileFormatError, match="SampleCount holds 1 non-integer values"):
+        read_exr(p)
+
+
+def test_nonfinite_error_and_replace(tmp_path):
+    ch = {c: np.ones((4, 4)) for c in ["R", "G", "B", "Variance.R", "Variance.G", "Variance.B"]}
+    ch["R"][0, 0] = np.nan
+    ch["G"][1, 2] = np.inf
+    ch["Variance.B"][3, 3] = -np.inf
+    ch["SampleCount"] = np.full((4, 4), 8.0)
+    p = tmp_path / "nan.exr"
+    _write_raw(p, ch)
+    with pytest.raises(FileFormatError, match=r"R\+G\+B: 1 NaN, 1 Inf; Variance: 0 NaN, 1 Inf") as e:
+        read_exr(p)
+    assert str(p) in str(e.value)
+    s = read_exr(p, nonfinite="replace", replace_value=0.5)
+    assert s.meta["nonfinite_replaced"] == 3
+    assert s.meta["nonfinite_by_group"] == {"R+G+B": {"nan": 1, "inf": 1},
+                                            "Variance": {"nan": 0, "inf": 1}}
+    assert s.mean[0, 0, 0] == 0.5 and s.mean[1, 2, 1] == 0.5 and s.sample_var[3, 3, 2] == 0.5
+    with pytest.raises(FileFormatError, match="non-finite"):
+        read_image(p)
+    assert np.isfinite(read_image(p, nonfinite="replace")).all()
+    info = exr_info(p)
+    assert info["nonfinite"] == {"R+G+B": {"nan": 1, "inf": 1}, "Variance": {"nan": 0, "inf": 1}}
+    with pytest.raises(InputError, match="`nonfinite` must be 'error' or 'replace'"):
+        read_exr(p, nonfinite="ignore")
+
+
+def test_exr_info(tmp_path):
+    s = _stats(np.random.default_rng(8), h=3, w=5)
+    p = tmp_path / "i.exr"
+    write_exr(p, s, extra={"scale": np.zeros((3, 5))})
+    info = exr_info(p)
+    assert (info["width"], info["height"]) == (5, 3)
+    assert info["data_window"] == [0, 0, 4, 2] and info["parts"] == 1
+    assert info["channels"]["R"] == "float" and info["channels"]["SampleCount"] == "float"
+    assert info["groups"]["Variance"] == ["Variance.B", "Variance.G", "Variance.R"]
+    assert info["layout"] == {"color": "R,G,B", "variance": True, "sample_count": True,
+                              "albedo": True, "normal": True, "depth": "Z"}
+    assert info["sample_count"] == {"min": s.n.min(), "mean": s.n.mean(), "max": s.n.max(),
+                                    "total": s.n.sum()}
+    assert info["nonfinite"] == {}
+    import json
+    json.dumps(info)                                       # JSON-ready as is
+
+
+# ---------------------------------------------------------------------------- atomic writes
+def test_failed_write_leaves_existing_file_and_no_temp(tmp_path, monkeypatch):
+    p = tmp_path / "out.exr"
+    write_exr(p, np.ones((4, 4, 3)))
+    before = p.read_bytes()
+
+    def broken(tmp, channels):
+        with open(tmp, "wb") as f:
+            f.write(b"partial garbage")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(exr, "_write_exr_file", broken)
+    with pytest.raises(OSError, match="disk full"):
+        write_exr(p, np.zeros((4, 4, 3)))
+    assert p.read_bytes() == before
+    assert os.listdir(tmp_path) == ["out.exr"]
+    monkeypatch.undo()
+    np.testing.assert_array_equal(read_image(p), 1.0)
+
+
+def test_failed_png_write_leaves_existing_file(tmp_path, monkeypatch):
+    p = tmp_path / "prev.png"
+    write_png_preview(p, np.ones((4, 4, 3)))
+    before = p.read_bytes()
+    from PIL import Image
+
+    def broken(self, fp, *a, **k):
+        raise OSError("no space")
+
+    monkeypatch.setattr(Image.Image, "save", broken)
+    with pytest.raises(OSError, match="no space"):
+        write_png_preview(p, np.zeros((4, 4, 3)))
+    assert p.read_bytes() == before and os.listdir(tmp_path) == ["prev.png"]
+
+
+def test_invalid_data_raises_before_touching_file(tmp_path):
+    p = tmp_path / "out.exr"
+    write_exr(p, np.ones((2, 2, 3)))
+    before = p.read_bytes()
+    with pytest.raises(InputError, match="`image` holds 1 NaN"):
+        bad = np.ones((2, 2, 3))
+        bad[0, 0, 0] = np.nan
+        write_exr(p, bad)
+    with pytest.raises(InputError, match="overflows float32"):
+        write_exr(p, np.full((2, 2, 3), 1e300))
+    with pytest.raises(InputError, match="1 or 3 channels"):
+        write_exr(p, np.ones((2, 2, 4)))
+    with pytest.raises(InputError, match="must be new non-empty strings"):
+        write_exr(p, np.ones((2, 2, 3)), extra={"R": np.ones((2, 2))})
+    with pytest.raises(InputError, match=r"image size \(2, 2\)"):
+        write_exr(p, np.ones((2, 2, 3)), extra={"s": np.ones((3, 2))})
+    assert p.read_bytes() == before and os.listdir(tmp_path) == ["out.exr"]
+
+
+def test_protect_refuses_inputs(tmp_path):
+    inp = tmp_path / "in.exr"
+    write_exr(inp, np.ones((2, 2, 3)))
+    before = inp.read_bytes()
+    os.symlink(inp, tmp_path / "link.exr")
+    os.link(inp, tmp_path / "hard.exr")
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    for target in (inp, str(inp), sub / ".." / "in.exr", tmp_path / "link.exr",
+                   tmp_path / "hard.exr"):
+        with pytest.raises(InputError, match="never overwrites an input"):
+            write_exr(target, np.zeros((2, 2, 3)), protect=[str(inp)])
+        with pytest.raises(InputError, match="never overwrites an input"):
+            write_png_preview(target, np.zeros((2, 2, 3)), protect=inp)   # a single path works
+    assert inp.read_bytes() == before
+    write_exr(tmp_path / "other.exr", np.zeros((2, 2, 3)), protect=[inp, None])
+
+
+def test_overwrite_false_and_permissions(tmp_path):
+    p = tmp_path / "o.exr"
+    write_exr(p, np.ones((2, 2, 3)), overwrite=False)
+    with pytest.raises(InputError, match="overwrite=False"):
+        write_exr(p, np.zeros((2, 2, 3)), overwrite=False)
+    mask = os.umask(0)
+    os.umask(mask)
+    assert os.stat(p).st_mode & 0o777 == 0o666 & ~mask      # not mkstemp's 0600
+    os.chmod(p, 0o640)
+    write_exr(p, np.zeros((2, 2, 3)))
+    assert os.stat(p).st_mode & 0o777 == 0o640               # replacing keeps the mode
+    with pytest.raises(InputError, match="is a directory"):
+        write_exr(tmp_path, np.zeros((2, 2, 3)))
+
+
+# ---------------------------------------------------------------------------- previews
+def test_png_preview_values(tmp_path):
+    from PIL import Image
+
+    img = np.zeros((2, 3, 3))
+    img[0, 0] = 0.5          # sRGB(0.5) = 1.055 * 0.5**(1/2.4) - 0.055 = 0.7354 -> 188
+    img[0, 1] = 0.002        # linear segment: 12.92 * 0.002 = 0.02584 -> 7
+    img[0, 2] = 4.0          # clamped -> 255
+    img[1, 0] = -1.0         # clamped -> 0
+    img[1, 1] = 1.0
+    p = tmp_path / "p.png"
+    write_png_preview(p, img)
+    px = np.asarray(Image.open(p))
+    assert px.shape == (2, 3, 3) and px.dtype == np.uint8
+    np.testing.assert_array_equal(px[..., 0], [[188, 7, 255], [0, 255, 0]])
+    write_png_preview(p, img, exposure=1.0)                       # 0.5 * 2 = 1 -> 255
+    assert np.asarray(Image.open(p))[0, 0, 0] == 255
+    write_png_preview(p, img[..., 0])                              # grey
+    assert np.asarray(Image.open(p)).shape == (2, 3)
+
+
+def test_tonemaps():
+    x = np.array([[[1.0, 0.0, 10.0]]])
+    r = to_display(x, tonemap="reinhard")
+    srgb = lambda v: 1.055 * v ** (1 / 2.4) - 0.055
+    np.testing.assert_allclose(r[0, 0], [srgb(0.5), 0.0, srgb(10 / 11)])
+    a = to_display(x, tonemap="aces")
+    aces1 = (2.51 + 0.03) / (2.43 + 0.59 + 0.14)
+    np.testing.assert_allclose(a[0, 0, 0], srgb(aces1))
+    assert np.all(np.diff(to_display(np.linspace(0, 50, 100)[None, :], tonemap="aces")) >= 0)
+    with pytest.raises(InputError, match="`tonemap`"):
+        to_display(x, tonemap="filmic")
