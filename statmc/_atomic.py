@@ -1,4 +1,9 @@
-"""Atomic file output: write to a temporary file beside the target, then rename."""
+"""Atomic file output: write to a temporary file beside the target, then rename.
+
+Every file statmc writes goes through :func:`atomic_path`, so a failed write never
+leaves a half-written file and never replaces an existing one, and no output can land
+on one of the command's input files.
+"""
 
 from __future__ import annotations
 
@@ -9,36 +14,67 @@ import tempfile
 from .errors import InputError
 
 
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return os.path.realpath(a) == os.path.realpath(b)
+def _as_tuple(protect):
+    if protect is None:
+        return ()
+    if isinstance(protect, (str, bytes, os.PathLike)):
+        return (protect,)
+    return tuple(protect)
 
 
 def check_not_input(path, protect=()) -> None:
-    """Raise :class:`InputError` when ``path`` is one of the files in ``protect``."""
-    for q in protect:
-        if q is not None and os.path.exists(path) and _same_file(str(path), str(q)):
-            raise InputError(f"refusing to overwrite the input file {q}; choose another output path.")
+    """Raise :class:`InputError` when ``path`` names the same file as any of ``protect``."""
+    path = os.fspath(path)
+    real = os.path.realpath(path)
+    for q in _as_tuple(protect):
+        if q is None:
+            continue
+        q = os.fspath(q)
+        same = os.path.realpath(q) == real
+        if not same and os.path.exists(path) and os.path.exists(q):
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(path, q)  # hard links
+        if same:
+            raise InputError(f"refusing to write {path!r}: it is the input file {q!r}; "
+                             "choose another output path (statmc never overwrites an input).")
+
+
+def _final_mode(path: str) -> int:
+    """Permissions for the output: those of the file it replaces, else 0o666 & ~umask."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        return 0o666 & ~mask
 
 
 @contextlib.contextmanager
-def atomic_path(path, *, protect=(), suffix=None):
+def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     """Yield a temporary path in ``path``'s directory; rename it onto ``path`` on success.
 
     On any exception the temporary file is removed and an existing ``path`` is untouched.
-    ``protect`` lists input files that ``path`` must not be.
+    ``protect`` (a path or several) lists input files that ``path`` must not be;
+    ``overwrite=False`` refuses an existing ``path``.  The result gets the permissions of
+    the file it replaces (or the umask's), and is flushed to disk before the rename.
     """
     path = os.fspath(path)
     check_not_input(path, protect)
+    if os.path.isdir(path):
+        raise InputError(f"cannot write {path!r}: it is a directory.")
+    if not overwrite and os.path.lexists(path):
+        raise InputError(f"{path!r} exists and overwrite=False; choose another path or allow overwriting.")
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
+    mode = _final_mode(path)
     suffix = suffix if suffix is not None else os.path.splitext(path)[1]
     fd, tmp = tempfile.mkstemp(prefix=".statmc-", suffix=suffix, dir=directory)
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, mode)
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -359,61 +359,12 @@ def exr_info(path) -> dict:
 
 
 # ---------------------------------------------------------------------------- writing
-def _as_protect(protect):
-    if protect is None:
-        return ()
-    if isinstance(protect, (str, bytes, os.PathLike)):
-        return (protect,)
-    return tuple(protect)
-
-
-def _refuse_inputs(path: str, protect) -> None:
-    """Raise :class:`InputError` when ``path`` names the same file as any of ``protect``."""
-    real = os.path.realpath(path)
-    for q in _as_protect(protect):
-        if q is None:
-            continue
-        q = _name(q)
-        same = os.path.realpath(q) == real
-        if not same and os.path.exists(path) and os.path.exists(q):
-            try:
-                same = os.path.samefile(path, q)        # hard links
-            except OSError:
-                pass
-        if same:
-            raise InputError(f"refusing to write {path!r}: it is the input file {q!r}; "
-                             "choose another output path (statmc never overwrites an input).")
-
-
-def _final_mode(path: str) -> int:
-    """Permissions for a new file: those of the file being replaced, else 0o666 & ~umask."""
-    try:
-        return os.stat(path).st_mode & 0o7777
-    except OSError:
-        mask = os.umask(0)
-        os.umask(mask)
-        return 0o666 & ~mask
-
-
 def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
-    """Call ``write(tmp)`` on a temporary path beside ``path``, then rename it onto ``path``.
-
-    On any failure the temporary file is removed and an existing ``path`` is untouched.
-    """
+    """Call ``write(tmp)`` on a temporary path beside ``path``, then rename it onto ``path``."""
     from ._atomic import atomic_path
 
-    p = _name(path)
-    _refuse_inputs(p, protect)
-    if os.path.isdir(p):
-        raise InputError(f"cannot write {p!r}: it is a directory.")
-    if not overwrite and os.path.lexists(p):
-        raise InputError(f"{p!r} exists and overwrite=False; choose another path or allow overwriting.")
-    mode = _final_mode(p)
-    with atomic_path(p, protect=_as_protect(protect)) as tmp:
+    with atomic_path(_name(path), protect=protect, overwrite=overwrite) as tmp:
         write(tmp)
-        os.chmod(tmp, mode)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
 
 
 def _write_exr_file(tmp: str, channels: dict) -> None:
