@@ -38,8 +38,12 @@ def make_renderer(scene: str, *, width: int | None = None, height: int | None = 
         raise InputError(f"`scene` must be a scene name or a Mitsuba XML path; got {scene!r}.")
     if scene.startswith(TOY_PREFIX):
         from .toy import ToyRenderer
+        name = scene[len(TOY_PREFIX):]
+        if name not in ToyRenderer.scenes():
+            known = ", ".join(TOY_PREFIX + k for k in ToyRenderer.scenes())
+            raise InputError(f"unknown toy scene {scene!r}; expected one of {known}.")
         kw = {k: v for k, v in (("width", width), ("height", height)) if v is not None}
-        return ToyRenderer(scene[len(TOY_PREFIX):], **kw, **options)
+        return ToyRenderer(name, **kw, **options)
     from . import scenes
     if scene not in scenes.BUILTIN_SCENES and not os.path.exists(scene):
         known = ", ".join(sorted(list_scenes()))

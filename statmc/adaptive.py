@@ -1,0 +1,137 @@
+"""The iterative adaptive render loop, generic over renderers and samplers.
+
+An initial uniform pass, then ``iterations`` passes whose per-pixel counts a *sampler*
+chooses from the statistics so far, merged exactly into one :class:`PixelStats`.  The
+budget of ``spp × H × W`` samples is met exactly (Rousselle et al. 2011, §6: 4 initial
+samples per pixel, then 8 iterations of ``M(n − 4)/8`` samples each).
+
+A sampler is a callable ``sampler(stats, budget, rng) -> counts`` returning an ``(H, W)``
+integer map that sums to ``budget``.  Named samplers live in :data:`SAMPLERS`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .errors import InputError
+from .stats import PixelStats
+
+__all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler"]
+
+
+def _uniform_sampler(stats: PixelStats, budget: int, rng) -> np.ndarray:
+    from .sampling import counts_from_density
+    return counts_from_density(np.ones(stats.n.shape), budget, rng=rng)
+
+
+def _gem_sampler(stats: PixelStats, budget: int, rng, *, gamma: float = 0.2) -> np.ndarray:
+    from .gem import sampling_map
+    return sampling_map(stats.mean, stats.mean_var, stats.n, budget, gamma=gamma, rng=rng)
+
+
+SAMPLERS: dict[str, Callable] = {
+    "uniform": _uniform_sampler,
+    "gem": _gem_sampler,
+}
+
+
+def get_sampler(name_or_callable, **options) -> Callable:
+    """A sampler by name (:data:`SAMPLERS`) or a callable, with ``options`` bound."""
+    if callable(name_or_callable):
+        fn = name_or_callable
+    else:
+        try:
+            fn = SAMPLERS[name_or_callable]
+        except KeyError:
+            raise InputError(f"unknown sampler {name_or_callable!r}; expected one of "
+                             f"{sorted(SAMPLERS)}.") from None
+    if options:
+        return lambda stats, budget, rng: fn(stats, budget, rng, **options)
+    return fn
+
+
+@dataclass
+class AdaptiveResult:
+    """Statistics of all passes merged, and what each pass did."""
+
+    stats: PixelStats
+    counts: list[np.ndarray] = field(default_factory=list)
+    seconds_render: float = 0.0
+    seconds_sampler: float = 0.0
+
+    @property
+    def total_counts(self) -> np.ndarray:
+        return self.stats.n
+
+
+def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4,
+                    iterations: int = 8, seed: int = 0, progress: bool = False,
+                    callback=None, **sampler_options) -> AdaptiveResult:
+    """Render with an average of ``spp`` samples per pixel, placed adaptively.
+
+    Parameters
+    ----------
+    renderer : object with ``height``, ``width`` and ``render(counts, *, seed, features)``
+    spp : float
+        Average samples per pixel over all passes; the total is ``round(spp × H × W)``.
+    sampler : str or callable
+        ``"uniform"``, ``"gem"`` or any ``sampler(stats, budget, rng) -> counts``.
+    initial_spp : int
+        Samples per pixel of the first, uniform pass (4 in Rousselle 2011 §6).
+    iterations : int
+        Adaptive passes after it (8 in Rousselle 2011 §6); their budget is split evenly.
+    callback : callable, optional
+        Called as ``callback(k, stats, counts)`` after every pass.
+
+    Returns
+    -------
+    AdaptiveResult
+    """
+    h, w = renderer.height, renderer.width
+    total = int(round(spp * h * w))
+    if initial_spp < 0 or iterations < 0:
+        raise InputError(f"`initial_spp` and `iterations` must be >= 0; got {initial_spp}, {iterations}.")
+    first = min(initial_spp, int(spp)) if iterations else int(spp)
+    if first * h * w > total:
+        raise InputError(f"`spp`={spp} is below the initial pass of {initial_spp} spp.")
+    if iterations and first < 2:
+        raise InputError("adaptive sampling needs an initial pass of >= 2 spp to estimate variances.")
+    pick = get_sampler(sampler, **sampler_options)
+    rng = np.random.default_rng(seed)
+    rest = total - first * h * w
+    budgets = [rest // iterations + (1 if k < rest % iterations else 0)
+               for k in range(iterations)] if iterations else []
+    t_render = t_sampler = 0.0
+    counts = np.full((h, w), first, np.int64)
+    if not iterations and rest:  # uniform remainder spread unbiasedly
+        counts = counts + _uniform_sampler(PixelStats.empty(h, w), rest, rng)
+    res = AdaptiveResult(stats=None)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc="adaptive render", unit="spl", unit_scale=True)
+    for k in range(len(budgets) + 1):
+        if k > 0:
+            t0 = time.perf_counter()
+            counts = np.asarray(pick(res.stats, budgets[k - 1], rng))
+            t_sampler += time.perf_counter() - t0
+            if counts.shape != (h, w) or counts.sum() != budgets[k - 1] or counts.min() < 0:
+                raise InputError(f"sampler returned counts of shape {counts.shape} summing to "
+                                 f"{counts.sum()}; expected ({h}, {w}) summing to {budgets[k - 1]}.")
+        t0 = time.perf_counter()
+        part = renderer.render(counts, seed=seed * 1_000_003 + 7919 * k, features=(k == 0))
+        t_render += time.perf_counter() - t0
+        res.stats = part if res.stats is None else res.stats.merge(part)
+        res.counts.append(counts)
+        if bar is not None:
+            bar.update(int(counts.sum()))
+        if callback is not None:
+            callback(k, res.stats, counts)
+    if bar is not None:
+        bar.close()
+    res.seconds_render, res.seconds_sampler = t_render, t_sampler
+    return res

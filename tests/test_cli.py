@@ -1,0 +1,133 @@
+"""The statmc command line: outputs, reports, and one-line errors for bad input."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from statmc.cli import main
+
+
+def run_cli(*args):
+    """Run the console entry in-process; return (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def toy_ref(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ref")
+    path = d / "ref.exr"
+    code, _, err = run_cli("reference", "toy:mixed", "--spp", 512, "--size", "24x16",
+                           "--pass-spp", 128, "--out", path, "-q")
+    assert code == 0, err
+    return path
+
+
+def test_render_writes_exr_png_report_with_metrics(tmp_path, toy_ref):
+    out = tmp_path / "r"
+    code, stdout, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16",
+                                "--out", out, "--reference", toy_ref, "-q")
+    assert code == 0, err
+    for f in ("render.exr", "render.png", "report.json"):
+        assert (out / f).stat().st_size > 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["spp"] == 8 and rep["total_samples"] == 8 * 24 * 16
+    assert rep["width"] == 24 and rep["height"] == 16
+    assert rep["samples_per_second"] > 0
+    assert rep["metrics"]["relmse"] > 0
+    from statmc.exr import read_exr
+    st = read_exr(out / "render.exr")
+    assert np.all(st.n == 8)
+
+
+def test_render_metrics_shrink_with_spp(tmp_path, toy_ref):
+    rel = []
+    for spp in (4, 64):
+        code, _, err = run_cli("render", "toy:mixed", "--spp", spp, "--size", "24x16",
+                               "--out", tmp_path / str(spp), "--reference", toy_ref, "-q")
+        assert code == 0, err
+        rel.append(json.loads((tmp_path / str(spp) / "report.json").read_text())["metrics"]["relmse"])
+    assert rel[1] < rel[0] / 4  # 16x the samples: about 1/16 of the variance part
+
+
+def test_render_with_integer_and_density_maps(tmp_path):
+    rng = np.random.default_rng(0)
+    counts = rng.integers(0, 9, size=(16, 24))
+    np.save(tmp_path / "counts.npy", counts)
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", tmp_path / "counts.npy",
+                           "--out", tmp_path / "a", "-q")
+    assert code == 0, err
+    from statmc.exr import read_exr
+    assert np.array_equal(read_exr(tmp_path / "a" / "render.exr").n, counts)
+    dens = rng.uniform(0.1, 1.0, size=(16, 24))
+    np.save(tmp_path / "dens.npy", dens)
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", tmp_path / "dens.npy", "--spp", 4,
+                           "--out", tmp_path / "b", "-q")
+    assert code == 0, err
+    assert read_exr(tmp_path / "b" / "render.exr").n.sum() == 4 * 16 * 24
+
+
+def test_metrics_and_info_print_json(tmp_path, toy_ref):
+    run_cli("render", "toy:mixed", "--spp", 4, "--size", "24x16", "--out", tmp_path, "-q")
+    code, out, err = run_cli("metrics", tmp_path / "render.exr", toy_ref)
+    assert code == 0, err
+    m = json.loads(out)
+    assert {"relmse", "mse", "rmse", "smape", "flip"} <= set(m)
+    code, out, err = run_cli("info", tmp_path / "render.exr")
+    assert code == 0, err
+    info = json.loads(out)
+    assert "SampleCount" in json.dumps(info) and "Variance.R" in json.dumps(info)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["render", "no-such-scene", "--spp", "4", "--out", "{tmp}/x"], "no-such-scene"),
+    (["render", "{tmp}/missing.xml", "--spp", "4", "--out", "{tmp}/x"], "missing.xml"),
+    (["render", "toy:mixed", "--spp", "-3", "--out", "{tmp}/x"], "--spp"),
+    (["render", "toy:mixed", "--spp", "4", "--size", "12by4", "--out", "{tmp}/x"], "--size"),
+    (["render", "toy:mixed", "--sample-map", "{tmp}/neg.npy", "--out", "{tmp}/x"], "negative"),
+    (["render", "toy:mixed", "--sample-map", "{tmp}/nan.npy", "--out", "{tmp}/x"], "NaN"),
+    (["render", "toy:mixed", "--sample-map", "{tmp}/counts.npy", "--size", "8x8", "--out", "{tmp}/x"],
+     "sample map is"),
+    (["render", "toy:mixed", "--spp", "4", "--size", "8x8", "--reference", "{tmp}/ref.exr",
+      "--out", "{tmp}/x"], "reference"),
+    (["metrics", "{tmp}/nothing.exr", "{tmp}/ref.exr"], "nothing.exr"),
+    (["metrics", "{tmp}/garbage.exr", "{tmp}/ref.exr"], "garbage.exr"),
+    (["info", "{tmp}/garbage.exr"], "garbage.exr"),
+])
+def test_bad_input_exits_nonzero_with_one_line(tmp_path, toy_ref, args, needle):
+    np.save(tmp_path / "neg.npy", -np.ones((16, 24)))
+    np.save(tmp_path / "nan.npy", np.full((16, 24), np.nan))
+    np.save(tmp_path / "counts.npy", np.ones((16, 24), np.int64))
+    (tmp_path / "garbage.exr").write_bytes(b"not an exr at all" * 10)
+    os.link(toy_ref, tmp_path / "ref.exr")
+    code, out, err = run_cli(*[a.replace("{tmp}", str(tmp_path)) for a in args])
+    assert code != 0
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], err
+    assert "Traceback" not in err
+    assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_render_never_overwrites_its_reference(tmp_path, toy_ref):
+    ref_copy = tmp_path / "render.exr"
+    ref_copy.write_bytes(toy_ref.read_bytes())
+    before = ref_copy.read_bytes()
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 4, "--size", "24x16", "--out", tmp_path,
+                           "--reference", ref_copy, "-q")
+    assert code != 0 and "overwrite" in err
+    assert ref_copy.read_bytes() == before
+
+
+def test_console_script_runs_as_a_process(tmp_path):
+    exe = os.path.join(os.path.dirname(sys.executable), "statmc")
+    r = subprocess.run([exe, "render", "toy:nope", "--spp", "1", "--out", str(tmp_path)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "toy" in r.stderr
