@@ -10,7 +10,8 @@ where ``S`` is one scalar "path throughput" per sample with ``E[S] = 1`` (shared
 channels, so the channels are correlated like a colour times a scalar throughput, the
 same device Salehi et al. 2022 §4.3 use to correlate the RGB channels of synthetic
 samples), and ``Z_c`` are independent standard normals (independent per-channel noise,
-off in most regions; samples can be negative only in ``gaussian`` pixels).  The law of ``S`` is one of :data:`FAMILIES`, chosen per pixel:
+off in most regions; samples can be negative only in ``gaussian`` pixels).  The law of
+``S`` is one of :data:`FAMILIES`, chosen per pixel:
 
 ============  ==================================  ===================  =====================
 family        ``S``                               ``Var[S]``           ``E[(S-1)^4]``
