@@ -1,0 +1,555 @@
+"""Mitsuba 3 renderer backend with exact per-pixel sample counts.
+
+Mitsuba 3 renders the same number of samples in every pixel.  :class:`MitsubaRenderer`
+renders any integer count map instead, as a wavefront: pixel indices are repeated by their
+counts (in chunks of about two million samples, so memory stays bounded), each sample is
+jittered inside its pixel, traced with ``sensor.sample_ray_differential`` and
+``integrator.sample``, and summed per pixel with ``dr.scatter_reduce`` into ``float64``
+Dr.Jit arrays (sums and sums of squares).  The sums are copied to NumPy once, at the end,
+and become :class:`statmc.stats.PixelStats`.  Keeping the accumulators inside Dr.Jit is
+what makes this as fast as ``mi.render`` (see ``bench/bench_render.py``).
+
+A sample belongs to the pixel it was drawn in: the reconstruction filter is a box, whatever
+filter the scene's film declares.  The scene's sampler is replaced by an ``independent``
+sampler seeded per chunk, so different seeds, and different chunks of one render, give
+independent samples.
+
+Mitsuba's fast ``llvm_ad_rgb`` variant needs LLVM >= 16 at run time
+(:func:`find_libllvm`, :func:`setup_mitsuba`).  Without it the backend falls back to
+``scalar_rgb``, which renders per-pixel counts as ``max(counts)`` one-sample passes of
+``mi.render`` (correct, much slower).
+
+Mitsuba is imported here only, and only when a function of this module is called.
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import numbers
+import os
+import re
+import sys
+import time
+import warnings
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FileFormatError, InputError, as_float_array, check_finite, check_nonnegative
+from .scenes import BUILTIN_SCENES, _check_size, load_scene_dict
+from .stats import PixelStats
+
+__all__ = ["find_libllvm", "setup_mitsuba", "current_mitsuba", "MitsubaRenderer",
+           "MIN_LLVM_VERSION", "LLVM_SEARCH_PATTERNS"]
+
+#: Oldest LLVM that Dr.Jit's LLVM backend runs with (14 and 15 fail with
+#: "Cannot select ... fminimum").
+MIN_LLVM_VERSION = 16
+
+#: Glob patterns searched, in order, for a shared libLLVM (after ``DRJIT_LIBLLVM_PATH``).
+LLVM_SEARCH_PATTERNS: tuple[str, ...] = (
+    "/usr/lib/*-linux-gnu/libLLVM-[0-9]*.so*",
+    "/usr/lib/*-linux-gnu/libLLVM.so.[0-9]*",
+    "/usr/lib/llvm-[0-9]*/lib/libLLVM*.so*",
+    "/usr/lib64/libLLVM-[0-9]*.so*",
+    "/usr/lib64/libLLVM.so.[0-9]*",
+    "/usr/local/lib/libLLVM-[0-9]*.so*",
+    "/usr/local/lib/libLLVM.so.[0-9]*",
+)
+
+_VERSION_PATTERNS = (
+    re.compile(r"libLLVM-(\d+)"),          # libLLVM-19.so, libLLVM-19.so.1
+    re.compile(r"llvm-(\d+)[/\\]"),        # /usr/lib/llvm-19/lib/libLLVM.so.1
+    re.compile(r"libLLVM\.so\.(\d+)"),     # libLLVM.so.19.1
+)
+
+_LLVM_HINT = ("install LLVM >= 16 (on Debian/Ubuntu: `apt-get install libllvm19`) or point "
+              "DRJIT_LIBLLVM_PATH at libLLVM-16 or newer")
+
+# The variant chosen by setup_mitsuba(None), remembered for the life of the process.
+_AUTO: dict[str, str] = {}
+
+# Salts separating the random streams of the passes of one render.
+_SALT_MAIN = 0x5EED
+_SALT_FEATURES = 0xFEA7
+
+
+def _llvm_version(path: str) -> int | None:
+    """Major LLVM version in a library path, or None when the name does not say."""
+    for pat in _VERSION_PATTERNS:
+        m = pat.search(path)
+        if m:
+            return int(m.group(1))
+    return None
+
+
+def find_libllvm() -> str | None:
+    """Path of a shared libLLVM >= 16 for Dr.Jit's LLVM backend, or None.
+
+    ``DRJIT_LIBLLVM_PATH`` is used first when it names an existing file whose version is
+    >= 16 or cannot be read from its name.  Otherwise :data:`LLVM_SEARCH_PATTERNS` are
+    searched and the newest version found wins (the shortest name among equals).
+
+    Returns
+    -------
+    str or None
+    """
+    env = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if env and os.path.isfile(env):
+        v = _llvm_version(env)
+        if v is None or v >= MIN_LLVM_VERSION:
+            return env
+    best = None
+    for pattern in LLVM_SEARCH_PATTERNS:
+        for path in glob.glob(pattern):
+            v = _llvm_version(path)
+            if v is None or v < MIN_LLVM_VERSION or not os.path.isfile(path):
+                continue
+            key = (v, -len(path), path)
+            if best is None or key > best[0]:
+                best = (key, path)
+    return None if best is None else best[1]
+
+
+def _import_mitsuba():
+    try:
+        import mitsuba as mi
+    except ImportError as e:  # pragma: no cover - mitsuba is a dependency
+        raise InputError(f"the Mitsuba backend needs the `mitsuba` package ({e}); "
+                         "`pip install mitsuba`.") from None
+    return mi
+
+
+def _choose_auto_variant() -> str:
+    path = find_libllvm()
+    if path is not None:
+        os.environ["DRJIT_LIBLLVM_PATH"] = path   # before drjit starts its LLVM backend
+    mi = _import_mitsuba()
+    if path is None:
+        warnings.warn(f"statmc: no libLLVM >= {MIN_LLVM_VERSION} found, so Mitsuba uses the slow "
+                      f"`scalar_rgb` variant; {_LLVM_HINT}.", RuntimeWarning, stacklevel=3)
+        return "scalar_rgb"
+    try:
+        mi.set_variant("llvm_ad_rgb")
+    except Exception as e:  # noqa: BLE001 - any failure to start LLVM means: fall back
+        warnings.warn(f"statmc: Mitsuba's `llvm_ad_rgb` variant did not start with {path} ({e}); "
+                      f"using the slow `scalar_rgb` variant; {_LLVM_HINT}.",
+                      RuntimeWarning, stacklevel=3)
+        return "scalar_rgb"
+    return "llvm_ad_rgb"
+
+
+def setup_mitsuba(variant: str | None = None):
+    """Import Mitsuba 3 and set its variant, finding LLVM first.
+
+    Parameters
+    ----------
+    variant : str, optional
+        An RGB variant (``llvm_ad_rgb``, ``scalar_rgb``, ``cuda_ad_rgb``).  By default
+        ``llvm_ad_rgb`` when :func:`find_libllvm` finds LLVM >= 16 (``DRJIT_LIBLLVM_PATH``
+        is set to it before Dr.Jit is imported), else ``scalar_rgb`` with a
+        ``RuntimeWarning`` saying how to install LLVM.
+
+    Returns
+    -------
+    mi : module
+        The ``mitsuba`` module with the variant set.
+    variant : str
+    """
+    if variant is None:
+        if "auto" not in _AUTO:
+            _AUTO["auto"] = _choose_auto_variant()
+        variant = _AUTO["auto"]
+    else:
+        if not isinstance(variant, str) or not variant.endswith("_rgb"):
+            raise InputError(f"`variant` must be a Mitsuba RGB variant such as 'llvm_ad_rgb' or "
+                             f"'scalar_rgb'; got {variant!r}.")
+        if variant.startswith("llvm"):
+            path = find_libllvm()
+            if path is None:
+                raise InputError(f"`variant` {variant!r} needs libLLVM >= {MIN_LLVM_VERSION}, "
+                                 f"which was not found; {_LLVM_HINT}, or use 'scalar_rgb'.")
+            os.environ["DRJIT_LIBLLVM_PATH"] = path
+    mi = _import_mitsuba()
+    if variant not in mi.variants():
+        raise InputError(f"`variant` {variant!r} is not in this Mitsuba build; "
+                         f"available: {', '.join(mi.variants())}.")
+    if mi.variant() != variant:
+        try:
+            mi.set_variant(variant)
+        except Exception as e:  # noqa: BLE001
+            raise InputError(f"Mitsuba could not start variant {variant!r} ({e}); {_LLVM_HINT}, "
+                             "or use 'scalar_rgb'.") from None
+    return mi, variant
+
+
+def current_mitsuba():
+    """The ``mitsuba`` module with its current variant, set up by :func:`setup_mitsuba` if unset."""
+    mi = sys.modules.get("mitsuba")
+    if mi is not None and mi.variant() is not None:
+        return mi
+    return setup_mitsuba()[0]
+
+
+# ---------------------------------------------------------------------------- helpers
+def _check_int(name: str, value, *, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise InputError(f"`{name}` must be an integer >= {minimum}; got {value!r}.")
+    return int(value)
+
+
+def _chunk_seed(seed: int, salt: int, chunk: int) -> int:
+    """A 32-bit sampler seed for one chunk, distinct streams for distinct (seed, salt, chunk)."""
+    return int(np.random.SeedSequence([seed, salt, chunk]).generate_state(1, np.uint32)[0])
+
+
+def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
+    """Yield the flat pixel index of every sample, ``chunk`` samples at a time.
+
+    The concatenation of the chunks equals ``np.repeat(arange(P), counts_flat)`` (samples
+    of a pixel are consecutive) without building that array whole.
+    """
+    cum = np.cumsum(counts_flat)
+    total = int(cum[-1]) if cum.size else 0
+    start = cum - counts_flat
+    for a in range(0, total, chunk):
+        b = min(a + chunk, total)
+        p0 = int(np.searchsorted(cum, a, side="right"))
+        p1 = int(np.searchsorted(cum, b - 1, side="right"))
+        local = np.minimum(cum[p0:p1 + 1], b) - np.maximum(start[p0:p1 + 1], a)
+        yield np.repeat(np.arange(p0, p1 + 1, dtype=np.uint32), local)
+
+
+def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool):
+    """Load a Mitsuba XML scene, overriding the film size and filter when asked."""
+    try:
+        if width is None and height is None and not force_box:
+            return mi.load_file(str(path))
+        try:
+            root = ET.parse(path).getroot()
+        except ET.ParseError as e:
+            raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
+        film = root.find(".//sensor/film")
+        if film is None:
+            raise InputError(f"scene file {str(path)!r} has no <sensor><film> element, so its "
+                             "size cannot be set; add one or leave `width`/`height` unset.")
+        for name, value in (("width", width), ("height", height)):
+            if value is None:
+                continue
+            el = film.find(f"integer[@name='{name}']")
+            if el is None:
+                el = ET.SubElement(film, "integer", name=name)
+            el.set("value", str(value))
+        if force_box:
+            for rf in film.findall("rfilter"):
+                film.remove(rf)
+            ET.SubElement(film, "rfilter", type="box")
+        mi.file_resolver().prepend(str(path.resolve().parent))
+        return mi.load_string(ET.tostring(root, encoding="unicode"))
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - Mitsuba's parser raises plain exceptions
+        raise FileFormatError(f"Mitsuba could not load scene file {str(path)!r}: {e}") from None
+
+
+# ---------------------------------------------------------------------------- renderer
+class MitsubaRenderer:
+    """Render a Mitsuba 3 scene with any number of samples in each pixel.
+
+    Parameters
+    ----------
+    scene : str, path or mitsuba.Scene
+        A built-in scene name (:data:`statmc.scenes.BUILTIN_SCENES`), a path to a
+        Mitsuba XML file, or an already loaded scene.
+    width, height : int, optional
+        Image size; default: the scene's own.
+    variant : str, optional
+        Mitsuba variant (see :func:`setup_mitsuba`); default ``llvm_ad_rgb`` when LLVM
+        >= 16 is found, else ``scalar_rgb``.
+    chunk_samples : int, optional
+        Samples traced per wavefront (bounds memory: a few hundred bytes per sample).
+
+    Attributes
+    ----------
+    height, width : int
+    channels : int
+        Always 3 (RGB).
+    name : str
+        Scene name or file path.
+    variant : str
+
+    Notes
+    -----
+    The reconstruction filter is a box: a sample counts in the pixel it was drawn in.
+    Only C++ sampling integrators (``path``, ``volpath``, ``direct``, ...) are supported.
+    Ray differentials are scaled by ``1/sqrt(counts[i, j])``, as ``mi.render`` does for a
+    uniform count (this only changes filtered bitmap texture look-ups).
+
+    Examples
+    --------
+    >>> r = MitsubaRenderer("cornell-box", width=32, height=32)      # doctest: +SKIP
+    >>> stats = r.render(np.full((32, 32), 16), seed=1)              # doctest: +SKIP
+    >>> stats.n.sum(), stats.mean.shape                               # doctest: +SKIP
+    (16384, (32, 32, 3))
+    """
+
+    channels = 3
+
+    def __init__(self, scene, *, width: int | None = None, height: int | None = None,
+                 variant: str | None = None, chunk_samples: int = 2 ** 21):
+        self.chunk_samples = _check_int("chunk_samples", chunk_samples, minimum=1)
+        if self.chunk_samples > 2 ** 31:
+            raise InputError(f"`chunk_samples` must be <= 2**31; got {chunk_samples}.")
+        if width is not None:
+            width = _check_size("width", width, 0)
+        if height is not None:
+            height = _check_size("height", height, 0)
+        mi, self.variant = setup_mitsuba(variant)
+        self._mi = mi
+        import drjit as dr
+        self._dr = dr
+        self._jit = not self.variant.startswith("scalar")
+
+        if hasattr(scene, "sensors") and hasattr(scene, "integrator"):
+            if width is not None or height is not None:
+                raise InputError("`width`/`height` cannot be changed for an already loaded "
+                                 "`scene`; set them in the scene description.")
+            self._scene, self.name = scene, "custom"
+        elif isinstance(scene, (str, os.PathLike)):
+            key = os.fspath(scene)
+            if isinstance(key, str) and key in BUILTIN_SCENES:
+                self._scene = mi.load_dict(load_scene_dict(key, width, height))
+                self.name = key
+            else:
+                path = Path(key)
+                if not path.is_file():
+                    raise InputError(
+                        f"`scene` {key!r} is neither a built-in scene "
+                        f"({', '.join(sorted(BUILTIN_SCENES))}) nor an existing Mitsuba XML file.")
+                self._scene = _load_xml(mi, path, width, height, force_box=False)
+                if not self._jit and not self._scene.sensors()[0].film().rfilter().is_box_filter():
+                    # the scalar fallback reads one-sample mi.render images: needs a box filter
+                    self._scene = _load_xml(mi, path, width, height, force_box=True)
+                self.name = str(path)
+        else:
+            raise InputError(f"`scene` must be a scene name, an XML path or a mitsuba.Scene; "
+                             f"got {type(scene).__name__}.")
+
+        if not self._scene.sensors():
+            raise InputError(f"scene {self.name!r} has no sensor.")
+        self._sensor = self._scene.sensors()[0]
+        film = self._sensor.film()
+        self.width, self.height = (int(v) for v in film.crop_size())
+        self._integrator = self._scene.integrator()
+        if self._integrator is None or hasattr(self._integrator, "sample_rays"):
+            raise InputError(f"scene {self.name!r} uses integrator {self._integrator!r}; "
+                             "MitsubaRenderer supports Mitsuba's C++ sampling integrators "
+                             "(e.g. 'path', 'volpath', 'direct').")
+        self._aov_integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal"})
+        self._sampler = mi.load_dict({"type": "independent"})
+
+    def __repr__(self) -> str:
+        return (f"MitsubaRenderer({self.name!r}, width={self.width}, height={self.height}, "
+                f"variant={self.variant!r})")
+
+    # ------------------------------------------------------------------ public
+    def render(self, counts, *, seed: int = 0, progress: bool = False, features: bool = True,
+               feature_spp: int = 16) -> PixelStats:
+        """Render exactly ``counts[i, j]`` samples in pixel ``(i, j)``.
+
+        Parameters
+        ----------
+        counts : (H, W) array of non-negative integers
+            Samples per pixel; zeros allowed.
+        seed : int, optional
+            Seed of the random numbers; different seeds give independent renders.
+        progress : bool, optional
+            Show a tqdm progress bar over the chunks.
+        features : bool, optional
+            Also render ``albedo`` and ``normal`` buffers, ``(H, W, 3)``, in a separate pass
+            of ``feature_spp`` samples per pixel (Mitsuba's ``aov`` integrator, shading
+            normals in world space), so they do not slow down the main pass.
+        feature_spp : int, optional
+
+        Returns
+        -------
+        PixelStats
+            ``n == counts``; ``mean`` and ``m2`` (float64) of the RGB samples; ``meta``
+            holds ``seconds``, ``samples``, ``samples_per_second`` (main pass),
+            ``feature_seconds``, ``variant``, ``scene``, ``seed``, ``chunks`` and
+            ``nonfinite_samples`` (NaN/Inf samples, counted as zeros).
+        """
+        counts = self._check_counts(counts)
+        seed = _check_int("seed", seed, minimum=0)
+        feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
+        if self._mi.variant() != self.variant:
+            self._mi.set_variant(self.variant)
+        render = self._render_jit if self._jit else self._render_scalar
+        t0 = time.perf_counter()
+        s1, s2, n_bad, n_chunks = render(counts, seed, progress)
+        seconds = time.perf_counter() - t0
+        stats = PixelStats.from_sums(counts, s1, s2)
+        total = int(counts.sum())
+        stats.meta.update({
+            "renderer": "mitsuba", "scene": self.name, "variant": self.variant, "seed": seed,
+            "samples": total, "seconds": seconds,
+            "samples_per_second": total / seconds if seconds > 0 else float("nan"),
+            "chunks": n_chunks, "nonfinite_samples": n_bad,
+        })
+        if features:
+            t0 = time.perf_counter()
+            albedo, normal = self._render_features(seed, feature_spp)
+            stats.albedo, stats.normal = albedo, normal
+            stats.meta["feature_seconds"] = time.perf_counter() - t0
+            stats.meta["feature_spp"] = feature_spp
+        return stats
+
+    def render_uniform(self, spp: int, *, seed: int = 0, progress: bool = False,
+                       features: bool = True, feature_spp: int = 16) -> PixelStats:
+        """:meth:`render` with ``spp`` samples in every pixel."""
+        spp = _check_int("spp", spp, minimum=0)
+        return self.render(np.full((self.height, self.width), spp, np.int64), seed=seed,
+                           progress=progress, features=features, feature_spp=feature_spp)
+
+    # ------------------------------------------------------------------ internals
+    def _check_counts(self, counts) -> np.ndarray:
+        a = as_float_array("counts", counts, ndim=2)
+        if a.shape != (self.height, self.width):
+            raise InputError(f"`counts` must have the image shape (H, W) = "
+                             f"{(self.height, self.width)}; got {a.shape}.")
+        check_finite("counts", a)
+        check_nonnegative("counts", a)
+        if np.any(a != np.floor(a)):
+            raise InputError("`counts` must hold whole numbers of samples; got fractional values.")
+        return a.astype(np.int64)
+
+    def _reduce_mode(self, arrays: int):
+        dr = self._dr
+        if self.variant.startswith("llvm"):
+            # Expand: one private copy of the accumulators per thread, no atomics
+            nbytes = self.width * self.height * dr.thread_count() * 8 * arrays
+            if nbytes <= 2 ** 30:
+                return dr.ReduceMode.Expand
+        return dr.ReduceMode.Auto
+
+    def _trace(self, integrator, pix: np.ndarray, chunk_seed: int, diff_scale):
+        """Trace one wavefront: samples in pixels ``pix``; returns (idx, L, aovs)."""
+        mi, dr = self._mi, self._dr
+        sensor, sampler = self._sensor, self._sampler
+        idx = mi.UInt32(pix)
+        sampler.seed(dr.opaque(mi.UInt32, chunk_seed), int(pix.size))
+        y = idx // self.width
+        x = idx - y * self.width
+        jitter = sampler.next_2d()
+        # film-relative position in [0, 1]^2, as in mi.render
+        pos = mi.Point2f((mi.Float(x) + jitter.x) * (1.0 / self.width),
+                         (mi.Float(y) + jitter.y) * (1.0 / self.height))
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+        t = sensor.shutter_open()
+        if sensor.shutter_open_time() > 0:
+            t = t + sampler.next_1d() * sensor.shutter_open_time()
+        ray, weight = sensor.sample_ray_differential(t, 0.0, pos, aperture)
+        if callable(diff_scale):
+            diff_scale = diff_scale(idx)
+        ray.scale_differential(diff_scale)
+        L, _valid, aovs = integrator.sample(self._scene, sampler, ray, None, True)
+        return idx, L * weight, aovs
+
+    def _render_jit(self, counts: np.ndarray, seed: int, progress: bool):
+        mi, dr = self._mi, self._dr
+        hw = self.height * self.width
+        flat = counts.ravel()
+        s1 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
+        s2 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
+        bad = dr.zeros(mi.UInt32, hw)
+        mode = self._reduce_mode(6)
+        rsqrt_n = mi.Float(1.0 / np.sqrt(np.maximum(flat, 1)).astype(np.float32))
+
+        def scale(idx):
+            return dr.gather(mi.Float, rsqrt_n, idx)
+
+        n_chunks = 0
+        with _progress(int(flat.sum()), progress, f"mitsuba {self.name}") as bar:
+            for k, pix in enumerate(_chunk_pixels(flat, self.chunk_samples)):
+                idx, L, _ = self._trace(self._integrator, pix, _chunk_seed(seed, _SALT_MAIN, k),
+                                        scale)
+                ok = dr.isfinite(L.x) & dr.isfinite(L.y) & dr.isfinite(L.z)
+                for c in range(3):
+                    v = mi.Float64(dr.select(ok, L[c], 0.0))
+                    dr.scatter_reduce(dr.ReduceOp.Add, s1[c], v, idx, mode=mode)
+                    dr.scatter_reduce(dr.ReduceOp.Add, s2[c], v * v, idx, mode=mode)
+                dr.scatter_reduce(dr.ReduceOp.Add, bad, mi.UInt32(1), idx, active=~ok,
+                                  mode=dr.ReduceMode.Direct)
+                dr.eval(s1, s2, bad)
+                n_chunks += 1
+                bar.update(int(pix.size))
+        shape = (self.height, self.width, 3)
+        sum_x = np.stack([np.asarray(a) for a in s1], axis=-1).reshape(shape)
+        sum_x2 = np.stack([np.asarray(a) for a in s2], axis=-1).reshape(shape)
+        return sum_x, sum_x2, int(np.asarray(bad).sum()), n_chunks
+
+    def _render_scalar(self, counts: np.ndarray, seed: int, progress: bool):
+        """Fallback: ``max(counts)`` one-sample passes of ``mi.render`` (box filter)."""
+        mi = self._mi
+        shape = (self.height, self.width, 3)
+        s1, s2 = np.zeros(shape), np.zeros(shape)
+        n_bad = 0
+        passes = int(counts.max()) if counts.size else 0
+        with _progress(passes, progress, f"mitsuba {self.name} (scalar)", "pass") as bar:
+            for k in range(passes):
+                img = np.asarray(mi.render(self._scene, spp=1,
+                                           seed=_chunk_seed(seed, _SALT_MAIN, k)), np.float64)
+                img = img[..., :3]
+                active = (counts > k)[..., None]
+                ok = np.isfinite(img)
+                n_bad += int((~ok.all(axis=-1) & active[..., 0]).sum())
+                img = np.where(ok & active, img, 0.0)
+                s1 += img
+                s2 += img * img
+                bar.update(1)
+        return s1, s2, n_bad, passes
+
+    def _render_features(self, seed: int, spp: int):
+        """Albedo and shading normal, ``spp`` samples per pixel, averaged (box filter)."""
+        mi, dr = self._mi, self._dr
+        shape = (self.height, self.width, 3)
+        if not self._jit:
+            img = np.asarray(mi.render(self._scene, integrator=self._aov_integrator, spp=spp,
+                                       seed=_chunk_seed(seed, _SALT_FEATURES, 0)), np.float32)
+            img = np.where(np.isfinite(img), img, 0.0)
+            return img[..., :3].copy(), img[..., 3:6].copy()
+        hw = self.height * self.width
+        acc = [dr.zeros(mi.Float, hw) for _ in range(6)]
+        mode = self._reduce_mode(6)
+        flat = np.full(hw, spp, np.int64)
+        for k, pix in enumerate(_chunk_pixels(flat, self.chunk_samples)):
+            idx, _, aovs = self._trace(self._aov_integrator, pix,
+                                       _chunk_seed(seed, _SALT_FEATURES, k), 1.0 / math.sqrt(spp))
+            for c in range(6):
+                v = aovs[c]
+                dr.scatter_reduce(dr.ReduceOp.Add, acc[c], dr.select(dr.isfinite(v), v, 0.0),
+                                  idx, mode=mode)
+            dr.eval(acc)
+        out = np.stack([np.asarray(a) for a in acc], axis=-1).reshape(self.height, self.width, 6)
+        out = (out / spp).astype(np.float32)
+        return out[..., :3].copy(), out[..., 3:6].copy()
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _progress(total: int, show: bool, desc: str, unit: str = "sample"):
+    if not show:
+        return _NoBar()
+    from tqdm.auto import tqdm
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=unit == "sample", leave=False)

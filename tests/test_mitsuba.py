@@ -1,0 +1,348 @@
+"""Mitsuba 3 backend: exact per-pixel counts, statistics against mi.render, bad input.
+
+Statistical checks use fixed seeds and one-sample t-tests across pixels (pixels hold
+disjoint samples, so they are independent).  Each per-pixel statistic has expectation
+exactly 0 under the null hypothesis: it is either a difference of two unbiased estimates,
+or such a difference divided by a scale taken from an *independent* render (a scale from
+the same samples would bias a t-statistic under skewed radiance).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from statmc import InputError
+from statmc import mitsuba_backend as mb
+from statmc.scenes import BUILTIN_SCENES, load_scene_dict
+
+pytestmark = pytest.mark.mitsuba
+
+ALPHA = 1e-3      # per test; a handful of tests, so the family-wise rate stays below 1 %
+SIZE = 32
+
+
+def _ttest_zero(x, what):
+    """One-sample t-test of E[x] = 0; returns p, with a useful message on failure."""
+    x = np.asarray(x, np.float64).ravel()
+    x = x[np.isfinite(x)]
+    res = sps.ttest_1samp(x, 0.0)
+    msg = (f"{what}: mean {x.mean():.4g} ± {x.std(ddof=1) / np.sqrt(x.size):.3g} over {x.size} "
+           f"pixels, t = {res.statistic:.3f}, p = {res.pvalue:.3g}")
+    print(msg)      # shown by pytest when a test fails (or with -s)
+    return res.pvalue, msg
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return mb.MitsubaRenderer("cornell-box", width=SIZE, height=SIZE)
+
+
+@pytest.fixture(scope="module")
+def mi(cornell):
+    return cornell._mi
+
+
+@pytest.fixture(scope="module")
+def pilot(cornell):
+    """Independent per-pixel sample variance, used only as a scale (seed not reused)."""
+    return cornell.render_uniform(128, seed=999, features=False).sample_var
+
+
+@pytest.fixture(scope="module")
+def reference(cornell, mi):
+    """High-spp mi.render reference (box filter), 2048 spp."""
+    mi.set_variant(cornell.variant)
+    return np.asarray(mi.render(cornell._scene, spp=2048, seed=7), np.float64)[..., :3]
+
+
+def _ensure_variant(r):
+    if r._mi.variant() != r.variant:
+        r._mi.set_variant(r.variant)
+
+
+# ------------------------------------------------------------------ agreement with mi.render
+def test_uniform_counts_match_mi_render(cornell, mi, pilot):
+    spp, k = 16, 8
+    ours = cornell.render_uniform(spp, seed=11, features=False)
+    assert np.array_equal(ours.n, np.full((SIZE, SIZE), spp))
+    _ensure_variant(cornell)
+    imgs = np.stack([np.asarray(mi.render(cornell._scene, spp=spp, seed=100 + j), np.float64)[..., :3]
+                     for j in range(k)])
+    mi_mean = imgs.mean(0)
+    mi_var_of_image = imgs.var(0, ddof=1)            # variance of one spp-sample image
+    scale = pilot / spp                              # independent of both renders
+    ok = (scale > 0).all(-1)
+    assert ok.mean() > 0.5
+
+    # 1) means agree: z = (ours - mi) / sd, sd from the independent pilot
+    z = (ours.mean - mi_mean) / np.sqrt(pilot * (1 / spp + 1 / (spp * k)) + 1e-300)
+    p, msg = _ttest_zero(z[ok].mean(-1), "mean difference ours - mi.render (z)")
+    assert p > ALPHA, msg
+    # 2) variance of the mean agrees: our s²/n vs the spread of mi.render images
+    d = (ours.mean_var - mi_var_of_image) / (scale + 1e-300)
+    p, msg = _ttest_zero(d[ok].mean(-1), "variance of the mean ours - mi.render")
+    assert p > ALPHA, msg
+    # the t-tests have power: a 15 % shift of the mean is rejected
+    z_bad = (1.15 * ours.mean - mi_mean) / np.sqrt(pilot * (1 / spp + 1 / (spp * k)) + 1e-300)
+    assert _ttest_zero(z_bad[ok].mean(-1), "shifted")[0] < ALPHA
+
+
+# ------------------------------------------------------------------ arbitrary count maps
+def _random_counts(rng, h, w):
+    kind = rng.random((h, w))
+    counts = rng.integers(2, 64, size=(h, w))
+    counts[kind < 0.15] = 0
+    counts[(kind >= 0.15) & (kind < 0.25)] = 1
+    counts[kind > 0.95] = rng.integers(256, 1025, size=int((kind > 0.95).sum()))
+    return counts
+
+
+def test_random_counts_exact_and_consistent(cornell, pilot, reference):
+    rng = np.random.default_rng(3)
+    counts = _random_counts(rng, SIZE, SIZE)
+    # small chunks: pixels are split across chunks, and chunks must be independent
+    r = mb.MitsubaRenderer(cornell._scene, chunk_samples=5003)
+    stats = r.render(counts, seed=21, features=False)
+    assert stats.n.dtype == np.int64
+    assert np.array_equal(stats.n, counts)
+    assert stats.meta["chunks"] == -(-int(counts.sum()) // 5003)
+    assert np.all(stats.mean[counts == 0] == 0)
+
+    n = counts[..., None].astype(np.float64)
+    ok = (counts >= 1) & (pilot > 0).all(-1)
+    # 1) unbiased: standardised error against the reference, sd from the pilot
+    z = (stats.mean - reference) / np.sqrt(pilot * (1 / np.maximum(n, 1) + 1 / 2048))
+    p, msg = _ttest_zero(z[ok].mean(-1), "error vs reference (z)")
+    assert p > ALPHA, msg
+    # 2) the squared error is predicted by sample_var / n (+ the reference's own variance)
+    ok2 = ok & (counts >= 2)
+    w = reference ** 2 + 1e-2                        # independent positive scale
+    d = ((stats.mean - reference) ** 2 - stats.mean_var - pilot / 2048) / w
+    p, msg = _ttest_zero(d[ok2].mean(-1), "squared error - mean_var")
+    assert p > ALPHA, msg
+    # ... and the test would notice mean_var off by 30 %
+    d_bad = ((stats.mean - reference) ** 2 - 0.7 * stats.mean_var - pilot / 2048) / w
+    assert _ttest_zero(d_bad[ok2].mean(-1), "scaled")[0] < ALPHA
+
+
+def test_seeds_give_independent_renders(cornell, pilot, reference):
+    spp = 8
+    a = cornell.render_uniform(spp, seed=1, features=False)
+    b = cornell.render_uniform(spp, seed=2, features=False)
+    a2 = cornell.render_uniform(spp, seed=1, features=False)
+    np.testing.assert_allclose(a2.mean, a.mean, rtol=1e-9, atol=1e-12)   # same seed, same image
+    assert not np.allclose(a.mean, b.mean)
+    # independent errors: E[(a - ref)(b - ref)] = 0.  Pearson's r across pixels is no test
+    # here (skewed, heavy-tailed pixels); a t-test of the scaled products is.  Pixels that
+    # see the light (reference >= 1, chosen from the independent reference) are left out:
+    # their errors are binomial-skewed and dominate any sum.
+    ok = (reference < 1).all(-1) & (pilot > 0).all(-1)
+    u = ((a.mean - reference) * (b.mean - reference) / (pilot / spp)).mean(-1)
+    p, msg = _ttest_zero(u[ok], "product of the errors of seeds 1 and 2")
+    assert p > ALPHA, msg
+    # ... and the test notices a correlation of 0.5 (half of the samples shared)
+    u_bad = ((a.mean - reference) * (0.5 * (a.mean + b.mean) - reference) / (pilot / spp)).mean(-1)
+    assert _ttest_zero(u_bad[ok], "correlated")[0] < ALPHA
+
+
+def test_meta_and_features(cornell):
+    s = cornell.render_uniform(4, seed=3, feature_spp=8)
+    assert s.meta["variant"] == cornell.variant and s.meta["samples"] == 4 * SIZE * SIZE
+    assert s.meta["seconds"] > 0 and s.meta["samples_per_second"] > 0
+    assert s.meta["nonfinite_samples"] == 0
+    assert s.albedo.shape == s.normal.shape == (SIZE, SIZE, 3)
+    # the Cornell box's red wall has albedo (0.570068, 0.0430135, 0.0443706): left column
+    np.testing.assert_allclose(s.albedo[SIZE // 2, 1], [0.570068, 0.0430135, 0.0443706], atol=1e-5)
+    # ... whose normal is +x; the back wall, above the boxes, faces the camera: +z
+    np.testing.assert_allclose(s.normal[SIZE // 2, 1], [1, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(s.normal[10, 20], [0, 0, 1], atol=1e-5)
+    np.testing.assert_allclose(s.albedo[10, 20], [0.885809, 0.698859, 0.666422], atol=1e-5)
+    assert np.all(np.linalg.norm(s.normal, axis=-1) <= 1 + 1e-4)
+
+
+# ------------------------------------------------------------------ built-in scenes
+@pytest.mark.parametrize("name", sorted(BUILTIN_SCENES))
+def test_builtin_scene_renders(name):
+    r = mb.MitsubaRenderer(name, width=12, height=10)
+    assert (r.height, r.width, r.channels, r.name) == (10, 12, 3, name)
+    d = load_scene_dict(name, 12, 10)
+    film = d["sensor"]["film"]
+    assert film["rfilter"]["type"] == "box" and (film["width"], film["height"]) == (12, 10)
+    assert d["integrator"]["type"] == "path"
+    counts = np.arange(120).reshape(10, 12) % 5
+    s = r.render(counts, seed=0, feature_spp=2)
+    assert np.array_equal(s.n, counts)
+    assert np.isfinite(s.mean).all() and (s.mean >= 0).all() and s.mean[counts > 0].max() > 0
+    assert s.albedo.shape == (10, 12, 3) and np.isfinite(s.albedo).all()
+
+
+# ------------------------------------------------------------------ XML scenes
+XML = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="40"/><integer name="height" value="30"/>
+      <rfilter type="gaussian"/></film>
+  </sensor>
+  <shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
+  <emitter type="constant"/>
+</scene>
+"""
+
+
+def test_xml_scene_with_size_override(tmp_path):
+    path = tmp_path / "ball.xml"
+    path.write_text(XML)
+    r = mb.MitsubaRenderer(str(path))
+    assert (r.height, r.width) == (30, 40)
+    r = mb.MitsubaRenderer(path, width=9, height=7)
+    assert (r.height, r.width, r.name) == (7, 9, str(path))
+    s = r.render(np.full((7, 9), 3), seed=1, features=False)
+    assert s.total_samples == 3 * 63
+    # furnace: a convex white (albedo 1) diffuse sphere under a constant white sky sends
+    # back exactly the sky's radiance, so every pixel's expectation is 1
+    s = r.render_uniform(64, seed=2, features=False)
+    p, msg = _ttest_zero((s.mean - 1.0).mean(-1), "furnace error")
+    assert p > ALPHA, msg
+    assert s.sample_var.max() > 0
+
+
+# ------------------------------------------------------------------ bad input
+def test_bad_counts_raise(cornell):
+    good = np.ones((SIZE, SIZE))
+    for bad, word in [(-good, "negative"), (np.full((SIZE, SIZE), np.nan), "NaN"),
+                      (np.ones((SIZE, SIZE + 1)), "shape"), (np.ones(SIZE), "dimensions"),
+                      (good * 0.5, "whole"), (np.full((SIZE, SIZE), np.inf), "Inf")]:
+        with pytest.raises(InputError, match=word):
+            cornell.render(bad)
+    with pytest.raises(InputError, match="counts"):
+        cornell.render(np.array([["a"]]))
+    with pytest.raises(InputError, match="seed"):
+        cornell.render(good, seed=-1)
+    with pytest.raises(InputError, match="feature_spp"):
+        cornell.render(good, feature_spp=0)
+    with pytest.raises(InputError, match="spp"):
+        cornell.render_uniform(1.5)
+
+
+def test_bad_scene_raises(tmp_path):
+    missing = str(tmp_path / "nope.xml")
+    with pytest.raises(InputError, match="nope.xml"):
+        mb.MitsubaRenderer(missing)
+    with pytest.raises(InputError, match="cornell-box"):
+        mb.MitsubaRenderer("no-such-scene")
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<scene version='3.0.0'><shape type='sphere'")
+    with pytest.raises(InputError, match="broken.xml"):
+        mb.MitsubaRenderer(str(broken), width=8)
+    with pytest.raises(InputError, match="width"):
+        mb.MitsubaRenderer("cornell-box", width=0)
+    with pytest.raises(InputError, match="chunk_samples"):
+        mb.MitsubaRenderer("cornell-box", chunk_samples=0)
+    with pytest.raises(InputError, match="scene"):
+        mb.MitsubaRenderer(42)
+    with pytest.raises(InputError, match="variant"):
+        mb.MitsubaRenderer("cornell-box", variant="scalar_spectral")
+    with pytest.raises(InputError, match="name"):
+        load_scene_dict("nope")
+
+
+# ------------------------------------------------------------------ chunking (pure NumPy)
+@pytest.mark.parametrize("chunk", [1, 7, 64, 1000, 10 ** 6])
+def test_chunk_pixels_equals_repeat(chunk):
+    rng = np.random.default_rng(chunk)
+    counts = rng.integers(0, 9, size=300)
+    counts[:5] = 0
+    counts[-3:] = 0
+    counts[100] = 500
+    chunks = list(mb._chunk_pixels(counts, chunk))
+    assert all(c.size <= chunk for c in chunks)
+    assert sum(c.size == chunk for c in chunks) >= len(chunks) - 1
+    np.testing.assert_array_equal(np.concatenate(chunks), np.repeat(np.arange(300), counts))
+    assert list(mb._chunk_pixels(np.zeros(4, np.int64), chunk)) == []
+
+
+def test_chunk_seeds_distinct():
+    seeds = {mb._chunk_seed(s, salt, c) for s in range(20) for salt in (mb._SALT_MAIN, mb._SALT_FEATURES)
+             for c in range(50)}
+    assert len(seeds) == 20 * 2 * 50
+
+
+# ------------------------------------------------------------------ LLVM discovery and fallback
+def _touch(path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"")
+    return str(path)
+
+
+def test_find_libllvm_picks_newest_supported(tmp_path, monkeypatch):
+    gnu = tmp_path / "usr/lib/x86_64-linux-gnu"
+    for name in ["libLLVM-14.so", "libLLVM-15.so.1", "libLLVM-18.so", "libLLVM-19.so",
+                 "libLLVM-19.so.1", "libLLVM.so.19.1"]:
+        _touch(gnu / name)
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    monkeypatch.setattr(mb, "LLVM_SEARCH_PATTERNS", (str(gnu / "libLLVM-[0-9]*.so*"),
+                                                    str(gnu / "libLLVM.so.[0-9]*")))
+    assert mb.find_libllvm() == str(gnu / "libLLVM-19.so")
+    # a newer one under /usr/lib/llvm-NN/ wins; its version comes from the folder
+    newer = _touch(tmp_path / "usr/lib/llvm-21/lib/libLLVM.so.1")
+    monkeypatch.setattr(mb, "LLVM_SEARCH_PATTERNS", mb.LLVM_SEARCH_PATTERNS
+                        + (str(tmp_path / "usr/lib/llvm-[0-9]*/lib/libLLVM*.so*"),))
+    assert mb.find_libllvm() == newer
+
+
+def test_find_libllvm_env_and_too_old(tmp_path, monkeypatch):
+    old = [_touch(tmp_path / n) for n in ["libLLVM-14.so", "libLLVM-15.so"]]
+    monkeypatch.setattr(mb, "LLVM_SEARCH_PATTERNS", (str(tmp_path / "libLLVM-*.so*"),))
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    assert mb.find_libllvm() is None                      # only 14 and 15: too old
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", old[1])
+    assert mb.find_libllvm() is None                      # env names a too-old one: ignored
+    custom = _touch(tmp_path / "custom" / "libllvm-custom-build.so")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", custom)
+    assert mb.find_libllvm() == custom                    # unknown version: trusted
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing-libLLVM-19.so"))
+    good = _touch(tmp_path / "libLLVM-17.so")
+    assert mb.find_libllvm() == good                      # env file missing: search
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", _touch(tmp_path / "x" / "libLLVM-16.so"))
+    assert mb.find_libllvm() == str(tmp_path / "x" / "libLLVM-16.so")
+
+
+def test_fallback_without_llvm_warns(monkeypatch):
+    monkeypatch.setattr(mb, "find_libllvm", lambda: None)
+    with pytest.warns(RuntimeWarning, match="apt-get install libllvm19"):
+        assert mb._choose_auto_variant() == "scalar_rgb"
+    with pytest.raises(InputError, match="libllvm19"):
+        mb.setup_mitsuba("llvm_ad_rgb")
+
+
+def test_import_statmc_does_not_import_mitsuba():
+    import subprocess
+    code = ("import sys, statmc, statmc.stats, statmc.scenes, statmc.mitsuba_backend; "
+            "print('mitsuba' in sys.modules or 'drjit' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ}, check=True)
+    assert out.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------ scalar fallback
+def test_scalar_variant_renders_counts(cornell, pilot, reference):
+    r = mb.MitsubaRenderer("cornell-box", width=SIZE, height=SIZE, variant="scalar_rgb")
+    try:
+        counts = np.random.default_rng(5).integers(0, 7, size=(SIZE, SIZE))
+        s = r.render(counts, seed=4, feature_spp=2)
+        assert r.variant == "scalar_rgb" and s.meta["variant"] == "scalar_rgb"
+        assert np.array_equal(s.n, counts)
+        assert s.albedo.shape == (SIZE, SIZE, 3)
+        ok = (counts >= 1) & (pilot > 0).all(-1)
+        z = (s.mean - reference) / np.sqrt(pilot * (1 / np.maximum(counts, 1)[..., None] + 1 / 2048))
+        p, msg = _ttest_zero(z[ok].mean(-1), "scalar variant error vs reference (z)")
+        assert p > ALPHA, msg
+    finally:
+        _ensure_variant(cornell)
