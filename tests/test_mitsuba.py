@@ -150,6 +150,15 @@ def test_seeds_give_independent_renders(cornell, pilot, reference):
     assert _ttest_zero(u_bad[ok], "correlated")[0] < ALPHA
 
 
+def test_zero_counts_and_progress(cornell, capsys):
+    s = cornell.render(np.zeros((SIZE, SIZE), np.int64), features=False)
+    assert s.total_samples == 0 and s.meta["chunks"] == 0
+    assert np.all(s.mean == 0) and np.all(s.m2 == 0)
+    s = cornell.render_uniform(2, progress=True, features=False)
+    assert s.total_samples == 2 * SIZE * SIZE
+    assert "mitsuba cornell-box" in capsys.readouterr().err
+
+
 def test_meta_and_features(cornell):
     s = cornell.render_uniform(4, seed=3, feature_spp=8)
     assert s.meta["variant"] == cornell.variant and s.meta["samples"] == 4 * SIZE * SIZE
@@ -251,6 +260,13 @@ def test_bad_scene_raises(tmp_path):
         mb.MitsubaRenderer("cornell-box", variant="scalar_spectral")
     with pytest.raises(InputError, match="name"):
         load_scene_dict("nope")
+
+
+def test_python_integrator_rejected(cornell, mi):
+    d = load_scene_dict("cornell-box", 8, 8)
+    d["integrator"] = {"type": "prb"}
+    with pytest.raises(InputError, match="C\\+\\+ sampling integrators"):
+        mb.MitsubaRenderer(mi.load_dict(d))
 
 
 # ------------------------------------------------------------------ chunking (pure NumPy)
