@@ -1,0 +1,682 @@
+"""Analytic future renders and the bias-variance theorem for kernel denoisers.
+
+What happens to a render when ``s`` more samples are added to a pixel that already holds
+``s_bar`` samples with mean ``x_t``?  With the true per-pixel mean ``x_g`` and the true
+**sample variance** ``var_g`` (variance of *one* sample) the answer is analytic
+(Salehi et al. 2022 [1]_, §3.2–3.3):
+
+* :func:`future_moments` — mean (Eq. 6) and variance of the future render, conditional on
+  ``x_t`` (``s·var_g/(s_bar+s)²``, Eq. 19) or averaged over ``x_t`` too (Eq. 7);
+* :func:`sample_future` — one synthetic future render (Eq. 8): the mean of the ``s`` new
+  samples is drawn in one go from a moment-matched gamma (Eq. 9), log-normal, truncated
+  or clipped normal, with one random stream shared by the channels;
+* :func:`kernel_bias_variance` / :func:`expected_kernel_loss` — the exact expected MSE or
+  relMSE (MRSE) after adding ``s`` samples, for any per-pixel kernel denoiser whose
+  weights do not depend on the new samples (Lemma A.1, Theorem 1), with its gradient;
+* :func:`optimal_sample_map` / :func:`optimal_sample_counts` — a classical (non-neural)
+  sampler that minimises that expected loss under a budget (not in the paper).
+
+Kernel convention (also :func:`apply_kernels`): kernels are ``(H, W, k, k)`` with odd
+``k`` and ``r = k // 2``; the denoised pixel is
+
+``D[y, x, c] = Σ_{dy,dx} K[y, x, dy, dx] · img[y + dy − r, x + dx − r, c]``,
+
+the same weights for every channel.  Taps outside the image contribute nothing (zero
+weight); weights are used exactly as given, never renormalised.
+
+References
+----------
+.. [1] F. Salehi, M. Manzi, G. Roethlin, R. Weber, C. Schroers, M. Papas. "Deep Adaptive
+   Sampling and Reconstruction using Analytic Distributions". ACM Trans. Graph. 41(6),
+   259, 2022. https://doi.org/10.1145/3550454.3555515
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+from . import _analytic_kernels as _ak
+from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .sampling import counts_from_density
+
+__all__ = [
+    "DISTRIBUTIONS", "RELMSE_EPS", "future_moments", "gamma_parameters", "sample_future",
+    "apply_kernels",
+    "kernel_bias_variance", "expected_kernel_loss", "optimal_sample_map",
+    "optimal_sample_counts",
+]
+
+#: Values accepted by ``sample_future(dist=...)``.
+DISTRIBUTIONS = ("gamma", "lognormal", "truncnorm", "clipped_normal")
+
+#: ε in relMSE ``(x − r)²/(r² + ε)``: 0.01 as in DESIGN.md (Rousselle 2011 §7).  Salehi
+#: Eq. 20 divides by ``X_g²`` alone, which is ``eps=0``.
+RELMSE_EPS = 0.01
+
+_LOSSES = ("mse", "mrse", "relmse")
+
+
+# =========================================================================== validation
+def _image(name, a):
+    arr = as_float_array(name, a, ndim=(2, 3), dtype=np.float64)
+    check_finite(name, arr)
+    return arr
+
+
+def _like(name, a, ref_name, ref):
+    arr = as_float_array(name, a, dtype=np.float64)
+    if arr.shape != ref.shape:
+        raise InputError(f"`{name}` must have the shape of `{ref_name}` {ref.shape}; got {arr.shape}.")
+    check_finite(name, arr)
+    return arr
+
+
+def _count_map(name, a, hw):
+    arr = as_float_array(name, a, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full(hw, float(arr))
+    if arr.shape != tuple(hw):
+        raise InputError(
+            f"`{name}` must be an (H, W) sample-count map with (H, W) = {tuple(hw)} (or a "
+            f"scalar); got shape {arr.shape}.")
+    check_finite(name, arr)
+    check_nonnegative(name, arr)
+    return arr
+
+
+def _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t=None, *, names=("x_t", "s_bar", "s", "x_g", "var_g")):
+    """Validate and return float64 ``(H, W, C)`` images, ``(H, W)`` maps, and the input ndim."""
+    nx, nsb, ns, nxg, nv = names
+    xt = _image(nx, x_t)
+    ndim = xt.ndim
+    xg = _like(nxg, x_g, nx, xt)
+    vg = _like(nv, var_g, nx, xt)
+    check_nonnegative(nv, vg)
+    hw = xt.shape[:2]
+    sb = _count_map(nsb, s_bar, hw)
+    sm = _count_map(ns, s, hw)
+    mvt = None
+    if mean_var_t is not None:
+        mvt = _like("mean_var_t", mean_var_t, nx, xt)
+        check_nonnegative("mean_var_t", mvt)
+    if ndim == 2:
+        xt, xg, vg = xt[..., None], xg[..., None], vg[..., None]
+        mvt = None if mvt is None else mvt[..., None]
+    return xt, sb, sm, xg, vg, mvt, ndim
+
+
+def _check_kernels(kernels, hw):
+    K = np.asarray(kernels)
+    if K.dtype == object or not np.issubdtype(K.dtype, np.number):
+        raise InputError(f"`kernels` must be a numeric array; got dtype {K.dtype}.")
+    if K.dtype not in (np.float32, np.float64):
+        K = K.astype(np.float64)
+    if K.ndim != 4 or K.shape[2] != K.shape[3]:
+        raise InputError(f"`kernels` must have shape (H, W, k, k); got {K.shape}.")
+    if K.shape[:2] != tuple(hw):
+        raise InputError(
+            f"`kernels` must have one k x k kernel per pixel, shape {tuple(hw)} + (k, k); "
+            f"got {K.shape}.")
+    if K.shape[2] % 2 == 0:
+        raise InputError(f"`kernels` must have an odd size k (centred taps); got k = {K.shape[2]}.")
+    # One cheap pass instead of an (H, W, k, k) boolean temporary: a NaN/Inf makes the sum non-finite.
+    if not np.isfinite(np.sum(K, dtype=np.float64)):
+        check_finite("kernels", K)
+        raise InputError("`kernels` must hold finite values whose sum is finite; got an overflow.")
+    return K
+
+
+def _check_loss(loss, eps):
+    if not isinstance(loss, str) or loss.lower() not in _LOSSES:
+        raise InputError(f"`loss` must be one of 'mse', 'mrse' (alias 'relmse'); got {loss!r}.")
+    try:
+        eps = float(eps)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`eps` must be a finite number >= 0; got {eps!r}.") from exc
+    if not np.isfinite(eps) or eps < 0:
+        raise InputError(f"`eps` must be a finite number >= 0; got {eps}.")
+    return "mse" if loss.lower() == "mse" else "mrse", eps
+
+
+def _check_rel_denominator(loss, eps, xg):
+    if loss == "mrse" and eps == 0 and np.any(xg == 0):
+        raise InputError(
+            f"relMSE with `eps`=0 divides by x_g² = 0 in {int((xg == 0).sum())} entries; "
+            "use eps > 0 (e.g. the default 0.01).")
+
+
+def _rng(rng):
+    try:
+        return np.random.default_rng(rng)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`rng` must be None, an int seed or a numpy Generator; got {rng!r}.") from exc
+
+
+# =========================================================================== moments
+_moments = _ak.moments_numpy
+
+
+def future_moments(x_t, s_bar, s, x_g, var_g, *, mean_var_t=None):
+    """Mean and variance of a pixel's future render after adding ``s`` samples.
+
+    Parameters
+    ----------
+    x_t : (H, W, C) or (H, W) ndarray
+        Current render (mean of ``s_bar`` samples per pixel).
+    s_bar : (H, W) ndarray or scalar
+        Samples accumulated so far (real values allowed).
+    s : (H, W) ndarray or scalar
+        Samples to add.
+    x_g : like ``x_t``
+        True pixel mean.
+    var_g : like ``x_t``
+        True **sample variance** (variance of one sample), ``>= 0``.
+    mean_var_t : like ``x_t``, optional
+        Variance of the current mean ``x_t`` (e.g. ``PixelStats.mean_var``).  When given,
+        ``x_t`` is treated as random and both moments are averaged over it.
+
+    Returns
+    -------
+    mean, var : ndarray like ``x_t`` (float64)
+
+    Notes
+    -----
+    With ``n = s_bar + s`` and conditional on ``x_t`` (the setting of Fig. 5 of [1]_):
+
+    * ``mean = (s_bar x_t + s x_g) / n`` — Eq. 6 of [1]_;
+    * ``var = s var_g / n²`` — Eq. 19 of [1]_ (only the ``s`` new samples are random).
+
+    With ``mean_var_t`` (``x_t`` unbiased with variance ``mean_var_t``):
+
+    * ``var = (s_bar² mean_var_t + s var_g) / n²`` — Eq. 7 of [1]_; by the law of total
+      variance this is the *unconditional* variance, so
+    * ``mean = x_g`` — Eq. 6 with ``x_t`` replaced by its expectation ``x_g``.  Pairing
+      Eq. 7 with the conditional Eq. 6 would mix two different distributions.
+
+    Where ``n = 0`` the pixel receives no samples at all: ``mean = x_t``, ``var = 0``.
+
+    Examples
+    --------
+    The pixel of Fig. 5 of [1]_ (``X_g = 0.38``, ``V = 0.9``, ``X_t = 0.78`` at 16 spp):
+
+    >>> m, v = future_moments([[[0.78]]], 16, 16, [[[0.38]]], [[[0.9]]])
+    >>> round(float(m[0, 0, 0]), 4), round(float(v[0, 0, 0]), 7)   # 16*0.9/32**2
+    (0.58, 0.0140625)
+    """
+    xt, sb, sm, xg, vg, mvt, ndim = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
+    mean, var = _moments(xt, sb, sm, xg, vg, mvt)
+    if ndim == 2:
+        mean, var = mean[..., 0], var[..., 0]
+    return mean, var
+
+
+# =========================================================================== sampling
+def gamma_parameters(x_g, var_g, s):
+    """Shape and rate of the gamma law of the mean of ``s`` samples (Eq. 9 of [1]_).
+
+    ``α = x_g² s / var_g``, ``β = x_g s / var_g``, so the mean is ``α/β = x_g`` and the
+    variance ``α/β² = var_g / s``.  Arrays broadcast; undefined (NaN) where
+    ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.
+    """
+    xg = np.asarray(x_g, np.float64)
+    v = np.asarray(var_g, np.float64)
+    s = np.asarray(s, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = (xg != 0) & (v > 0) & (s > 0)
+        alpha = np.where(ok, xg * xg * s / np.where(ok, v, 1.0), np.nan)
+        beta = np.where(ok, xg * s / np.where(ok, v, 1.0), np.nan)
+    return alpha, beta
+
+
+def _draw_mean(dist, mu, var_mean, u, z, bounds):
+    """Mean of the new samples with mean ``mu`` and variance ``var_mean`` (non-degenerate)."""
+    if dist == "gamma":
+        alpha = mu * mu / var_mean                      # Eq. 9 with var_mean = var_g / s
+        rate = mu / var_mean
+        return special.gammaincinv(alpha, u) / rate
+    if dist == "lognormal":
+        s2 = np.log1p(var_mean / (mu * mu))
+        return np.exp(np.log(mu) - 0.5 * s2 + np.sqrt(s2) * z)
+    sd = np.sqrt(var_mean)
+    if dist == "truncnorm":                              # N(mu, sd²) restricted to [0, ∞)
+        lo = special.ndtr(-mu / sd)
+        q = lo + u * (1.0 - lo)
+        return np.maximum(mu + sd * special.ndtri(np.minimum(q, np.nextafter(1.0, 0.0))), 0.0)
+    return np.clip(mu + sd * z, bounds[0], bounds[1])   # clipped_normal
+
+
+def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_stream=True,
+                  bounds=(-1.0, 1.0)):
+    """One synthetic future render after adding ``s`` samples (Eq. 8 of [1]_).
+
+    Parameters
+    ----------
+    x_t, s_bar, s, x_g, var_g
+        As in :func:`future_moments` (``var_g`` is the sample variance of one sample).
+    dist : {"gamma", "lognormal", "truncnorm", "clipped_normal"}
+        Law of the mean ``Ȳ_s`` of the ``s`` new samples:
+
+        * ``"gamma"`` — moment matched, shape/rate of Eq. 9 of [1]_: mean ``x_g``,
+          variance ``var_g/s`` exactly (the mean of ``s`` i.i.d. gamma samples is gamma);
+        * ``"lognormal"`` — moment matched, ``σ² = log(1 + var_g/(s x_g²))``,
+          ``μ = log x_g − σ²/2``;
+        * ``"truncnorm"`` — ``N(x_g, var_g/s)`` truncated to ``[0, ∞)``.  Not moment
+          matched: its mean exceeds ``x_g`` at low ``s`` (the bias §5.4 of [1]_ reports);
+        * ``"clipped_normal"`` — ``N(x_g, var_g/s)`` clipped to ``bounds``: for normals
+          (§4.3 of [1]_), whose values may be negative.
+
+        The first three need ``x_g >= 0``.
+    rng : numpy Generator or int, optional
+    shared_stream : bool
+        One uniform (or standard normal) per pixel drives every channel through the
+        quantile function, so channels are perfectly rank-correlated — the paper's "same
+        seed for each channel" (§4.3 of [1]_).  ``False`` draws channels independently.
+    bounds : (float, float)
+        Clip range for ``"clipped_normal"``.
+
+    Returns
+    -------
+    y : ndarray like ``x_t``
+        ``(s_bar x_t + s Ȳ_s)/(s_bar + s)`` (Eq. 8 of [1]_), float32 if ``x_t`` is float32.
+
+    Notes
+    -----
+    Degenerate pixels are exact point masses, never NaN: ``Ȳ_s = x_g`` where ``s = 0`` or
+    ``var_g = 0``, and (for the three non-negative laws) where ``x_g = 0`` — a
+    non-negative variable with mean 0 is 0.  Where ``s_bar + s = 0`` the result is
+    ``x_t``.  Only the ``s`` new samples are random: the result has the conditional
+    moments of :func:`future_moments` (for the moment-matched laws).
+
+    The shared-stream gamma uses the inverse regularised incomplete gamma function
+    (about 0.7 µs per value); ``shared_stream=False`` uses NumPy's faster sampler.
+
+    Examples
+    --------
+    >>> y = sample_future(np.full((2, 2, 3), 0.5), 16, 16, np.full((2, 2, 3), 0.4),
+    ...                   np.full((2, 2, 3), 0.9), rng=1)
+    >>> y.shape
+    (2, 2, 3)
+    """
+    if dist not in DISTRIBUTIONS:
+        raise InputError(f"`dist` must be one of {DISTRIBUTIONS}; got {dist!r}.")
+    out_dtype = np.float32 if np.asarray(x_t).dtype == np.float32 else np.float64
+    xt, sb, sm, xg, vg, _, ndim = _prepare(x_t, s_bar, s, x_g, var_g)
+    positive = dist != "clipped_normal"
+    if positive and np.any(xg < 0):
+        raise InputError(
+            f"`x_g` must be >= 0 for dist={dist!r} (a law on [0, ∞)); got "
+            f"{int((xg < 0).sum())} negative values (min {xg.min():.4g}). Use "
+            "dist='clipped_normal' for signed features such as normals.")
+    lo, hi = (float(b) for b in bounds)
+    if not lo <= hi:
+        raise InputError(f"`bounds` must be (low, high) with low <= high; got {bounds!r}.")
+    gen = _rng(rng)
+    shape = xt.shape[:2] + ((1,) if shared_stream else (xt.shape[2],))
+    s3 = np.broadcast_to(sm[..., None], xt.shape)
+    degenerate = (s3 == 0) | (vg == 0)
+    if positive:
+        degenerate |= xg == 0
+    ok = ~degenerate
+    u = z = None
+    if dist in ("gamma", "truncnorm"):
+        u = np.broadcast_to(gen.random(shape), xt.shape)[ok]
+    else:
+        z = np.broadcast_to(gen.standard_normal(shape), xt.shape)[ok]
+    ybar = xg.copy()
+    if ok.any():
+        mu = xg[ok]
+        var_mean = vg[ok] / s3[ok]
+        if dist == "gamma" and not shared_stream:
+            ybar[ok] = gen.gamma(mu * mu / var_mean, var_mean / mu)
+        else:
+            ybar[ok] = _draw_mean(dist, mu, var_mean, u, z, (lo, hi))
+    n = (sb + sm)[..., None]
+    has = n > 0
+    y = np.where(has, (sb[..., None] * xt + sm[..., None] * ybar) / np.where(has, n, 1.0), xt)
+    if ndim == 2:
+        y = y[..., 0]
+    return y.astype(out_dtype, copy=False)
+
+
+# =========================================================================== kernels
+def _evaluate(K, xt, sb, sm, xg, vg, mvt, loss, eps, want_grad, engine="numba"):
+    """``(loss, grad or None, bias, var)`` on validated float64 inputs."""
+    fn = _ak.evaluate_numba if engine == "numba" else _ak.evaluate_numpy
+    return fn(K, xt, sb, sm, xg, vg, mvt, loss == "mrse", float(eps), want_grad)
+
+
+def apply_kernels(kernels, image):
+    """Apply per-pixel kernels to an image or a stack of images.
+
+    Parameters
+    ----------
+    kernels : (H, W, k, k) ndarray
+        One kernel per output pixel, odd ``k``.  Any float dtype and strides, so a fixed
+        kernel may be passed as ``np.broadcast_to(g, (H, W, k, k))``.
+    image : (H, W), (H, W, C) or (N, H, W, C) ndarray
+
+    Returns
+    -------
+    out : ndarray like ``image``
+        ``out[y, x, c] = Σ K[y, x, dy, dx] · image[y + dy − r, x + dx − r, c]``, taps
+        outside the image dropped (zero weight, no renormalisation); the kernel
+        denoiser ``D(X)_p = Σ_q K_pq X_q`` of §A.1 of [1]_.
+    """
+    img = as_float_array("image", image, ndim=(2, 3, 4))
+    check_finite("image", img)
+    out_dtype = img.dtype if img.dtype in (np.float32, np.float64) else np.float64
+    stack = {2: img[None, ..., None], 3: img[None], 4: img}[img.ndim]
+    K = _check_kernels(kernels, stack.shape[1:3])
+    out = np.empty(stack.shape)
+    _ak.apply_numba(K, np.ascontiguousarray(stack, dtype=np.float64), out)
+    out = {2: out[0, ..., 0], 3: out[0], 4: out}[img.ndim]
+    return out.astype(out_dtype, copy=False)
+
+
+def kernel_bias_variance(kernels, x_t, s_bar, s, x_g, var_g, *, mean_var_t=None):
+    """Per-pixel bias and variance of a kernel denoiser's output (Lemma A.1 of [1]_).
+
+    Parameters
+    ----------
+    kernels : (H, W, k, k) ndarray
+        Denoising kernels, fixed with respect to the new samples (see
+        :func:`apply_kernels` for the convention).
+    x_t, s_bar, s, x_g, var_g, mean_var_t
+        As in :func:`future_moments`.
+
+    Returns
+    -------
+    bias, var : ndarray like ``x_t`` (float64)
+        ``bias_p = Σ_q K_pq E[Y_q] − x_g,p`` and ``var_p = Σ_q K_pq² Var[Y_q]`` with the
+        moments of :func:`future_moments`, i.e. the two terms of Eq. 15 of [1]_ with the
+        variance factor ``s/(s_bar + s)²`` of Eq. 19 (Eq. 15 prints ``s/(s_bar + s)``, an
+        erratum).  ``E[(D(Y)_p − x_g,p)²] = bias_p² + var_p`` because pixels are
+        independent.
+    """
+    xt, sb, sm, xg, vg, mvt, ndim = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
+    K = _check_kernels(kernels, xt.shape[:2])
+    _, _, bias, v = _evaluate(K, xt, sb, sm, xg, vg, mvt, "mse", 0.0, False)
+    bias, v = np.ascontiguousarray(bias), np.ascontiguousarray(v)
+    if ndim == 2:
+        bias, v = bias[..., 0], v[..., 0]
+    return bias, v
+
+
+def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=RELMSE_EPS,
+                         mean_var_t=None, return_grad=False):
+    """Expected MSE or relMSE of a kernel denoiser after adding ``s`` samples.
+
+    Parameters
+    ----------
+    kernels : (H, W, k, k) ndarray
+        Per-pixel kernels (convention of :func:`apply_kernels`) whose weights do **not**
+        depend on the new samples (they may depend on ``x_t``, ``s_bar``, ``s``, features).
+    x_t, s_bar, s, x_g, var_g, mean_var_t
+        As in :func:`future_moments`.  Without ``mean_var_t`` the expectation is over the
+        new samples only (conditional on ``x_t``, as in [1]_); with it, over ``x_t`` too.
+    loss : {"mse", "mrse"}
+        ``"mrse"`` (alias ``"relmse"``) weights each entry by ``1/(x_g² + eps)``.
+    eps : float
+        relMSE ε, default 0.01 (DESIGN.md); ``eps=0`` is Eq. 20 of [1]_ exactly.
+    return_grad : bool
+        Also return the gradient with respect to ``s``.
+
+    Returns
+    -------
+    loss : float
+        ``mean_{p,c} w_pc (bias_pc² + var_pc)`` with the terms of
+        :func:`kernel_bias_variance` — Lemma A.1 / Eq. 15 (MSE) and Eq. 20 (MRSE) of [1]_,
+        averaged instead of summed over pixels and channels.  By Theorem 1 of [1]_ any
+        future-render law with the moments of :func:`future_moments` gives this value.
+    grad : (H, W) ndarray, only if ``return_grad``
+        ``∂loss/∂s_q = Σ_c ∂m_qc/∂s_q (Kᵀ 2wb)_qc + ∂v_qc/∂s_q ((K²)ᵀ w)_qc / (HWC)``, with
+        ``∂m/∂s = (x_g − m)/n`` and ``∂v/∂s = var_g (s_bar − s)/n³`` (conditional).
+        Where ``s_bar + s = 0`` the loss jumps (no samples → some samples) and the entry
+        is reported as 0.
+
+    Notes
+    -----
+    Conditional on ``x_t`` the variance term ``s var_g/(s_bar+s)²`` *grows* with ``s`` up to
+    ``s = s_bar``: new samples add noise around a fixed current value, while the bias
+    term pays for moving ``x_t`` towards ``x_g``.  Averaged over ``x_t``
+    (``mean_var_t = var_g/s_bar``) the variance is ``var_g/(s_bar+s)`` and the bias the
+    denoiser's own.
+
+    The compiled kernel runs in parallel over rows; a 1920×1080×3 image with 7×7
+    kernels takes 0.4–0.6 s on 2 busy cores (``bench/bench_analytic.py``).
+    """
+    loss, eps = _check_loss(loss, eps)
+    xt, sb, sm, xg, vg, mvt, _ = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
+    K = _check_kernels(kernels, xt.shape[:2])
+    _check_rel_denominator(loss, eps, xg)
+    value, grad, _, _ = _evaluate(K, xt, sb, sm, xg, vg, mvt, loss, eps, return_grad)
+    return (value, grad) if return_grad else value
+
+
+# =========================================================================== sampler
+def _project(y, budget, upper):
+    """Euclidean projection of ``y`` onto ``{0 <= s <= upper, Σ s = budget}``.
+
+    ``s = clip(y − τ, 0, upper)`` with ``τ`` found by safeguarded Newton steps on the
+    piecewise-linear, decreasing ``φ(τ) = Σ clip(y − τ, 0, upper)``.
+    """
+    hi_cap = np.inf if upper is None else upper
+
+    def phi(t):
+        x = np.clip(y - t, 0.0, hi_cap)
+        return x.sum(), x
+
+    big = budget if upper is None else max(budget, float(np.max(upper)))
+    lo, hi = float(np.min(y)) - big - 1.0, float(np.max(y))   # φ(lo) >= budget >= φ(hi) = 0
+    t = 0.5 * (lo + hi)
+    x = None
+    for _ in range(200):
+        total, x = phi(t)
+        err = total - budget
+        if abs(err) <= 1e-12 * max(budget, 1.0):
+            break
+        if err > 0:
+            lo = t
+        else:
+            hi = t
+        free = np.count_nonzero((x > 0) & (x < hi_cap))
+        t_new = t + err / free if free else 0.5 * (lo + hi)
+        t = t_new if lo < t_new < hi else 0.5 * (lo + hi)
+        if hi - lo <= 1e-15 * max(1.0, abs(t)):
+            break
+    # Exact budget: put the last rounding residue on the free entries.
+    resid = budget - x.sum()
+    free = (x > 0) & (x < hi_cap)
+    if resid != 0 and free.any():
+        x[free] += resid / np.count_nonzero(free)
+        np.clip(x, 0.0, hi_cap, out=x)
+    return x
+
+
+def _water_fill(a, sb, budget, upper):
+    """Minimiser of ``Σ a_q / (sb_q + s_q)`` on the budget set: ``sb + s = sqrt(a/λ)``."""
+    hi_cap = np.inf if upper is None else upper
+    root = np.sqrt(np.maximum(a, 0.0))
+    if not np.any(root > 0):
+        return None
+
+    def alloc(inv_sqrt_lam):
+        return np.clip(root * inv_sqrt_lam - sb, 0.0, hi_cap)
+
+    lo, hi = 0.0, 1.0
+    while alloc(hi).sum() < budget:
+        hi *= 2.0
+        if hi > 1e300:
+            return None
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if alloc(mid).sum() < budget:
+            lo = mid
+        else:
+            hi = mid
+    return _project(alloc(hi), budget, upper)
+
+
+def _check_budget(budget, n_pix, upper):
+    try:
+        b = float(budget)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`budget` must be a number of samples; got {budget!r}.") from exc
+    if not np.isfinite(b) or b < 0:
+        raise InputError(f"`budget` must be a finite number >= 0; got {budget!r}.")
+    if upper is not None and b > upper.sum() * (1 + 1e-12):
+        raise InputError(
+            f"`budget` = {b:g} is not reachable: `max_count` allows at most "
+            f"{upper.sum():g} samples over the {n_pix} pixels.")
+    return b
+
+
+def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss="mse",
+                       eps=RELMSE_EPS, mean_var_t=None, max_count=None, max_iter=1000,
+                       rtol=1e-9, return_info=False):
+    """Real-valued sampling map minimising the expected denoising loss under a budget.
+
+    Solves ``min_s expected_kernel_loss(kernels, x_t, s_bar, s, x_g_est, var_g_est)``
+    subject to ``Σ s = budget`` and ``0 <= s (<= max_count)`` — Eq. 1–2 of [1]_ with the
+    closed form of Lemma A.1 in place of a trained network (a classical sampler; not in
+    the paper).
+
+    Parameters
+    ----------
+    kernels : (H, W, k, k) ndarray
+        The denoiser's kernels, fixed for the next pass (a GEM selection, a fixed
+        Gaussian, kernels exported by a network...).
+    x_t : (H, W, C) ndarray
+        Current render.
+    s_bar : (H, W) ndarray
+        Samples so far; must be ``> 0`` in every pixel (the model needs a current value).
+    x_g_est, var_g_est : like ``x_t``
+        Estimates (or, on synthetic data, the truth) of the pixel mean and of the
+        **sample variance** of one sample.
+    budget : float
+        Samples to distribute, ``>= 0``.
+    loss, eps, mean_var_t
+        As in :func:`expected_kernel_loss`.  With estimated ``x_g`` the unconditional
+        objective (``mean_var_t = var_g_est / s_bar``) is the safer choice: conditional
+        on ``x_t`` it can only see errors of ``x_t`` that ``x_g_est`` reveals.
+    max_count : (H, W) ndarray, optional
+        Per-pixel cap on the new samples.
+    max_iter, rtol
+        Iteration cap and relative objective decrease that stops the solver.
+    return_info : bool
+        Also return a dict of diagnostics (objective at uniform, start and end,
+        iterations, whether ``rtol`` was met).
+
+    Returns
+    -------
+    s : (H, W) float64 ndarray
+        ``s >= 0``, ``s.sum() == budget`` (to rounding).
+    info : dict, only if ``return_info``
+
+    Notes
+    -----
+    Spectral projected gradient (Barzilai–Borwein steps, Armijo backtracking, Euclidean
+    projection onto the capped simplex), started from the better of the uniform map and
+    the water-filling map ``s_bar + s ∝ sqrt(Σ_c var_g (K²)ᵀw)``, which is the exact
+    optimum of the unconditional objective with ``mean_var_t = var_g/s_bar``.  Each step
+    decreases the objective, so the result is never worse than uniform sampling.  The
+    conditional objective is not convex (see :func:`expected_kernel_loss`): the result
+    is a local optimum.
+    """
+    loss, eps = _check_loss(loss, eps)
+    xt, sb, _, xg, vg, mvt, _ = _prepare(x_t, s_bar, 0.0, x_g_est, var_g_est, mean_var_t,
+                                         names=("x_t", "s_bar", "s", "x_g_est", "var_g_est"))
+    hw = xt.shape[:2]
+    K = _check_kernels(kernels, hw)
+    if np.any(sb <= 0):
+        raise InputError(
+            f"`s_bar` must be > 0 in every pixel for optimal_sample_map (the analytic model "
+            f"needs a current estimate); got {int((sb <= 0).sum())} pixels with 0 samples. "
+            "Render at least one sample per pixel first.")
+    upper = None if max_count is None else _count_map("max_count", max_count, hw)
+    b = _check_budget(budget, sb.size, upper)
+    _check_rel_denominator(loss, eps, xg)
+
+    def f(sv, grad=False):
+        return _evaluate(K, xt, sb, sv, xg, vg, mvt, loss, eps, grad)[:2]
+
+    uniform = _project(np.full(hw, b / sb.size), b, upper)
+    f_uniform = f(uniform)[0]
+    info = {"objective_uniform": f_uniform, "iterations": 0, "converged": b == 0}
+    if b == 0:
+        info.update(objective_start=f_uniform, objective=f_uniform, start="uniform")
+        return (uniform, info) if return_info else uniform
+    # water-filling start: a_q = Σ_c var_g (K²)ᵀ w / (HWC)
+    wgt = 1.0 / (xg * xg + eps) if loss == "mrse" else np.ones_like(xg)
+    a = _ak.column_weights_numba(K, wgt / xg.size, vg)
+    x, start = uniform, "uniform"
+    wf = _water_fill(a, sb, b, upper)
+    fx = f_uniform
+    if wf is not None:
+        f_wf = f(wf)[0]
+        if f_wf < fx:
+            x, fx, start = wf, f_wf, "water-filling"
+    info.update(objective_start=fx, start=start)
+    fx, g = f(x, True)
+    pg = _project(x - g, b, upper) - x
+    alpha = 1.0 / max(np.max(np.abs(pg)), 1e-300)
+    # BB steps live in the units of s²/loss: bound them by the data's own scale
+    a_min, a_max = 1e-30, 1e30
+    stall = 0
+    it = 0
+    for it in range(1, max_iter + 1):
+        d = _project(x - alpha * g, b, upper) - x
+        gd = float(np.sum(g * d))
+        if gd >= 0 or not np.any(d):
+            info["converged"] = True
+            break
+        t = 1.0
+        while True:
+            xn = x + t * d
+            fn = f(xn)[0]
+            if fn <= fx + 1e-4 * t * gd or t < 1e-12:
+                break
+            t *= 0.5
+        if fn > fx:
+            info["converged"] = True
+            break
+        fn, gn = f(xn, True)
+        sk, yk = xn - x, gn - g
+        sy = float(np.sum(sk * yk))
+        alpha = min(max(float(np.sum(sk * sk)) / sy, a_min), a_max) if sy > 0 else a_max
+        rel = (fx - fn) / max(abs(fx), 1e-300)
+        x, fx, g = xn, fn, gn
+        stall = stall + 1 if rel <= rtol else 0
+        if stall >= 3:
+            info["converged"] = True
+            break
+    x = _project(np.maximum(x, 0.0), b, upper)
+    info.update(iterations=it, objective=f(x)[0])
+    return (x, info) if return_info else x
+
+
+def optimal_sample_counts(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, rng=None,
+                          **options):
+    """Integer version of :func:`optimal_sample_map` with an exact budget.
+
+    The real map is rounded by :func:`statmc.sampling.counts_from_density` (systematic,
+    unbiased rounding): ``counts.sum() == budget`` exactly and ``E[counts]`` equals the
+    real map.  ``budget`` must be a whole number; ``options`` are passed on
+    (``loss``, ``eps``, ``mean_var_t``, ``max_count``, ``max_iter``, ``rtol``,
+    ``return_info``).  With a non-integer ``max_count`` a count may exceed it by < 1.
+
+    Returns
+    -------
+    counts : (H, W) int64 ndarray (and the info dict if ``return_info=True``)
+    """
+    try:
+        b = float(budget)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`budget` must be a whole number of samples; got {budget!r}.") from exc
+    if not np.isfinite(b) or b != np.floor(b):
+        raise InputError(f"`budget` must be a whole number of samples for integer counts; got {budget!r}.")
+    res = optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, b, **options)
+    smap, info = res if options.get("return_info") else (res, None)
+    counts = counts_from_density(smap, int(b), rng=rng)
+    return (counts, info) if info is not None else counts
