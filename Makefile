@@ -24,8 +24,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
+# Speed targets, each measured against a peer in the same run (see bench/*.py).
 bench: $(STAMP)
-	$(PY) bench/bench_render.py
+	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
 clean:
 	rm -rf $(VENV) .cache out build *.egg-info
