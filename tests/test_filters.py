@@ -1,0 +1,187 @@
+"""Gaussian filter bank: closed forms, numba kernel vs NumPy reference, borders, variance."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from scipy import stats as sps
+
+from statmc import InputError
+from statmc import filters as F
+
+
+# ----------------------------------------------------------------------------- kernels
+@pytest.mark.parametrize("sigma", [0.5, 1.0, np.sqrt(2), 2.0, 5.3, 16.0])
+def test_kernel_is_the_sampled_normalised_gaussian(sigma):
+    w = F.gaussian_kernel_1d(sigma)
+    r = len(w) // 2
+    assert r == int(np.ceil(3 * sigma - 1e-9))
+    k = np.arange(-r, r + 1)
+    g = np.exp(-k ** 2 / (2 * sigma ** 2))
+    np.testing.assert_allclose(w, g / g.sum(), rtol=1e-14)
+    np.testing.assert_allclose(w, w[::-1], rtol=0, atol=0)
+
+
+def test_dyadic_radii_are_not_inflated_by_rounding():
+    # sqrt(2)**2 = 2.0000000000000004 must still give radius 6, not 7
+    assert [len(F.gaussian_kernel_1d(s)) for s in F.FINAL_SIGMAS] == [1, 11, 13, 19, 25, 35, 49, 69, 97]
+    assert F.FINAL_SIGMAS[2] == 2.0 and F.FINAL_SIGMAS[8] == 16.0
+    assert F.ADAPTIVE_SIGMAS == (0.0, 1.0, 2.0, 4.0, 8.0)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0, 4.0])
+def test_second_moment_tends_to_sigma_squared(sigma):
+    # Poisson summation: the untruncated sampled Gaussian's second moment is
+    # σ² (1 − 8π²σ² exp(−2π²σ²)) to leading order (2e-7 relative at σ = 1)
+    expected = sigma ** 2 * (1 - 8 * np.pi ** 2 * sigma ** 2 * np.exp(-2 * np.pi ** 2 * sigma ** 2))
+    assert F.kernel_moment2(sigma, truncate=10.0) == pytest.approx(expected, rel=1e-12)
+    # at the default 3σ cut it is the truncated normal's variance, ~0.973 σ²
+    tn = sps.truncnorm(-3, 3).var()
+    assert F.kernel_moment2(sigma) == pytest.approx(tn * sigma ** 2, rel=0.03)
+    assert F.kernel_moment2(0.0) == 0.0
+
+
+def test_border_scale_renormalises():
+    w = F.gaussian_kernel_1d(2.0)
+    s = F.border_scale(9, w)
+    r = len(w) // 2
+    for p in range(9):
+        inside = sum(w[q - p + r] for q in range(max(0, p - r), min(9, p + r + 1)))
+        assert s[p] * inside == pytest.approx(1.0, rel=1e-14)
+
+
+# ------------------------------------------------------------- numba kernel vs NumPy
+@pytest.mark.parametrize("shape", [(23, 31, 3), (1, 40, 1), (40, 1, 2), (1, 1, 3), (7, 9, 4), (12, 10)])
+@pytest.mark.parametrize("sigmas", [F.ADAPTIVE_SIGMAS, F.FINAL_SIGMAS, (0.7, 3.3)])
+def test_bank_equals_numpy_reference_float64(shape, sigmas):
+    rng = np.random.default_rng(hash((shape, len(sigmas))) % 2 ** 32)
+    m = rng.normal(size=shape)
+    v = rng.uniform(0, 2, size=shape)
+    vals, vars_ = F.filter_bank(m, v, sigmas)
+    rv, rvar = F.filter_bank_reference(m, v, sigmas)
+    assert vals.shape == rv.shape == (len(sigmas),) + shape
+    np.testing.assert_allclose(vals, rv, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(vars_, rvar, rtol=1e-12, atol=1e-15)
+
+
+def test_bank_float32_matches_reference_and_keeps_dtype():
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(30, 41, 3)).astype(np.float32)
+    v = rng.uniform(0, 1, size=m.shape).astype(np.float32)
+    vals, vars_ = F.filter_bank(m, v, F.FINAL_SIGMAS)
+    assert vals.dtype == vars_.dtype == np.float32
+    rv, rvar = F.filter_bank_reference(m, v, F.FINAL_SIGMAS)
+    np.testing.assert_allclose(vals, rv, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(vars_, rvar, rtol=1e-5, atol=1e-8)
+
+
+def test_summed_variance_is_sum_of_channel_variances():
+    rng = np.random.default_rng(4)
+    m = rng.normal(size=(20, 25, 3))
+    v = rng.uniform(0, 1, size=m.shape)
+    _, per = F.filter_bank(m, v, F.FINAL_SIGMAS)
+    _, tot = F.filter_bank(m, v, F.FINAL_SIGMAS, sum_channels=True)
+    assert tot.shape == (9, 20, 25)
+    np.testing.assert_allclose(tot, per.sum(-1), rtol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(1, 14), w=st.integers(1, 14), c=st.integers(1, 3),
+       sigma=st.floats(0.3, 9.0), seed=st.integers(0, 2 ** 31))
+def test_bank_matches_reference_on_random_shapes(h, w, c, sigma, seed):
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(h, w, c))
+    v = rng.uniform(0, 1, size=(h, w, c))
+    vals, vars_ = F.filter_bank(m, v, [0.0, sigma])
+    rv, rvar = F.filter_bank_reference(m, v, [0.0, sigma])
+    np.testing.assert_allclose(vals, rv, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(vars_, rvar, rtol=1e-11, atol=1e-14)
+
+
+# ------------------------------------------------------------------ borders and meaning
+@pytest.mark.parametrize("sigma", [1.0, 4.0, 16.0])
+def test_constant_image_stays_constant_up_to_the_border(sigma):
+    img = np.full((9, 37, 3), 0.25)
+    out = F.gaussian_filter(img, sigma)
+    np.testing.assert_allclose(out, 0.25, rtol=1e-13)  # no energy leaks out or in
+
+
+def test_filter_of_quadratic_has_closed_form_bias():
+    # f = a x² + b y² + c xy + d x + e y: interior Gaussian bias is (a + b)·r², r² = Σ w k²
+    h, w = 60, 70
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    a, b = 0.013, -0.007
+    f = a * x ** 2 + b * y ** 2 + 0.003 * x * y + 0.2 * x - 0.1 * y + 1.0
+    for s in (1.0, 2.0, 4.0):
+        r = len(F.gaussian_kernel_1d(s)) // 2
+        out = F.gaussian_filter(f, s)
+        inner = (slice(r, h - r), slice(r, w - r))
+        np.testing.assert_allclose(out[inner] - f[inner], (a + b) * F.kernel_moment2(s), rtol=1e-9)
+
+
+def test_variance_is_the_variance_of_the_filtered_noise():
+    """Monte Carlo: filter many independent heteroscedastic noise images (as channels)
+    and compare the empirical variance of the output with the propagated variance at an
+    interior, an edge and a corner pixel (chi-square test per pixel, Bonferroni)."""
+    rng = np.random.default_rng(5)
+    h, w, reps = 14, 17, 4000
+    sd = rng.uniform(0.2, 2.0, size=(h, w, 1))
+    noise = rng.normal(size=(h, w, reps)) * sd
+    out = F.gaussian_filter(noise, 2.0)
+    _, var = F.filter_bank(np.zeros((h, w, 1)), sd ** 2, [2.0])
+    pvals = []
+    for (i, j) in [(7, 8), (0, 8), (0, 0), (13, 16)]:
+        s2 = out[i, j].var(ddof=1)
+        stat = (reps - 1) * s2 / var[0, i, j, 0]
+        cdf = sps.chi2.cdf(stat, reps - 1)
+        pvals.append(2 * min(cdf, 1 - cdf))
+    assert min(pvals) > 0.001 / len(pvals), pvals
+
+
+def test_spread_is_the_adjoint_of_the_filter():
+    rng = np.random.default_rng(6)
+    a = rng.uniform(size=(11, 13))
+    b = rng.uniform(size=(11, 13))
+    for s in (1.0, 3.0, 8.0):
+        lhs = np.sum(b * F.gaussian_filter(a, s))
+        rhs = np.sum(a * F.gaussian_spread(b, s))
+        assert lhs == pytest.approx(rhs, rel=1e-12)
+        assert F.gaussian_spread(b, s).sum() == pytest.approx(b.sum(), rel=1e-12)
+    # one pixel's amount lands on its filter's support in proportion to its weights
+    d = np.zeros((11, 13))
+    d[0, 2] = 5.0
+    ay = F._weight_matrix(11, 2.0, 3.0)
+    ax = F._weight_matrix(13, 2.0, 3.0)
+    np.testing.assert_allclose(F.gaussian_spread(d, 2.0), 5.0 * np.outer(ay[0], ax[2]), atol=1e-14)
+
+
+def test_gaussian_filter_2d_and_dtypes():
+    img = np.arange(30, dtype=np.float32).reshape(5, 6)
+    out = F.gaussian_filter(img, 1.0)
+    assert out.shape == (5, 6) and out.dtype == np.float32
+    assert F.gaussian_filter(img.astype(int), 1.0).dtype == np.float64
+    np.testing.assert_array_equal(F.gaussian_filter(img, 0.0), img)
+
+
+# -------------------------------------------------------------------------- bad input
+def test_bad_input_raises_input_error_naming_the_parameter():
+    m = np.zeros((4, 5, 3))
+    with pytest.raises(InputError, match="mean_var"):
+        F.filter_bank(m, np.zeros((4, 5, 2)))
+    with pytest.raises(InputError, match="mean_var.*>= 0"):
+        F.filter_bank(m, np.full(m.shape, -1.0))
+    bad = m.copy()
+    bad[1, 2, 0] = np.nan
+    with pytest.raises(InputError, match="`mean` holds 1 NaN"):
+        F.filter_bank(bad, np.zeros_like(m))
+    bad = np.zeros_like(m)
+    bad[0, 0, 1] = np.inf
+    with pytest.raises(InputError, match="`mean_var` holds 0 NaN and 1 Inf"):
+        F.filter_bank(m, bad)
+    with pytest.raises(InputError, match="sigma"):
+        F.gaussian_kernel_1d(-1.0)
+    with pytest.raises(InputError, match="sigmas"):
+        F.filter_bank(m, m, [1.0, np.nan])
+    with pytest.raises(InputError, match="truncate"):
+        F.gaussian_kernel_1d(1.0, truncate=0)
+    with pytest.raises(InputError, match="dimensions"):
+        F.filter_bank(np.zeros(5), np.zeros(5))
