@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml tools/ensure_llvm.sh
 	@bash tools/ensure_llvm.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
-	@$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@$(PY) -m pip install -q --disable-pip-version-check -e '.[test,nn]'
 	@touch $(STAMP)
 
 demo: $(STAMP)
