@@ -1,0 +1,576 @@
+"""Greedy Error Minimisation: per-pixel filter-scale selection and sample distribution.
+
+Rousselle, Knaus and Zwicker (2011) [1]_ reconstruct a Monte Carlo image by choosing, at
+each pixel, one filter from a fine-to-coarse bank (the pixel estimate, then Gaussians,
+:mod:`statmc.filters`) so as to minimise the pixel's MSE, and place new samples where the
+relative MSE of the chosen filter falls fastest.  This module implements:
+
+* the scale selector ``S`` of Eq. 1 (§4.1–4.2) with the bias factor derived correctly,
+  ``(r_c² + r_f²)/(r_c² − r_f²)`` (the paper prints ``(r_f² + r_c²)/(r_f² − r_c²)``,
+  which is negative; see ``docs/gem.md``), weighted by ``ρ·z(γ)`` (§4.3);
+* stopping-map post-processing (§4.4, §6) and selection of the finest scale that stops;
+* the estimated MSE of the selected filter and the greedy sample distribution (§5);
+* :func:`reconstruct` (final 8-scale reconstruction, §6) and :func:`sampling_map`
+  (one adaptive iteration: integer counts that sum exactly to the budget).
+
+Inputs are ``mean`` ``(H, W, C)`` (pixel estimates), ``mean_var`` ``(H, W, C)`` — the
+**variance of the mean** of each pixel (sample variance / n) — and ``n`` ``(H, W)``
+sample counts.  float32 in gives float32 out.
+
+References
+----------
+.. [1] F. Rousselle, C. Knaus, M. Zwicker. Adaptive sampling and reconstruction using
+   greedy error minimization. ACM TOG 30(6), 159 (2011). doi:10.1145/2070781.2024193
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import _filter_kernels as _k
+from .errors import InputError, as_float_array, check_finite, check_nonnegative, check_same_shape
+from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
+                      _weight_matrix, border_scale, gaussian_kernel_1d, gaussian_spread,
+                      kernel_moment2)
+
+__all__ = [
+    "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
+    "estimate_mse", "select", "select_scales", "reconstruct", "sampling_map",
+    "DEFAULT_GAMMA", "RELMSE_EPS",
+]
+
+#: Default error-rate parameter γ (the paper's Fig. 8 uses 0.2; §7 results use 0.1).
+DEFAULT_GAMMA = 0.2
+#: ε of the relative MSE that ranks pixels for new samples (§5 of [1]).
+RELMSE_EPS = 1e-3
+#: z(γ) = −log(1 − (1.9 γ)^(1/√2)) is finite only for γ < 1/1.9.
+_GAMMA_MAX = 1.0 / 1.9
+
+
+# ---------------------------------------------------------------------------------------
+# Formulas
+# ---------------------------------------------------------------------------------------
+
+def error_rate_weight(gamma: float) -> float:
+    """Weight ``z(γ) = −log(1 − (1.9 γ)^(1/√2))`` of the bias term (§4.3 of [1]).
+
+    Chosen empirically by the authors so that ``γ`` is roughly the rate of wrong "stop"
+    decisions on constant noisy input; stated valid for ``0 < γ < 0.4``.  Finite for
+    ``0 < γ < 1/1.9``.  Larger ``γ`` weights the bias more, so the selector stops earlier
+    (sharper, noisier).
+
+    Examples
+    --------
+    >>> round(error_rate_weight(0.2), 4)
+    0.7022
+    """
+    g = float(gamma)
+    if not (0.0 < g < _GAMMA_MAX) or not math.isfinite(g):
+        raise InputError(f"`gamma` must be in (0, {_GAMMA_MAX:.4f}) (error rate of the scale "
+                         f"selector; the paper uses 0.1-0.3); got {gamma!r}.")
+    return -math.log1p(-((1.9 * g) ** (1.0 / math.sqrt(2.0))))
+
+
+def bias_factor(r2_fine, r2_coarse):
+    """``(r_c² + r_f²)/(r_c² − r_f²)``: the bias-term factor of §4.2 of [1], derived.
+
+    If the image is locally quadratic and the filters have vanishing first moments,
+    ``Bias[c] = k·Bias[f]`` with ``k = r_c²/r_f²``.  With ``c − f = (k − 1)·Bias[f]``,
+    ``Bias[c]² − Bias[f]² = (k² − 1)·Bias[f]² = (k + 1)/(k − 1)·(c − f)²``; ``(k+1)/(k−1)``
+    is this factor.  The paper prints the fraction upside down (negative).  For the pixel
+    filter (``r_f² = 0``, unbiased by definition) it is 1: the bias term is ``(c − f)²``
+    (§6 of [1]).  ``r²`` is the kernel's second moment per axis (:func:`kernel_moment2`).
+    """
+    rf = np.asarray(r2_fine, dtype=np.float64)
+    rc = np.asarray(r2_coarse, dtype=np.float64)
+    if np.any(rc <= rf) or np.any(rf < 0):
+        raise InputError(f"`r2_coarse` must exceed `r2_fine` >= 0; got {r2_coarse!r} and {r2_fine!r}.")
+    out = (rc + rf) / (rc - rf)
+    return float(out) if out.ndim == 0 else out
+
+
+def bias_term(fine, coarse, r2_fine: float, r2_coarse: float):
+    """Approximate ``Bias[c]² − Bias[f]²`` from filtered values (§4.2 of [1], derived).
+
+    ``(r_c² + r_f²)/(r_c² − r_f²) · (c − f)²``; exact where the image is quadratic over
+    both supports (see :func:`bias_factor`).
+    """
+    d = np.asarray(coarse) - np.asarray(fine)
+    return bias_factor(r2_fine, r2_coarse) * d * d
+
+
+def _moments(sigmas, truncate):
+    return np.array([kernel_moment2(s, truncate=truncate) for s in sigmas])
+
+
+def _pair_factors(sigmas, truncate):
+    r2 = _moments(sigmas, truncate)
+    return r2, bias_factor(r2[:-1], r2[1:])
+
+
+def selector(values, variances, r2, *, weight=1.0) -> np.ndarray:
+    """Scale selector ``S`` of Eq. 1 of [1] for every consecutive pair, summed over channels.
+
+    ``S_k = weight · (r_{k+1}² + r_k²)/(r_{k+1}² − r_k²) · Σ_c (v_{k+1} − v_k)²
+    + Σ_c (Var_{k+1} − Var_k)``; ``S_k > 0`` means stop at the finer scale ``k``.
+
+    Parameters
+    ----------
+    values : (K, H, W, C) ndarray
+        Filtered values, fine to coarse (:func:`statmc.filters.filter_bank`).
+    variances : (K, H, W, C) or (K, H, W) ndarray
+        Their variances (per channel or already summed over channels).
+    r2 : (K,) array
+        Second moments of the kernels (0 for the pixel filter).
+    weight : float or (H, W) array
+        ``ρ·z(γ)`` (§4.3); 1 gives the unweighted ΔMSE estimate.
+
+    Returns
+    -------
+    S : (K-1, H, W) float64 ndarray
+    """
+    v = np.asarray(values, dtype=np.float64)
+    var = np.asarray(variances, dtype=np.float64)
+    if v.ndim == 3:
+        v = v[..., None]
+    if var.ndim == 4:
+        var = var.sum(axis=3)
+    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:])
+    bias = ((v[1:] - v[:-1]) ** 2).sum(axis=3)
+    return np.asarray(weight) * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
+
+
+# ---------------------------------------------------------------------------------------
+# Input checks
+# ---------------------------------------------------------------------------------------
+
+def _check_inputs(mean, mean_var, n=None):
+    """Validate the inputs; returns mean, mean_var, their channel-summed variance (H, W)
+    and the counts as float64 (or None)."""
+    m, v, vsum = _check_pair(mean, mean_var)
+    nn = None
+    if n is not None:
+        nn = np.asarray(n)
+        if nn.shape != m.shape[:2]:
+            raise InputError(f"`n` must be an (H, W) count map of shape {m.shape[:2]}; got {nn.shape}.")
+        if nn.dtype == bool or not np.issubdtype(nn.dtype, np.number) or np.iscomplexobj(nn):
+            raise InputError(f"`n` must hold sample counts (integers); got dtype {nn.dtype}.")
+        nn = nn.astype(np.float64)
+        check_finite("n", nn)
+        if np.any(nn != np.round(nn)):
+            raise InputError("`n` must hold whole sample counts; got non-integer values.")
+        low = int((nn < 2).sum())
+        if low:
+            raise InputError(f"`n` must be >= 2 in every pixel (a variance needs two samples; "
+                             f"render at least 2 spp first); got {low} pixels with fewer "
+                             f"(min {int(nn.min())}).")
+    return m, v, vsum, nn
+
+
+def _check_sigmas(sigmas):
+    sig = [float(s) for s in np.asarray(sigmas, dtype=np.float64).ravel()]
+    if len(sig) < 2 or any(not math.isfinite(s) or s < 0 for s in sig) or \
+            any(b <= a for a, b in zip(sig, sig[1:])):
+        raise InputError(f"`sigmas` must be >= 2 increasing scales >= 0; got {sigmas!r}.")
+    return sig
+
+
+def _weight_map(n, gamma, shape, dtype):
+    """ρ·z(γ) per pixel, ρ = 1 − 1/|P| (§4.3 of [1]); ρ = 1 when counts are unknown."""
+    z = error_rate_weight(gamma)
+    if n is None:
+        return np.full(shape, z, dtype)
+    return (z * (1.0 - 1.0 / n)).astype(dtype)
+
+
+# ---------------------------------------------------------------------------------------
+# Post-processing and selection
+# ---------------------------------------------------------------------------------------
+
+def _map_sigmas(sigmas, final):
+    """Outlier-removal filter of pair k: the coarse scale's Gaussian, doubled in the final
+    reconstruction (§4.4 and §6 of [1])."""
+    return [sigmas[k + 1] * (2.0 if final else 1.0) for k in range(len(sigmas) - 1)]
+
+
+def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAULT_TRUNCATE):
+    """Remove outliers from binary stopping maps (§4.4 and §6 of [1]).
+
+    Map ``k`` (pair ``σ_k → σ_{k+1}``) is filtered with a border-renormalised Gaussian of
+    the coarse scale ``σ_{k+1}`` (``2σ_{k+1}`` when ``final``) whose centre pixel is left
+    out, and rounded (ties, value exactly 1/2, give 1: keep the finer scale).  With
+    ``final`` only switches 1 → 0 (towards the coarser scale) are accepted.
+
+    Parameters
+    ----------
+    stop : (K-1, H, W) array of 0/1 (bool or float)
+    sigmas : (K,) scales of the bank
+    final : bool
+
+    Returns
+    -------
+    (K-1, H, W) bool ndarray
+    """
+    raw = np.ascontiguousarray(np.asarray(stop), dtype=np.float32)
+    sig = _check_sigmas(sigmas)
+    if raw.ndim != 3 or raw.shape[0] != len(sig) - 1:
+        raise InputError(f"`stop` must be (K-1, H, W) = ({len(sig) - 1}, H, W); got {raw.shape}.")
+    return _postprocess(raw, sig, final, truncate) > 0.5
+
+
+def _postprocess(raw, sig, final, truncate):
+    km1, h, w = raw.shape
+    out = np.empty_like(raw)
+    filt = np.empty((h, w), np.float32)
+    for k, s in enumerate(_map_sigmas(sig, final)):
+        wk = gaussian_kernel_1d(s, truncate=truncate)
+        _run(raw[k], 1, None, 0, s, truncate, out_x=filt)
+        r = len(wk) // 2
+        _k.finish_stop_map(filt, raw[k], np.float32(wk[r]),
+                           border_scale(h, wk).astype(np.float32),
+                           border_scale(w, wk).astype(np.float32), bool(final), out[k])
+    return out
+
+
+def _postprocess_reference(raw, sig, final, truncate):
+    """NumPy reference of the post-processing (dense weight matrices, float64)."""
+    out = np.empty(raw.shape, bool)
+    h, w = raw.shape[1:]
+    for k, s in enumerate(_map_sigmas(sig, final)):
+        ay = _weight_matrix(h, s, truncate)
+        ax = _weight_matrix(w, s, truncate)
+        b = raw[k].astype(np.float64)
+        w0 = np.outer(np.diag(ay), np.diag(ax))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = (ay @ b @ ax.T - w0 * b) / (1.0 - w0)
+        keep = np.where(1.0 - w0 <= 1e-6, b > 0.5, m >= 0.5)
+        out[k] = keep & (b > 0.5) if final else keep
+    return out
+
+
+def _first_stop_reference(maps):
+    """NumPy reference of :func:`statmc._filter_kernels.first_stop`."""
+    km1 = maps.shape[0]
+    stop = np.asarray(maps) > 0.5
+    return np.where(stop.any(axis=0), stop.argmax(axis=0), km1)
+
+
+def estimate_mse(values, variances, r2, scales) -> np.ndarray:
+    """Estimated MSE of the selected scale, per channel (§5 of [1]).
+
+    ``MSE[s] = Var[0] + Σ_{k<s} ΔMSE_k`` with the unweighted ΔMSE of Eq. 1; the variance
+    terms telescope to ``Var[s]``, leaving ``Var[s] + Σ_{k<s} frac_k (v_{k+1} − v_k)²``.
+    The pixel filter (k = 0) is unbiased, so its MSE is its variance.
+
+    Parameters
+    ----------
+    values, variances : (K, H, W, C) ndarrays of the bank
+    r2 : (K,) kernel second moments
+    scales : (H, W) int selected scale indices
+
+    Returns
+    -------
+    (H, W, C) ndarray, >= 0
+    """
+    v = np.asarray(values)
+    var = np.asarray(variances, dtype=v.dtype)
+    s = np.asarray(scales)
+    if v.ndim != 4 or var.shape != v.shape or s.shape != v.shape[1:3]:
+        raise InputError(f"`values`, `variances` must be (K, H, W, C) and `scales` (H, W); "
+                         f"got {v.shape}, {var.shape}, {s.shape}.")
+    if s.min() < 0 or s.max() >= v.shape[0]:
+        raise InputError(f"`scales` must lie in [0, {v.shape[0] - 1}]; got [{s.min()}, {s.max()}].")
+    k, h, w, c = v.shape
+    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:]).astype(v.dtype)
+    out = np.empty((h, w * c), v.dtype)
+    _k.estimate_mse(np.ascontiguousarray(v).reshape(k, h, w * c),
+                    np.ascontiguousarray(var).reshape(k, h, w * c), c, frac,
+                    np.ascontiguousarray(s, dtype=np.intp), out)
+    return out.reshape(h, w, c)
+
+
+def _estimate_mse_reference(values, variances, r2, scales):
+    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:])
+    v = np.asarray(values, np.float64)
+    inc = np.reshape(frac, (-1, 1, 1, 1)) * (v[1:] - v[:-1]) ** 2
+    cum = np.concatenate([np.zeros_like(v[:1]), np.cumsum(inc, axis=0)])
+    s = np.asarray(scales)[None, :, :, None]
+    return (np.take_along_axis(cum, s, 0) + np.take_along_axis(np.asarray(variances, np.float64), s, 0))[0]
+
+
+def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank):
+    """Bank → stopping maps → post-processing → selection → image.
+
+    With ``keep_bank`` the per-channel variances of every scale are kept and the
+    estimated MSE is computed; without it only the channel-summed variance is filtered
+    (all the selector needs) and two scales of it are held at a time.
+    """
+    h, w = m.shape[:2]
+    x, c = _rows(m)
+    if keep_bank:
+        vr, cv = _rows(v)
+    else:
+        vr, cv = vsum, 1
+    nsc = len(sig)
+    r2, frac = _pair_factors(sig, truncate)
+    dt = x.dtype
+    fr = frac.astype(dt)
+    weight = _weight_map(n, gamma, (h, w), dt)
+    vals = np.empty((nsc,) + x.shape, dt)
+    if keep_bank:
+        vars_ = np.empty((nsc,) + vr.shape, dt)
+        slots = [vars_[k] for k in range(nsc)]
+    else:
+        vars_ = None
+        spare = [np.empty_like(vr), np.empty_like(vr)]
+        slots = [spare[k % 2] for k in range(nsc)]
+    raw = np.empty((nsc - 1, h, w), np.float32)
+    prev = None
+    for k, s in enumerate(sig):
+        if s == 0.0:
+            vals[k] = x
+            if keep_bank:
+                slots[k][...] = vr
+            else:
+                slots[k] = vr
+        else:
+            _run(x, c, vr, cv, s, truncate, out_x=vals[k], out_v=slots[k])
+        if k:
+            _k.stop_pair(vals[k - 1], vals[k], prev, slots[k], c, cv, fr[k - 1], weight, raw[k - 1])
+        prev = slots[k]
+    maps = _postprocess(raw, sig, final, truncate) if postprocess else raw
+    scales = np.empty((h, w), np.intp)
+    _k.first_stop(maps, scales)
+    image = np.empty((h, w * c), dt)
+    _k.gather(vals, c, scales, image)
+    out = {"image": image.reshape(m.shape), "scales": scales, "sigmas": tuple(sig), "r2": r2,
+           "bias_factors": frac, "raw": raw, "maps": maps}
+    if keep_bank:
+        est = np.empty((h, w * c), dt)
+        _k.estimate_mse(vals, vars_, c, fr, scales, est)
+        shape = (nsc,) + m.shape
+        out.update(values=vals.reshape(shape), variances=vars_.reshape(shape),
+                   est_mse=est.reshape(m.shape))
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Public entry points
+# ---------------------------------------------------------------------------------------
+
+def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
+           sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE) -> dict:
+    """Select a filter scale per pixel and return everything that went into the choice.
+
+    Parameters
+    ----------
+    mean : (H, W, C) ndarray
+        Pixel estimates.
+    mean_var : (H, W, C) ndarray
+        Variance of the mean of each pixel estimate (>= 0).
+    gamma : float
+        Error-rate parameter γ of §4.3 of [1] (rate of wrong stops on constant input).
+    final : bool
+        Final-reconstruction settings of §6 (:data:`~statmc.filters.FINAL_SIGMAS`, map
+        filters of twice the coarse scale, only switches to coarser scales) instead of the
+        adaptive ones (:data:`~statmc.filters.ADAPTIVE_SIGMAS`, coarse-scale map filters).
+    n : (H, W) int array, optional
+        Samples per pixel (>= 2), for the low-count correction ``ρ = 1 − 1/n`` (§4.3);
+        ``ρ = 1`` when not given.
+    sigmas : sequence of float, optional
+        Override the scales (increasing; 0 = pixel filter).
+    postprocess : bool
+        Apply the outlier removal of §4.4 (default) or use the raw selector decisions.
+
+    Returns
+    -------
+    dict with
+        ``image`` (H, W, C) the reconstruction; ``scales`` (H, W) selected index into
+        ``sigmas``; ``sigmas``; ``r2`` kernel second moments; ``bias_factors``;
+        ``values``, ``variances`` (K, H, W, C) the bank; ``stop_raw``, ``stop``
+        (K-1, H, W) bool stopping maps before/after post-processing; ``est_mse``
+        (H, W, C) estimated MSE of the selected filter (§5).
+    """
+    m, v, vsum, nn = _check_inputs(mean, mean_var, n)
+    sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
+    out = _core(m, v, vsum, nn, gamma, sig, final, postprocess, truncate, keep_bank=True)
+    out["stop_raw"] = out.pop("raw") > 0.5
+    out["stop"] = out.pop("maps") > 0.5
+    return out
+
+
+def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
+                  sigmas=None, postprocess: bool = True) -> np.ndarray:
+    """Selected scale index per pixel, ``(H, W)``; see :func:`select`."""
+    m, v, vsum, nn = _check_inputs(mean, mean_var, n)
+    sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
+    return _core(m, v, vsum, nn, gamma, sig, final, postprocess, DEFAULT_TRUNCATE,
+                 keep_bank=False)["scales"]
+
+
+def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
+                extra_output: bool = False):
+    """GEM reconstruction: each pixel takes the filter scale that minimises its MSE.
+
+    Parameters
+    ----------
+    mean : (H, W, C) ndarray
+        Pixel estimates (the finest scale).
+    mean_var : (H, W, C) ndarray
+        **Variance of the mean** per pixel and channel (sample variance / n), >= 0.
+    gamma : float
+        Error-rate parameter γ (§4.3 of [1]), in (0, 0.526); 0.1–0.3 is sensible.
+    final : bool
+        Use the final-reconstruction settings of §6 (8 Gaussian scales σ = √2 … 16 ×√2,
+        outlier filters of twice the coarse scale, only switches to coarser scales);
+        ``False`` gives the adaptive-iteration settings (σ = 1, 2, 4, 8).
+    n : (H, W) ndarray, optional
+        Samples per pixel (>= 2) for the low-count correction ``ρ = 1 − 1/n``; without
+        it ``ρ = 1``.
+    extra_output : bool
+        Also return the dictionary of :func:`select` (scales, bank, maps, est. MSE).
+
+    Returns
+    -------
+    image : (H, W, C) ndarray (same dtype as ``mean``)
+    info : dict, only with ``extra_output``
+
+    Notes
+    -----
+    Decisions combine channels by summing their ΔMSE (the selector minimises the total
+    squared error of the pixel).  Borders use renormalised filters; there, the kernels
+    are one-sided and the quadratic bias relation is only approximate.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> truth = np.full((32, 32, 3), 0.5, np.float32)
+    >>> noisy = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+    >>> out = reconstruct(noisy, np.full_like(noisy, 0.01))
+    >>> out.dtype, bool(np.mean((out - truth) ** 2) < 0.1 * np.mean((noisy - truth) ** 2))
+    (dtype('float32'), True)
+    """
+    if extra_output:
+        info = select(mean, mean_var, gamma=gamma, final=final, n=n)
+        return info["image"], info
+    m, v, vsum, nn = _check_inputs(mean, mean_var, n)
+    sig = list(FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
+    return _core(m, v, vsum, nn, gamma, sig, final, True, DEFAULT_TRUNCATE,
+                 keep_bank=False)["image"]
+
+
+def _allocate(gain, budget, batch):
+    """Samples per pixel before spreading: the best pixels get ``batch`` each (§5)."""
+    g = gain.ravel()
+    size = g.size
+    amount = np.zeros(size)
+    if budget == 0:
+        return amount.reshape(gain.shape)
+    if not np.any(g > 0):  # nothing to gain anywhere (e.g. noise-free input): uniform
+        amount[:] = budget / size
+        return amount.reshape(gain.shape)
+    m, rem = divmod(budget, batch)
+    rounds, m = divmod(m, size)
+    amount += rounds * batch
+    if m or rem:
+        kth = min(m, size - 1)
+        order = np.argpartition(-g, kth)
+        amount[order[:m]] += batch
+        if rem:
+            amount[order[kth]] += rem
+    return amount.reshape(gain.shape)
+
+
+def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA,
+                 batch: int | None = None, eps: float = RELMSE_EPS, rng=None,
+                 extra_output: bool = False):
+    """Integer sample counts for one adaptive GEM iteration (§5 of [1]).
+
+    Selects scales with the adaptive settings (:data:`~statmc.filters.ADAPTIVE_SIGMAS`),
+    estimates each pixel's MSE under its selected filter (:func:`estimate_mse`), its
+    relative MSE ``mean_c MSE_c / (value_c² + ε)`` and the gain of ``batch`` more samples,
+    ``relMSE · batch / (n + batch)``.  The ``budget // batch`` pixels of largest gain
+    each receive ``batch`` samples (one more pixel gets the remainder), spread over the
+    support of their selected filter in proportion to its weights; the expected counts are
+    then rounded without bias to integers that sum to ``budget`` exactly.
+
+    Parameters
+    ----------
+    mean, mean_var : (H, W, C) ndarrays
+        Current pixel estimates and their variances of the mean.
+    n : (H, W) ndarray
+        Current samples per pixel (>= 2).
+    budget : int
+        Samples to hand out in this iteration.
+    gamma : float
+        Error-rate parameter of the scale selector.
+    batch : int, optional
+        Samples per selected pixel (the paper's per-pixel ``n``).  Default
+        ``ceil(8 · budget / (H·W))``, which selects about an eighth of the pixels per call
+        as in §6 (``m = N/n`` pixels with ``N = M(n − 4)/8``).
+    eps : float
+        ε of the relative MSE (0.001 in §5).
+    rng : numpy Generator or int, optional
+        Randomness of the integer rounding (:func:`statmc.sampling.counts_from_density`).
+    extra_output : bool
+        Also return a dict with ``density``, ``gain``, ``rel_mse``, ``scales``, ``est_mse``.
+
+    Returns
+    -------
+    counts : (H, W) int64 ndarray, ``counts.sum() == budget``
+    info : dict, only with ``extra_output``
+
+    Notes
+    -----
+    Choices where the paper is silent: the expected share of each selected pixel's batch
+    is spread deterministically over its filter support (the paper draws the pixels at
+    random by the weights; the expectation is the same) and only the final rounding is
+    random; ``n`` in the gain is the pixel's own count, as in the paper; if no pixel can
+    gain (noise-free input), the budget is spread uniformly.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> m = rng.uniform(0.2, 1.0, (24, 32, 3)).astype(np.float32)
+    >>> counts = sampling_map(m, np.full_like(m, 0.01), np.full((24, 32), 4), 1000, rng=0)
+    >>> int(counts.sum()), counts.dtype
+    (1000, dtype('int64'))
+    """
+    from .sampling import counts_from_density
+    if n is None:
+        raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
+    m, v, vsum, nn = _check_inputs(mean, mean_var, n)
+    if isinstance(budget, bool) or not float(budget).is_integer() or budget < 0:
+        raise InputError(f"`budget` must be a whole number >= 0; got {budget!r}.")
+    budget = int(budget)
+    eps = float(eps)
+    if not eps > 0 or not math.isfinite(eps):
+        raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
+    h, w = m.shape[:2]
+    if batch is None:
+        batch = max(1, math.ceil(8 * budget / (h * w)))
+    if isinstance(batch, bool) or not float(batch).is_integer() or batch < 1:
+        raise InputError(f"`batch` must be a whole number >= 1; got {batch!r}.")
+    batch = int(batch)
+    sig = list(ADAPTIVE_SIGMAS)
+    sel = _core(m, v, vsum, nn, gamma, sig, False, True, DEFAULT_TRUNCATE, keep_bank=True)
+    val = sel["image"].astype(np.float64).reshape(h, w, -1)
+    est = sel["est_mse"].astype(np.float64).reshape(h, w, -1)
+    rel = (est / (val * val + eps)).mean(axis=2)
+    gain = rel * batch / (nn + batch)
+    amount = _allocate(gain, budget, batch)
+    scales = sel["scales"]
+    density = np.zeros((h, w))
+    for s, sigma in enumerate(sig):
+        a = np.where(scales == s, amount, 0.0)
+        if not a.any():
+            continue
+        density += a if sigma == 0.0 else gaussian_spread(a, sigma)
+    counts = counts_from_density(np.maximum(density, 0.0), budget, rng=rng)
+    if extra_output:
+        return counts, {"density": density, "gain": gain, "rel_mse": rel, "scales": scales,
+                        "est_mse": sel["est_mse"], "amount": amount, "batch": batch,
+                        "sigmas": tuple(sig)}
+    return counts
