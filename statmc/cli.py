@@ -184,8 +184,10 @@ def cmd_reference(args) -> int:
 def cmd_metrics(args) -> int:
     from .exr import read_image
     from .metrics import all_metrics
-    img = read_image(args.image)
-    ref = read_image(args.reference)
+    opts = {} if args.replace_nonfinite is None else {"nonfinite": "replace",
+                                                      "replace_value": args.replace_nonfinite}
+    img = read_image(args.image, **opts)
+    ref = read_image(args.reference, **opts)
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
@@ -237,6 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("metrics", help="error metrics of an image against a reference (JSON)")
     m.add_argument("image")
     m.add_argument("reference")
+    m.add_argument("--replace-nonfinite", type=float, metavar="VALUE",
+                   help="replace NaN/Inf pixels by VALUE (default: refuse such files)")
     m.set_defaults(func=cmd_metrics)
 
     i = sub.add_parser("info", help="channels, size, sample counts and NaN/Inf counts of an EXR")

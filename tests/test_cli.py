@@ -131,3 +131,23 @@ def test_console_script_runs_as_a_process(tmp_path):
     r = subprocess.run([exe, "render", "toy:nope", "--spp", "1", "--out", str(tmp_path)],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr and "toy" in r.stderr
+
+
+def test_metrics_refuses_nan_pixels_unless_asked(tmp_path, toy_ref):
+    import OpenEXR
+    from statmc.exr import read_image
+    img = read_image(toy_ref).copy()
+    img[2, 3, 1] = np.nan
+    img[0, 0, 0] = np.inf
+    chans = {c: np.ascontiguousarray(img[..., k]) for k, c in enumerate("RGB")}
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 chans).write(str(tmp_path / "nan.exr"))
+    code, _, err = run_cli("metrics", tmp_path / "nan.exr", toy_ref)
+    assert code == 2 and "NaN" in err and len(err.strip().splitlines()) == 1
+    code, out, err = run_cli("metrics", tmp_path / "nan.exr", toy_ref, "--replace-nonfinite", 0)
+    assert code == 0, err
+    ref = read_image(toy_ref)
+    fixed = img.copy()
+    fixed[~np.isfinite(fixed)] = 0
+    from statmc.metrics import mse
+    assert json.loads(out)["mse"] == pytest.approx(mse(fixed, ref), rel=1e-6)
