@@ -21,7 +21,7 @@ _ROW_BLOCK = 32
 _STRIP = 256
 
 
-@njit(inline="always", fastmath=True)
+@njit(fastmath=True, nogil=True, cache=True)
 def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
     """trow[j0:j1] = Σ_{k=k0..k1} w[k+r] src[y+k, j0:j1].
 
@@ -85,7 +85,7 @@ def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
         k += 1
 
 
-@njit(inline="always", fastmath=True)
+@njit(fastmath=True, nogil=True, cache=True)
 def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
     """acc[:n] = Σ_k w[k] trow[j0 + k*C : j1 + k*C] (``trow`` padded by r*C zeros).
 
@@ -129,7 +129,7 @@ def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
         k += 1
 
 
-@njit(inline="always", fastmath=True)
+@njit(fastmath=True, nogil=True, cache=True)
 def _block(src, C, w, sy, sxr, y0, y1, out, T, acc):  # pragma: no cover - compiled
     """Both passes for output rows y0..y1; ``T`` holds the vertically filtered rows."""
     H, L = src.shape
@@ -217,6 +217,10 @@ def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover - com
         if Cv == 1:
             for i in range(W):
                 s[i] = vb[i] - va[i]
+        elif Cv == 3:
+            for i in range(W):
+                s[i] = ((vb[3 * i] - va[3 * i]) + (vb[3 * i + 1] - va[3 * i + 1])
+                        + (vb[3 * i + 2] - va[3 * i + 2]))
         else:
             for i in range(W):
                 s[i] = 0.0
@@ -354,3 +358,42 @@ def estimate_mse(vals, vars_, C, frac, scales, out):  # pragma: no cover - compi
                     d = vals[k + 1, y, j] - vals[k, y, j]
                     acc += frac[k] * d * d
                 o[j] = acc
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def relative_gain(image, est, C, eps, n, batch, rel, gain):  # pragma: no cover - compiled
+    """Relative MSE and the gain of ``batch`` more samples (§5 of Rousselle et al. 2011).
+
+    ``rel = mean_c est_c / (image_c² + eps)``, ``gain = rel · batch / (n + batch)``.
+    """
+    H, L = image.shape
+    W = L // C
+    for y in prange(H):
+        im = image[y]
+        es = est[y]
+        nr = n[y]
+        rr = rel[y]
+        gr = gain[y]
+        for i in range(W):
+            acc = 0.0
+            for c in range(C):
+                v = np.float64(im[i * C + c])
+                acc += es[i * C + c] / (v * v + eps)
+            acc /= C
+            rr[i] = acc
+            gr[i] = acc * batch / (nr[i] + batch)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def split_by_scale(amount, scales, parts):  # pragma: no cover - compiled
+    """``parts[s, y, x] = amount[y, x]`` where ``scales[y, x] == s``, else 0."""
+    K, H, W = parts.shape
+    for y in prange(H):
+        for k in range(K):
+            row = parts[k, y]
+            for i in range(W):
+                row[i] = 0.0
+        a = amount[y]
+        s = scales[y]
+        for i in range(W):
+            parts[s[i], y, i] = a[i]

@@ -556,18 +556,23 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     batch = int(batch)
     sig = list(ADAPTIVE_SIGMAS)
     sel = _core(m, v, vsum, nn, gamma, sig, False, True, DEFAULT_TRUNCATE, keep_bank=True)
-    val = sel["image"].astype(np.float64).reshape(h, w, -1)
-    est = sel["est_mse"].astype(np.float64).reshape(h, w, -1)
-    rel = (est / (val * val + eps)).mean(axis=2)
-    gain = rel * batch / (nn + batch)
+    c = 1 if m.ndim == 2 else m.shape[2]
+    rel = np.empty((h, w))
+    gain = np.empty((h, w))
+    _k.relative_gain(sel["image"].reshape(h, w * c), sel["est_mse"].reshape(h, w * c), c,
+                     eps, nn, float(batch), rel, gain)
     amount = _allocate(gain, budget, batch)
     scales = sel["scales"]
-    density = np.zeros((h, w))
+    parts = np.empty((len(sig), h, w))
+    _k.split_by_scale(amount, scales, parts)
+    density = parts[0].copy() if sig[0] == 0.0 else np.zeros((h, w))
     for s, sigma in enumerate(sig):
-        a = np.where(scales == s, amount, 0.0)
-        if not a.any():
+        if sigma == 0.0 or not parts[s].any():
             continue
-        density += a if sigma == 0.0 else gaussian_spread(a, sigma)
+        wk = gaussian_kernel_1d(sigma)
+        parts[s] *= border_scale(h, wk)[:, None]   # spread = adjoint of the renormalised
+        parts[s] *= border_scale(w, wk)[None, :]   # filter (gaussian_spread), fused here
+        density += _run(parts[s], 1, None, 0, sigma, DEFAULT_TRUNCATE, normalize=False)[0]
     counts = counts_from_density(np.maximum(density, 0.0), budget, rng=rng)
     if extra_output:
         return counts, {"density": density, "gain": gain, "rel_mse": rel, "scales": scales,
