@@ -13,13 +13,18 @@ several runs after a warm-up (numba compilation); ``cpu`` is the process CPU tim
 the same runs (about 2x wall when both cores are ours), and the load average shows how
 busy the machine was.
 
-Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_gem.py``
+With ``--gamma-curve`` it instead measures the γ → error-rate curve of §4.3 reported in
+``docs/gem.md``: constant images with Gaussian noise, the fraction of raw (not
+post-processed) "stop" decisions per scale pair, single channel, 2-D and 1-D.
+
+Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_gem.py [--gamma-curve]``
 """
 
 from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 
 import numpy as np
@@ -151,5 +156,34 @@ def main():
     print(f"load average during the run: {os.getloadavg()[0]:.2f} (2 cores)")
 
 
+def gamma_curve(gammas=(0.05, 0.1, 0.15, 0.2, 0.25, 0.3), counts=(4, 8, 16, 32, 64)):
+    """Fraction of wrong stops on constant noisy input, per pair of consecutive scales."""
+    rng = np.random.default_rng(0)
+
+    def rates(shape, n, g, sig, channels=1):
+        x = rng.normal(size=(n,) + shape + (channels,)).astype(np.float32)
+        out = gem.select(x.mean(0), x.var(0, ddof=1) / n, gamma=g, n=np.full(shape, n),
+                         sigmas=sig, final=False, postprocess=False)
+        return out["stop_raw"].mean(axis=(1, 2))
+
+    for label, shape in (("2-D, 512x512", (512, 512)), ("1-D, 1x400000", (1, 400_000))):
+        for name, sig in (("adaptive σ = 1, 2, 4, 8", F.ADAPTIVE_SIGMAS),
+                          ("final σ = √2 … 16", F.FINAL_SIGMAS)):
+            print(f"{label}, {name}: stop rate per Gaussian pair (fine → coarse)")
+            for n in counts:
+                for g in gammas:
+                    r = rates(shape, n, g, sig)[1:]
+                    print(f"  n={n:3d} γ={g:.2f}: mean {r.mean():.3f}  "
+                          + " ".join(f"{v:.3f}" for v in r))
+    print("2-D, 512x512, 3 independent channels (decisions use the channel sum), adaptive:")
+    for n in (8, 32):
+        for g in gammas:
+            r = rates((512, 512), n, g, F.ADAPTIVE_SIGMAS, channels=3)[1:]
+            print(f"  n={n:3d} γ={g:.2f}: mean {r.mean():.3f}")
+
+
 if __name__ == "__main__":
-    main()
+    if "--gamma-curve" in sys.argv[1:]:
+        gamma_curve()
+    else:
+        main()
