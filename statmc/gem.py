@@ -30,10 +30,9 @@ import math
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, as_float_array, check_finite, check_nonnegative, check_same_shape
+from .errors import InputError, check_finite
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
-                      _weight_matrix, border_scale, gaussian_kernel_1d, gaussian_spread,
-                      kernel_moment2)
+                      _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",

@@ -9,7 +9,6 @@ from scipy import stats as sps
 
 from statmc import InputError, gem, metrics
 from statmc import filters as F
-from statmc import _filter_kernels as K
 
 
 def _noisy(truth, n, sd, rng):
