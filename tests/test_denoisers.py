@@ -1,0 +1,253 @@
+"""Tests for statmc.denoisers: the protocol, each adapter, OIDN determinism, lazy imports."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from statmc import denoisers as D
+from statmc.analytic import apply_kernels
+from statmc.errors import InputError
+from statmc.toy import ToyRenderer
+
+
+@pytest.fixture(scope="module")
+def toy():
+    r = ToyRenderer("mixed", width=32, height=32)
+    st = r.render_uniform(16, seed=7)
+    return r, st
+
+
+# ----------------------------------------------------------------------------- imports
+def test_import_statmc_does_not_import_torch_or_pyoidn():
+    code = ("import sys, statmc, statmc.sure, statmc.denoisers; "
+            "d = statmc.denoisers.oidn(); g = statmc.denoisers.gaussian(1.0); "
+            "bad = [m for m in ('torch', 'pyoidn') if m in sys.modules]; "
+            "print(','.join(bad))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"imported at module level: {out.stdout.strip()}"
+
+
+# ----------------------------------------------------------------------------- protocol
+@pytest.mark.parametrize("name,bound", [("identity", {}), ("none", {}), ("gaussian", {"sigma": 1.5}),
+                                        ("gem", "mean_var"), ("oidn", "features")])
+def test_every_adapter_follows_the_protocol(toy, name, bound):
+    r, st = toy
+    if bound == "mean_var":
+        bound = {"mean_var": st.mean_var}
+    elif bound == "features":
+        bound = {"albedo": st.albedo, "normal": st.normal}
+    f = D.get(name, **bound)
+    assert isinstance(f, D.Denoiser)
+    x = st.mean.astype(np.float32)
+    y = np.asarray(f(x))
+    assert y.shape == x.shape and np.isfinite(y).all()
+    assert np.array_equal(x, st.mean.astype(np.float32)), "input modified"
+
+
+def test_denoisers_reduce_the_error_of_a_noisy_render(toy):
+    r, st = toy
+    mu = r.true_mean()
+    x = st.mean.astype(np.float32)
+    base = np.mean((x - mu) ** 2)
+    for f in (D.gaussian(1.0), D.gem(st.mean_var), D.oidn(st.albedo, st.normal)):
+        assert np.mean((f(x) - mu) ** 2) < 0.7 * base, repr(f)
+
+
+# ----------------------------------------------------------------------------- identity / gaussian
+def test_identity_returns_a_copy_and_unit_kernels():
+    x = np.arange(24, dtype=np.float32).reshape(2, 4, 3)
+    f = D.identity()
+    y = f(x)
+    assert np.array_equal(y, x) and y is not x
+    assert np.array_equal(apply_kernels(f.kernels(x.shape), x), x)
+
+
+@pytest.mark.parametrize("sigma,shape", [(0.7, (9, 11, 3)), (2.0, (7, 5, 3)), (1.0, (30, 20, 1))])
+def test_gaussian_kernels_reproduce_the_filter_including_borders(sigma, shape):
+    rng = np.random.default_rng(3)
+    x = rng.random(shape)
+    f = D.gaussian(sigma)
+    K = f.kernels(shape)
+    assert K.shape[:2] == shape[:2] and K.shape[2] == K.shape[3]
+    np.testing.assert_allclose(apply_kernels(K, x), f(x), rtol=0, atol=1e-12)
+    # border renormalisation: every pixel's in-image weights sum to one
+    np.testing.assert_allclose(K.sum(axis=(2, 3)), 1.0, atol=1e-12)
+
+
+def test_gaussian_kernels_are_zero_outside_the_image():
+    K = D.gaussian(1.5).kernels((6, 6))
+    r = K.shape[2] // 2
+    assert np.all(K[0, 0, :r, :] == 0) and np.all(K[0, 0, :, :r] == 0)
+    assert np.all(K[-1, -1, r + 1:, :] == 0)
+
+
+def test_gaussian_keeps_float32():
+    x = np.random.default_rng(0).random((8, 8, 3)).astype(np.float32)
+    assert D.gaussian(1.0)(x).dtype == np.float32
+
+
+# ----------------------------------------------------------------------------- GEM
+def test_gem_adapter_equals_reconstruct(toy):
+    from statmc import gem
+
+    r, st = toy
+    x = st.mean.astype(np.float32)
+    f = D.gem(st.mean_var, gamma=0.3)
+    ref = gem.reconstruct(x, st.mean_var.astype(np.float32), gamma=0.3)
+    np.testing.assert_array_equal(f(x), ref)
+
+
+def test_gem_adapter_rejects_bad_variance_and_shape(toy):
+    r, st = toy
+    with pytest.raises(InputError, match="mean_var"):
+        D.gem(-st.mean_var - 1.0)
+    with pytest.raises(InputError, match="color"):
+        D.gem(st.mean_var)(st.mean[:8])
+
+
+# ----------------------------------------------------------------------------- OIDN
+def test_oidn_is_deterministic(toy):
+    r, st = toy
+    x = st.mean.astype(np.float32)
+    f = D.oidn(st.albedo, st.normal)
+    y0 = f(x)
+    for _ in range(5):
+        assert np.array_equal(f(x), y0)
+    # a second adapter (its own device and filter) gives the same bits
+    g = D.oidn(st.albedo, st.normal)
+    assert np.array_equal(g(x), y0)
+    # ... and so does a different input in between (no state carried over)
+    f(x * 1.5)
+    assert np.array_equal(f(x), y0)
+
+
+def test_oidn_matches_pyoidn_convenience_call(toy):
+    import pyoidn
+
+    r, st = toy
+    x = st.mean.astype(np.float32)
+    for kw in ({}, {"albedo": st.albedo}, {"albedo": st.albedo, "normal": st.normal}):
+        ref = pyoidn.denoise(x, **kw, hdr=True, quality="high")
+        np.testing.assert_array_equal(D.oidn(**kw)(x), ref)
+
+
+def test_oidn_without_features_follows_the_image_shape():
+    f = D.oidn()
+    rng = np.random.default_rng(2)
+    a = f(rng.random((16, 24, 3), dtype=np.float32))
+    b = f(rng.random((20, 12, 3), dtype=np.float32))
+    assert a.shape == (16, 24, 3) and b.shape == (20, 12, 3)
+    f.close()
+    f.close()  # idempotent
+    assert f(rng.random((8, 8, 3), dtype=np.float32)).shape == (8, 8, 3)  # re-created on demand
+
+
+def test_oidn_rejects_bad_inputs(toy):
+    r, st = toy
+    with pytest.raises(InputError, match="normal.*albedo"):
+        D.oidn(normal=st.normal)
+    with pytest.raises(InputError, match="albedo"):
+        D.oidn(albedo=st.albedo + 2.0)
+    with pytest.raises(InputError, match="albedo"):
+        D.oidn(albedo=st.albedo[..., :2])
+    with pytest.raises(InputError, match="quality"):
+        D.oidn(quality="ultra")
+    f = D.oidn(st.albedo)
+    with pytest.raises(InputError, match="color"):
+        f(st.mean[:16].astype(np.float32))
+    with pytest.raises(InputError, match="color"):
+        D.oidn()(np.zeros((4, 4, 2), np.float32))
+    with pytest.raises(InputError, match="NaN"):
+        D.oidn()(np.full((4, 4, 3), np.nan, np.float32))
+
+
+# ----------------------------------------------------------------------------- torch
+def _net(seed=0, cin=3):
+    torch = pytest.importorskip("torch")
+    torch.manual_seed(seed)
+    return torch.nn.Sequential(torch.nn.Conv2d(cin, 8, 3, padding=1), torch.nn.Softplus(),
+                               torch.nn.Conv2d(8, 3, 3, padding=1)).eval()
+
+
+def test_torch_module_converts_layouts_at_the_boundary():
+    torch = pytest.importorskip("torch")
+    x = np.random.default_rng(0).random((5, 7, 3)).astype(np.float32)
+    ident = D.torch_module(torch.nn.Identity())
+    y = ident(x)
+    assert y.dtype == np.float32 and np.array_equal(y, x)
+    net = _net()
+    ref = net(torch.from_numpy(x.transpose(2, 0, 1)[None].copy()))[0].detach().numpy().transpose(1, 2, 0)
+    np.testing.assert_allclose(D.torch_module(net)(x), ref, rtol=1e-6, atol=1e-7)
+
+
+def test_torch_module_concatenates_bound_features():
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(1)
+    x = rng.random((6, 6, 3)).astype(np.float32)
+    alb = rng.random((6, 6, 3)).astype(np.float32)
+    nrm = rng.uniform(-1, 1, (6, 6, 3)).astype(np.float32)
+    net = _net(cin=9)
+    inp = np.concatenate([x, alb, nrm], axis=2).transpose(2, 0, 1)[None].copy()
+    ref = net(torch.from_numpy(inp))[0].detach().numpy().transpose(1, 2, 0)
+    np.testing.assert_allclose(D.torch_module(net, albedo=alb, normal=nrm)(x), ref, rtol=1e-6, atol=1e-7)
+    with pytest.raises(InputError, match="color"):
+        D.torch_module(net, albedo=alb, normal=nrm)(x[:4])
+
+
+def test_torch_jvp_matches_finite_differences():
+    pytest.importorskip("torch")
+    rng = np.random.default_rng(2)
+    x = rng.random((8, 9, 3)).astype(np.float32)
+    v = rng.standard_normal(x.shape).astype(np.float32)
+    f = D.torch_module(_net())
+    y, jv = f.jvp(x, v)
+    np.testing.assert_array_equal(y, f(x))
+    h = 1e-2
+    fd = (f((x + h * v).astype(np.float64).astype(np.float32)).astype(np.float64)
+          - f((x - h * v).astype(np.float32))) / (2 * h)
+    np.testing.assert_allclose(jv, fd, rtol=0, atol=2e-3 * np.abs(jv).max())
+
+
+def test_torch_module_rejects_bad_output_shape():
+    torch = pytest.importorskip("torch")
+    f = D.torch_module(torch.nn.Conv2d(3, 2, 1))
+    with pytest.raises(InputError, match="module"):
+        f(np.zeros((4, 4, 3), np.float32))
+
+
+# ----------------------------------------------------------------------------- get / as_denoiser
+def test_get_by_name_and_errors():
+    assert isinstance(D.get("none"), D.IdentityDenoiser)
+    assert isinstance(D.get("Gaussian", sigma=2.0), D.GaussianDenoiser)
+    with pytest.raises(InputError, match="name"):
+        D.get("bm3d")
+    with pytest.raises(InputError, match="unexpected sigmaa"):
+        D.get("gaussian", sigmaa=2.0)
+    with pytest.raises(InputError, match="needs mean_var"):
+        D.get("gem")
+    with pytest.raises(InputError, match="sigma"):
+        D.get("gaussian", sigma=-1.0)
+
+
+def test_as_denoiser():
+    torch = pytest.importorskip("torch")
+
+    def f(c):
+        return c
+
+    assert D.as_denoiser(f) is f
+    assert isinstance(D.as_denoiser("gaussian", sigma=1.0), D.GaussianDenoiser)
+    assert isinstance(D.as_denoiser(torch.nn.Identity()), D.TorchDenoiser)
+    with pytest.raises(InputError, match="callable"):
+        D.as_denoiser(3.0)
+    with pytest.raises(InputError, match="bound"):
+        D.as_denoiser(f, sigma=1.0)
+
+
+def test_docstring_examples():
+    import doctest
+
+    result = doctest.testmod(D, optionflags=doctest.ELLIPSIS)
+    assert result.attempted >= 3 and result.failed == 0
