@@ -439,3 +439,26 @@ def test_docstring_examples():
 
     result = doctest.testmod(S, optionflags=doctest.ELLIPSIS)
     assert result.attempted >= 5 and result.failed == 0
+
+
+def test_estimators_handle_any_small_finite_input():
+    """Crash-proofing over shapes, channel counts, zero variances and tiny images."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=40, deadline=None)
+    @given(h=st.integers(1, 6), w=st.integers(1, 6), c=st.integers(1, 4), ks=st.sampled_from([1, 3, 5]),
+           seed=st.integers(0, 2 ** 32 - 1), zero=st.booleans())
+    def check(h, w, c, ks, seed, zero):
+        rng = np.random.default_rng(seed)
+        x = rng.normal(size=(h, w, c))
+        var = np.zeros_like(x) if zero else rng.random((h, w, c)) * rng.choice([1e-8, 1e-2, 1e3])
+        K = rng.normal(size=(h, w, ks, ks))
+        out, info = S.sure(K, x, var, extra_output=True)
+        np.testing.assert_allclose(out, (info["denoised"] - x) ** 2 + 2 * K[:, :, ks // 2, ks // 2, None] * var - var)
+        f = D.gaussian(0.7)
+        for res in (S.mc_sure(f, x, var, k=2, rng=seed), S.output_variance(f, x, var, k=2, rng=seed),
+                    S.kernel_variance(K, var)):
+            assert res.shape == x.shape and np.isfinite(res).all()
+
+    check()
