@@ -114,45 +114,88 @@ def _json_default(o):
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
     from .metrics import all_metrics
+    from .pipeline import reconstruct_stats, render_with_sampler
+    from .plots import write_map_png
     from .renderers import make_renderer
 
     width, height = _parse_size(args.size)
     sample_map = load_sample_map(args.sample_map) if args.sample_map else None
     if sample_map is not None and width is None:
         height, width = sample_map.shape
+    if sample_map is not None and args.sampler != "uniform":
+        raise InputError(f"--sample-map fixes the counts; it cannot be combined with --sampler {args.sampler}.")
     ref = read_image(args.reference) if args.reference else None
     renderer = make_renderer(args.scene, width=width, height=height)
-    counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
-                               sample_map=sample_map, seed=args.seed)
+    counts = None
+    if args.sampler == "uniform":
+        counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
+                                   sample_map=sample_map, seed=args.seed)
+    elif args.spp is None or args.spp <= 0:
+        raise InputError(f"--sampler {args.sampler} needs a positive --spp budget; got {args.spp}.")
     if ref is not None and ref.shape[:2] != (renderer.height, renderer.width):
         raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} but the render "
                          f"is {renderer.width}x{renderer.height}.")
     inputs = [p for p in (args.sample_map, args.reference) if p]
-    os.makedirs(args.out, exist_ok=True)
     t0 = time.perf_counter()
-    stats = renderer.render(counts, seed=args.seed, progress=not args.quiet)
+    stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
+                                seed=args.seed, progress=not args.quiet, gamma=args.gamma)
     seconds = time.perf_counter() - t0
-    exr_path = os.path.join(args.out, "render.exr")
-    write_exr(exr_path, stats, protect=inputs)
-    write_png_preview(os.path.join(args.out, "render.png"), stats.mean, protect=inputs)
+    t0 = time.perf_counter()
+    image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma)
+    seconds_rec = time.perf_counter() - t0
+    os.makedirs(args.out, exist_ok=True)
+    out = lambda name: os.path.join(args.out, name)  # noqa: E731
+    write_exr(out("render.exr"), stats, protect=inputs)
+    write_png_preview(out("render.png"), stats.mean, protect=inputs)
+    write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
+    write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
+    if args.reconstruct != "none":
+        write_exr(out("reconstruction.exr"), image, protect=inputs,
+                  extra={f"{args.reconstruct}.{k}": v for k, v in maps.items()})
+        write_png_preview(out("reconstruction.png"), image, protect=inputs)
+        if "scale" in maps:
+            write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
+            write_map_png(out("scales.png"), maps["scale"], cmap="magma",
+                          label="selected scale (0 = pixel filter)", protect=inputs)
+    n = stats.n
+    total = int(n.sum())
     report = {
         "scene": args.scene, "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
-        "spp": float(counts.mean()), "total_samples": int(counts.sum()),
-        "spp_min": int(counts.min()), "spp_max": int(counts.max()),
-        "seconds": seconds, "samples_per_second": counts.sum() / max(seconds, 1e-12),
+        "sampler": args.sampler, "reconstruct": args.reconstruct, "gamma": args.gamma,
+        "spp": total / n.size, "total_samples": total,
+        "spp_min": int(n.min()), "spp_max": int(n.max()),
+        "seconds": seconds, "samples_per_second": total / max(seconds, 1e-12),
+        "seconds_reconstruct": seconds_rec,
         "renderer_info": {k: v for k, v in stats.meta.items() if np.isscalar(v) or isinstance(v, str)},
     }
     if ref is not None:
         report["reference"] = args.reference
         report["metrics"] = all_metrics(stats.mean.astype(np.float32), ref)
-    _write_json(os.path.join(args.out, "report.json"), report, protect=inputs)
+        if args.reconstruct != "none":
+            report["metrics_reconstruction"] = all_metrics(image, ref)
+    _write_json(out("report.json"), report, protect=inputs)
     if not args.quiet:
-        msg = f"wrote {exr_path} ({report['total_samples']} samples, {seconds:.2f} s"
+        msg = f"wrote {args.out}/ ({total} samples, {seconds:.2f} s"
         msg += f", {report['samples_per_second'] / 1e6:.2f} M samples/s)"
         if ref is not None:
-            msg += f"; relMSE {report['metrics']['relmse']:.4g}"
+            msg += f"; relMSE raw {report['metrics']['relmse']:.4g}"
+            if args.reconstruct != "none":
+                msg += f", {args.reconstruct} {report['metrics_reconstruction']['relmse']:.4g}"
         print(msg)
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    from .exr import read_exr, write_exr, write_png_preview
+    from .pipeline import reconstruct_stats
+    stats = read_exr(args.input, spp=args.spp)
+    image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma)
+    write_exr(args.out, image, protect=[args.input],
+              extra={f"{args.method}.{k}": v for k, v in maps.items()})
+    write_png_preview(os.path.splitext(args.out)[0] + ".png", image, protect=[args.input])
+    if not args.quiet:
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -223,8 +266,22 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
     r.add_argument("--reference", help="reference EXR: metrics go into report.json")
+    r.add_argument("--sampler", choices=["uniform", "gem"], default="uniform",
+                   help="uniform counts, or adaptive GEM sampling (4 spp, then 8 iterations)")
+    r.add_argument("--reconstruct", choices=["none", "gem"], default="none",
+                   help="reconstruction written beside the raw render")
+    r.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_render)
+
+    rc = sub.add_parser("reconstruct", help="reconstruct an image from a statistics EXR (any renderer)")
+    rc.add_argument("input", help="EXR with R,G,B, Variance.* and SampleCount (or --spp)")
+    rc.add_argument("--method", choices=["gem"], default="gem")
+    rc.add_argument("--out", required=True, help="output EXR (a PNG preview goes beside it)")
+    rc.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
+    rc.add_argument("--gamma", type=float, default=0.2)
+    rc.add_argument("-q", "--quiet", action="store_true")
+    rc.set_defaults(func=cmd_reconstruct)
 
     ref = sub.add_parser("reference", help="render a high-spp reference in passes")
     ref.add_argument("scene")
