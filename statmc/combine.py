@@ -1,0 +1,908 @@
+"""Least-squares combination of independent and correlated pixel estimates.
+
+Back, Hua, Hachisuka and Moon 2020 [1]_ combine an image of *independent* pixel
+estimates ``y`` (a path-traced render: the pixels use disjoint samples) with an image of
+*correlated* estimates ``z`` of the same picture (a denoised image, a gradient-domain
+reconstruction, correlated sampling).  For a pixel ``c`` and a neighbour ``i`` the
+difference ``z_c − z_i`` is a low-noise estimate of ``μ_c − μ_i``, so
+``y_i + z_c − z_i`` is one more estimate of ``μ_c`` (Eq. 3); a weighted average of all of
+them is the *combination kernel*:
+
+* :func:`combine` — Eq. 8 (single buffer), the exact minimiser of the weighted least
+  squares of Eq. 6;
+* :func:`combine_multi` — Eq. 14 for ``B`` sample bins (minimiser of Eq. 13);
+* :func:`combine_boosting` — Eq. 15, the same estimator written as boosting:
+  ``z_c`` plus a normalised filter of the residual ``y − z``;
+* :func:`combine_bias_variance` — its bias (Eq. 10) and variance (Eq. 11) for fixed
+  weights, optionally with the cross-covariance of ``y`` and ``z`` that Eq. 11 omits;
+* weight builders: :func:`uniform_weights`, :func:`gaussian_weights` and
+  :func:`statistical_weights` (classical weights that minimise Eq. 10² + Eq. 11 from
+  estimated moments — the paper uses a network instead; this module only needs the
+  weights);
+* moment helpers: :func:`filter_covariance` (exact covariances of a linear filter of an
+  independent image) and :func:`buffer_moments` (covariances estimated from ``B``
+  independent sample bins).
+
+Window convention (the one of :func:`statmc.analytic.apply_kernels`).  Weights are
+``(H, W, B, k, k)`` with odd ``k``, ``r = k // 2``; tap ``(dy, dx)`` of pixel ``(y, x)``
+is the neighbour ``(y + dy − r, x + dx − r)``, the centre tap ``(r, r)`` holds ``w_c``.
+Taps outside the image are dropped and ``W_c`` sums the weights of the taps *inside* the
+image, i.e. Eq. 8 is applied exactly to the neighbourhood clipped to the image.
+Equivalently, for one buffer,
+
+``combine(y, z, w) = z + apply_kernels(w, y − z) / apply_kernels(w, 1)``.
+
+The same weights serve every channel.  Eq. 8 is invariant to a common scale of a
+pixel's weights.
+
+References
+----------
+.. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
+   Correlated Pixel Estimates". ACM Trans. Graph. 39(6), 242, 2020.
+   https://doi.org/10.1145/3414685.3417847
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _combine_kernels as _ck
+from .errors import InputError, as_float_array, check_finite, check_nonnegative
+
+__all__ = [
+    "combine", "combine_multi", "combine_boosting",
+    "uniform_weights", "gaussian_weights", "statistical_weights",
+    "combine_bias_variance", "filter_covariance", "buffer_moments",
+]
+
+_BIAS_MODES = ("estimate", "zero")
+_METHODS = ("coherent", "diagonal", "full")
+
+
+# =========================================================================== validation
+def _buffers(name, a, *, multi):
+    """``a`` as ``(B, H, W, C)`` (float32/float64 kept) and whether a channel axis was added."""
+    arr = as_float_array(name, a, ndim=(3, 4) if multi else (2, 3))
+    squeeze = arr.ndim == (3 if multi else 2)
+    if squeeze:
+        arr = arr[..., None]
+    if not multi:
+        arr = arr[None]
+    check_finite(name, arr)
+    return np.ascontiguousarray(arr), squeeze
+
+
+def _pair(y_name, y, z_name, z, *, multi):
+    ys, squeeze = _buffers(y_name, y, multi=multi)
+    zs, _ = _buffers(z_name, z, multi=multi)
+    if zs.shape != ys.shape:
+        what = "(B, H, W, C) buffers" if multi else "(H, W, C) images of the same picture"
+        raise InputError(f"`{z_name}` must have the shape of `{y_name}` {tuple(np.shape(y))}; "
+                         f"got {tuple(np.shape(z))}.  Both are {what}.")
+    dtype = np.result_type(ys.dtype, zs.dtype)   # one dtype: fewer compiled variants
+    return ys.astype(dtype, copy=False), zs.astype(dtype, copy=False), squeeze
+
+
+def _weights(weights, B, H, W, *, multi, name="weights"):
+    """Weights as ``(H, W, B, k, k)`` float32/float64 (no copy when already so)."""
+    w = np.asarray(weights)
+    if w.dtype == object or not (np.issubdtype(w.dtype, np.number) or w.dtype == bool):
+        raise InputError(f"`{name}` must be a numeric array; got dtype {w.dtype}.")
+    if w.dtype not in (np.float32, np.float64):
+        w = w.astype(np.float64)
+    given = w.shape
+    if w.ndim == 4 and not multi:
+        w = w[:, :, None]
+    want = "(H, W, B, k, k)" if multi else "(H, W, k, k) or (H, W, 1, k, k)"
+    if w.ndim != 5 or w.shape[3] != w.shape[4]:
+        raise InputError(f"`{name}` must have shape {want} with square k x k windows; "
+                         f"got {given}.")
+    if w.shape[:2] != (H, W):
+        raise InputError(f"`{name}` must have one window per pixel, leading shape (H, W) = "
+                         f"{(H, W)}; got {given}.")
+    if w.shape[2] != B:
+        if multi:
+            raise InputError(f"`{name}` must have B = {B} buffers on axis 2 to match the "
+                             f"{B} buffers of `ys`/`zs`; got weights of shape {given}.")
+        raise InputError(f"`{name}` holds B = {w.shape[2]} buffers (shape {given}) but "
+                         "`combine` takes one; use `combine_multi(ys, zs, weights)` with "
+                         f"ys, zs of shape ({w.shape[2]}, H, W, C).")
+    if w.shape[3] % 2 == 0:
+        raise InputError(f"`{name}` must have an odd window size k (a centre tap); got "
+                         f"k = {w.shape[3]} (shape {given}).")
+    return w
+
+
+def _weight_sums_row(w, y):
+    """``W_c`` of every pixel of row ``y`` (taps inside the image only), float64."""
+    H, W, B, k, _ = w.shape
+    r = k // 2
+    out = np.zeros(W)
+    for dy in range(max(0, r - y), min(k, H - y + r)):
+        for dx in range(k):
+            x0, x1 = max(0, r - dx), min(W, W + r - dx)
+            if x1 > x0:
+                out[x0:x1] += w[y, x0:x1, :, dy, dx].astype(np.float64).sum(axis=-1)
+    return out
+
+
+def _raise_bad(w, bad):
+    n = int(bad.sum())
+    y = int(np.flatnonzero(bad)[0])
+    sums = _weight_sums_row(w, y)
+    x = int(np.flatnonzero(~np.isfinite(sums) | (sums == 0))[0]) if (
+        ~np.isfinite(sums) | (sums == 0)).any() else 0
+    raise InputError(
+        f"`weights` must be finite and sum to a nonzero W_c over the taps inside the image "
+        f"at every pixel; {n} pixel(s) fail, the first at (row {y}, column {x}) with "
+        f"W_c = {sums[x]:.4g}.  Use positive weights (e.g. a softmax or exp of network "
+        "outputs).")
+
+
+def _run(ys, zs, w, squeeze):
+    B, H, W, C = ys.shape
+    dtype = np.result_type(ys.dtype, zs.dtype)
+    out = np.empty((H, W, C), dtype)
+    bad = _ck.combine_numba(w, ys, zs, out)
+    if bad.any():
+        _raise_bad(w, bad)
+    return out[..., 0] if squeeze else out
+
+
+# =========================================================================== combination
+def combine(y, z, weights):
+    """Combine independent and correlated pixel estimates (Eq. 8 of [1]_).
+
+    Parameters
+    ----------
+    y : (H, W, C) or (H, W) ndarray
+        Independent pixel estimates (e.g. a path-traced image).
+    z : ndarray like ``y``
+        Correlated pixel estimates of the same picture (e.g. the denoised ``y``).
+    weights : (H, W, k, k) or (H, W, 1, k, k) ndarray
+        Per-pixel window weights (odd ``k``), float32 or float64, any strides (a fixed
+        window may be ``np.broadcast_to(g, (H, W, k, k))``).  The centre tap is ``w_c``.
+
+    Returns
+    -------
+    out : ndarray like ``y``
+        ``β̂_c = (w_c y_c + Σ_i w_i y_i + Σ_i w_i (z_c − z_i)) / W_c`` with
+        ``W_c = w_c + Σ_i w_i`` over the neighbours inside the image (see the module
+        docstring for the window convention).  float32 if ``y`` and ``z`` are float32,
+        else float64; accumulation is in float64.
+
+    Raises
+    ------
+    InputError
+        If ``z`` and ``y`` differ in shape, the weights do not have one ``k x k`` window
+        per pixel (or hold several buffers), or a pixel's weights are non-finite or sum
+        to zero.
+
+    Notes
+    -----
+    Eq. 8 is the exact minimiser of Eq. 6,
+    ``J_c = ½ w_c (y_c − β_c)² + Σ_i w_i (y_i − β_i)² + Σ_i w_i ((z_c − z_i) − (β_c − β_i))²``,
+    over ``β_c`` and all ``β_i`` (for positive weights ``J_c`` is a convex quadratic).
+    Setting ``∂J_c/∂β_i = −2 w_i (y_i − β_i) + 2 w_i ((z_c − z_i) − (β_c − β_i)) = 0``
+    gives ``β_i = ½ (y_i − z_c + z_i + β_c)``, hence the residual
+    ``(z_c − z_i) − (β_c − β_i) = ½ (y_i + z_c − z_i − β_c)``; then
+    ``∂J_c/∂β_c = −w_c (y_c − β_c) − Σ_i w_i (y_i + z_c − z_i − β_c) = 0`` is Eq. 8.
+    The gradients printed as Eq. 7 are the negative of ``∂J_c/∂β_c`` and half of
+    ``∂J_c/∂β_i``; their zero sets, and so Eq. 8, are unaffected (an erratum checked in
+    ``tests/test_combine.py``).  Signed weights are accepted (the combination is still
+    the affine estimator of Eq. 4), but the least-squares reading needs ``w ≥ 0``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from statmc.combine import combine, uniform_weights
+    >>> y = np.full((4, 5, 3), 2.0); z = y + 1.0      # z off by a constant: cancels
+    >>> np.allclose(combine(y, z, uniform_weights(4, 5, 1, 3)), 2.0)
+    True
+    """
+    ys, zs, squeeze = _pair("y", y, "z", z, multi=False)
+    w = _weights(weights, 1, *ys.shape[1:3], multi=False)
+    return _run(ys, zs, w, squeeze)
+
+
+def combine_multi(ys, zs, weights):
+    """Multi-buffered combination kernel (Eq. 14 of [1]_).
+
+    Parameters
+    ----------
+    ys : (B, H, W, C) or (B, H, W) ndarray
+        Independent estimates per sample bin: ``ys[b]`` is the mean of the ``b``-th
+        disjoint subset of each pixel's samples (sample binning, §4.4 of [1]_).
+    zs : ndarray like ``ys``
+        Correlated estimates per bin, e.g. ``zs[b] = denoise(ys[b])``.
+    weights : (H, W, B, k, k) ndarray
+        Weights ``w_{i,b}`` per pixel, bin and tap (float32 or float64, any strides).
+
+    Returns
+    -------
+    out : (H, W, C) or (H, W) ndarray
+        ``β̂_c = Σ_b [w_{c,b} y_{c,b} + Σ_i w_{i,b} y_{i,b} + Σ_i w_{i,b} (z_{c,b} − z_{i,b})] / W_c``
+        with ``W_c = Σ_b (w_{c,b} + Σ_i w_{i,b})`` over the taps inside the image: the
+        exact minimiser of Eq. 13 (derived as for :func:`combine`, with
+        ``β_i = ½ (Σ_b w_{i,b}(y_{i,b} − z_{c,b} + z_{i,b}) / Σ_b w_{i,b} + β_c)``).
+        A bin whose centre pixel holds an outlier can be down-weighted as a whole.
+
+    Raises
+    ------
+    InputError
+        If ``zs`` differs from ``ys`` in shape, the weights' ``B`` (axis 2) differs from
+        the number of buffers, or a pixel's weights are non-finite or sum to zero.
+    """
+    ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
+    w = _weights(weights, *ysa.shape[:3], multi=True)
+    return _run(ysa, zsa, w, squeeze)
+
+
+def combine_boosting(y, z, weights):
+    """The combination kernel in boosting form (Eq. 15 of [1]_).
+
+    ``β̂_c = z_c + (1/W_c) Σ_{i ∈ Ω'_c} w_i (y_i − z_i)``, where ``Ω'_c`` includes ``c``:
+    the correlated image plus a normalised filter of its residual ``y − z``.  This is
+    algebraically Eq. 8 (the centre term of Eq. 8's difference sum vanishes); it is
+    computed here by a separate path (two :func:`statmc.analytic.apply_kernels` passes)
+    so the identity can be tested.  Typical boosting uses the denoiser's own kernel as
+    ``weights``.
+
+    Parameters and return value as in :func:`combine`; the output is float64 unless
+    ``y`` and ``z`` are float32.
+    """
+    from .analytic import apply_kernels  # the shared kernel convention
+
+    ys, zs, squeeze = _pair("y", y, "z", z, multi=False)
+    w = _weights(weights, 1, *ys.shape[1:3], multi=False)[:, :, 0]
+    y64, z64 = ys[0].astype(np.float64), zs[0].astype(np.float64)
+    num = apply_kernels(w, y64 - z64)
+    den = apply_kernels(w, np.ones(y64.shape[:2]))
+    bad = ~np.isfinite(den) | (den == 0)
+    if bad.any():
+        _raise_bad(w[:, :, None], bad.sum(axis=1))
+    out = (z64 + num / den[..., None]).astype(np.result_type(ys.dtype, zs.dtype), copy=False)
+    return out[..., 0] if squeeze else out
+
+
+# =========================================================================== weights
+def _check_size(size):
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1 or size % 2 == 0:
+        raise InputError(f"`size` (the window width k) must be an odd integer >= 1; got {size!r}.")
+    return int(size)
+
+
+def _check_hwb(height, width, buffers):
+    for name, v in (("height", height), ("width", width), ("buffers", buffers)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise InputError(f"`{name}` must be an integer >= 1; got {v!r}.")
+    return int(height), int(width), int(buffers)
+
+
+def uniform_weights(height, width, buffers, size):
+    """Uniform weights ``w_{i,b} = 1`` (the baseline of Fig. 3c of [1]_).
+
+    Returns
+    -------
+    weights : (height, width, buffers, size, size) float32 ndarray
+        A read-only broadcast view (no memory per pixel); ``.copy()`` it to edit.
+    """
+    h, w, b = _check_hwb(height, width, buffers)
+    k = _check_size(size)
+    return np.broadcast_to(np.ones((b, k, k), np.float32), (h, w, b, k, k))
+
+
+def gaussian_weights(height, width, buffers, size, sigma):
+    """Spatial Gaussian weights ``exp(−(Δy² + Δx²) / (2σ²))`` of the tap offset.
+
+    The same for every pixel and bin, normalised to sum to one over the full window
+    (the scale is irrelevant to Eq. 8/14).
+
+    Returns
+    -------
+    weights : (height, width, buffers, size, size) float32 ndarray
+        A read-only broadcast view.
+    """
+    h, w, b = _check_hwb(height, width, buffers)
+    k = _check_size(size)
+    s = float(sigma)
+    if not np.isfinite(s) or s <= 0:
+        raise InputError(f"`sigma` must be a finite number > 0; got {sigma!r}.")
+    ax = np.arange(k) - k // 2
+    g = np.exp(-(ax[:, None] ** 2 + ax[None, :] ** 2) / (2.0 * s * s))
+    g = np.broadcast_to(g / (b * g.sum()), (b, k, k)).astype(np.float32)
+    return np.broadcast_to(g, (h, w, b, k, k))
+
+
+# =========================================================================== moments
+def _shift(a, oy, ox):
+    """``out[p] = a[p + (oy, ox)]`` where that pixel exists, else 0 (leading axes H, W)."""
+    H, W = a.shape[:2]
+    out = np.zeros_like(a)
+    dst, src = _ck._shift_slices(H, W, oy, ox)
+    out[dst] = a[src]
+    return out
+
+
+def _valid(H, W, oy, ox):
+    return _shift(np.ones((H, W)), oy, ox)
+
+
+class _Moments:
+    """Second moments of ``(y, z)`` per bin, read through covariance stencils.
+
+    A stencil ``S`` of size ``m`` (``R = m // 2``) stores ``S[p, R + vy, R + vx, c] =
+    cov(a_p, b_{p + v})``; offsets beyond ``R`` are uncorrelated (zero).
+    """
+
+    def __init__(self, var_y, cov_z, cov_yz):
+        self.var_y = var_y        # (B, H, W, C)
+        self.cov_z = cov_z        # (B, H, W, m, m, C)
+        self.cov_yz = cov_yz      # (B, H, W, m', m', C) or None
+        self.B, self.H, self.W, self.C = var_y.shape
+
+    @staticmethod
+    def _at(S, b, p, v):
+        """``S[b]`` at pixel ``c + p``, offset ``v``, for every pixel ``c`` (zero outside)."""
+        R = S.shape[3] // 2
+        vy, vx = v
+        if abs(vy) > R or abs(vx) > R:
+            return None
+        plane = S[b, :, :, R + vy, R + vx]
+        return plane if p == (0, 0) else _shift(plane, *p)
+
+    def cz(self, b, p, v):
+        """``cov(z_{c+p}, z_{c+p+v})`` or None when beyond the stencil."""
+        return self._at(self.cov_z, b, p, v)
+
+    def cyz(self, b, p, v):
+        """``cov(y_{c+p}, z_{c+p+v})`` or None (no cross-covariance given, or beyond)."""
+        return None if self.cov_yz is None else self._at(self.cov_yz, b, p, v)
+
+    def vy(self, b, p):
+        return self.var_y[b] if p == (0, 0) else _shift(self.var_y[b], *p)
+
+    def pair(self, b, ot, os_):
+        """``Cov(e_t, e_s)`` of the estimates ``e_t = y_t + z_c − z_t`` (t, s offsets)."""
+        q = np.zeros((self.H, self.W, self.C))
+        if ot == os_:
+            q += self.vy(b, ot)
+        if ot != (0, 0) and os_ != (0, 0):
+            # Cov(z_c − z_t, z_c − z_s) = V_c − C(c,s) − C(c,t) + C(t,s)
+            for sign, p, v in ((1, (0, 0), (0, 0)), (-1, (0, 0), os_), (-1, (0, 0), ot),
+                               (1, ot, (os_[0] - ot[0], os_[1] - ot[1]))):
+                c = self.cz(b, p, v)
+                if c is not None:
+                    q += sign * c
+        # Cov(y_t, z_c − z_s) + Cov(y_s, z_c − z_t)
+        for a, o in ((ot, os_), (os_, ot)):
+            for sign, v in ((1, (-a[0], -a[1])), (-1, (o[0] - a[0], o[1] - a[1]))):
+                c = self.cyz(b, a, v)
+                if c is not None:
+                    q += sign * c
+        return q
+
+
+def _stencil(name, a, B, H, W, C, *, required=True):
+    """A covariance stencil as a ``(B, H, W, m, m, C)`` view (``(H, W, C)``: variances only)."""
+    if a is None:
+        if not required:
+            return None
+        raise InputError(f"`{name}` is missing: pass the covariances of the correlated "
+                         f"image as a stencil (H, W, m, m, C) = ({H}, {W}, m, m, {C}), e.g. "
+                         "from `filter_covariance` or `buffer_moments`, or its variances "
+                         f"({H}, {W}, {C}) if its pixels are uncorrelated.")
+    arr = as_float_array(name, a, ndim=(3, 5, 6), dtype=np.float64)
+    check_finite(name, arr)
+    if arr.ndim == 3:
+        arr = arr[:, :, None, None, :]
+    if arr.ndim == 5:
+        arr = arr[None]
+    m = arr.shape[3]
+    ok = (arr.shape[0] in (1, B) and arr.shape[1:3] == (H, W) and arr.shape[3] == arr.shape[4]
+          and m % 2 == 1 and arr.shape[5] == C)
+    if not ok:
+        raise InputError(f"`{name}` must be a covariance stencil of shape (H, W, m, m, C) = "
+                         f"({H}, {W}, m, m, {C}) with odd m (or ({B}, {H}, {W}, m, m, {C}) "
+                         f"per buffer, or ({H}, {W}, {C}) variances); got {np.shape(a)}.")
+    return np.broadcast_to(arr, (B,) + arr.shape[1:])
+
+
+def _image_moment(name, a, B, H, W, C, *, required=True, nonneg=False):
+    if a is None:
+        if not required:
+            return None
+        raise InputError(f"`{name}` is missing: pass the variance of the mean of each "
+                         f"independent pixel estimate, shape ({H}, {W}, {C}) (e.g. "
+                         "`PixelStats.mean_var`), or one per buffer "
+                         f"({B}, {H}, {W}, {C}).")
+    arr = as_float_array(name, a, ndim=(3, 4), dtype=np.float64)
+    check_finite(name, arr)
+    if nonneg:
+        check_nonnegative(name, arr)
+    if arr.ndim == 3:
+        arr = arr[None]
+    if arr.shape[0] not in (1, B) or arr.shape[1:] != (H, W, C):
+        raise InputError(f"`{name}` must have shape ({H}, {W}, {C}) or ({B}, {H}, {W}, {C}) "
+                         f"to match the weights and buffers; got {np.shape(a)}.")
+    return np.broadcast_to(arr, (B, H, W, C))
+
+
+def _offsets(k):
+    r = k // 2
+    return [(dy - r, dx - r) for dy in range(k) for dx in range(k)]
+
+
+def combine_bias_variance(weights, var_y, cov_z, *, z_bias=None, y_bias=None, cov_yz=None):
+    """Bias (Eq. 10) and variance (Eq. 11) of the combined estimate for fixed weights.
+
+    Parameters
+    ----------
+    weights : (H, W, k, k) or (H, W, B, k, k) ndarray
+        The weights given to :func:`combine` / :func:`combine_multi`.
+    var_y : (H, W, C) or (B, H, W, C) ndarray
+        Variance of each independent estimate ``y_{i,b}`` (the variance of the *mean*:
+        ``PixelStats.mean_var`` of that bin); one array is shared by all bins.
+    cov_z : (H, W, m, m, C), (B, H, W, m, m, C) or (H, W, C) ndarray
+        Covariance stencil of the correlated estimates, ``cov_z[p, R + v] =
+        cov(z_p, z_{p+v})`` with ``R = m // 2`` (:func:`filter_covariance`,
+        :func:`buffer_moments`); offsets beyond ``R`` count as uncorrelated, so
+        ``m = 2k − 1`` is needed for the exact Eq. 11 when ``z`` is correlated that far.
+        ``(H, W, C)`` means variances of uncorrelated pixels.
+    z_bias : ndarray like ``var_y``, optional
+        ``E[z] − μ``; then ``E[ε_ci] = z_bias_c − z_bias_i``.  Default 0.
+    y_bias : ndarray like ``var_y``, optional
+        ``E[y] − μ`` (the paper assumes 0, the default).
+    cov_yz : ndarray like ``cov_z`` (stencil), optional
+        ``cov_yz[p, R + v] = cov(y_p, z_{p+v})``.  Eq. 11 assumes ``y`` independent of
+        ``z``; that fails when ``z`` is computed from ``y`` (a denoised ``y``), and then
+        this term is needed (:func:`filter_covariance` with ``cross=True``).
+
+    Returns
+    -------
+    bias, var : (H, W, C) float64 ndarrays
+        Eq. 10, ``bias_c = (1/W_c) Σ_b Σ_t w_{t,b} (y_bias_t + z_bias_c − z_bias_t)``
+        (``= (1/W_c) Σ_i w_i E[ε_ci]`` for unbiased ``y``), and Eq. 11 summed over bins,
+        ``var_c = (1/W_c²) Σ_b [Σ_t w_t² var(y_t) + S² var(z_c) + Σ_{i,j≠c} w_i w_j
+        cov(z_i, z_j) − 2 S Σ_{i≠c} w_i cov(z_c, z_i) + 2 Σ_t w_t Σ_s w_s (cov(y_t, z_c) −
+        cov(y_t, z_s))]`` with ``S = Σ_{i≠c} w_i`` (the last term only with
+        ``cov_yz``).  Bins are taken as independent (disjoint samples).
+
+    Notes
+    -----
+    For weights that do not depend on the data both expressions are exact; the paper's
+    "≈" accounts for weights computed from the same data.  The double sum over taps
+    costs ``O(k² min(k, m)²)`` image operations per bin, so this is an analysis tool
+    for small windows or crops, not a per-frame routine.
+    """
+    w = np.asarray(weights)
+    multi = w.ndim == 5
+    if w.ndim not in (4, 5):
+        raise InputError(f"`weights` must have shape (H, W, k, k) or (H, W, B, k, k); got {w.shape}.")
+    B = w.shape[2] if multi else 1
+    H, W = w.shape[:2]
+    C = _channels("var_y", var_y)
+    w = _weights(w, B, H, W, multi=multi)
+    mom = _Moments(_image_moment("var_y", var_y, B, H, W, C, nonneg=True),
+                   _stencil("cov_z", cov_z, B, H, W, C),
+                   _stencil("cov_yz", cov_yz, B, H, W, C, required=False))
+    zb = _image_moment("z_bias", z_bias, B, H, W, C, required=False)
+    yb = _image_moment("y_bias", y_bias, B, H, W, C, required=False)
+    k = w.shape[3]
+    r = k // 2
+    offs = _offsets(k)
+    Wtot = np.zeros((H, W))
+    bias = np.zeros((H, W, C))
+    var = np.zeros((H, W, C))
+    for b in range(B):
+        wb = {o: w[:, :, b, o[0] + r, o[1] + r].astype(np.float64) * _valid(H, W, *o) for o in offs}
+        Wb = sum(wb.values())
+        S = Wb - wb[(0, 0)]
+        Wtot += Wb
+        # Eq. 10 (plus an optional bias of y)
+        if zb is not None:
+            for o in offs:
+                if o != (0, 0):
+                    bias += wb[o][..., None] * (zb[b] - _shift(zb[b], *o))
+        if yb is not None:
+            for o in offs:
+                bias += wb[o][..., None] * _shift(yb[b], *o)
+        # Eq. 11
+        v = np.zeros((H, W, C))
+        for o in offs:
+            v += (wb[o] ** 2)[..., None] * mom.vy(b, o)
+        v += (S ** 2)[..., None] * mom.cz(b, (0, 0), (0, 0))
+        for oi in offs:
+            if oi == (0, 0):
+                continue
+            c_ci = mom.cz(b, (0, 0), oi)
+            if c_ci is not None:
+                v -= 2.0 * (S * wb[oi])[..., None] * c_ci
+            for oj in offs:
+                if oj == (0, 0):
+                    continue
+                c_ij = mom.cz(b, oi, (oj[0] - oi[0], oj[1] - oi[1]))
+                if c_ij is not None:
+                    v += (wb[oi] * wb[oj])[..., None] * c_ij
+        # Cross term 2 Cov(Σ_t w_t y_t, Σ_s w_s (z_c − z_s)), absent from Eq. 11.
+        if mom.cov_yz is not None:
+            for ot in offs:
+                for os_ in offs:
+                    for sign, vv in ((1, (-ot[0], -ot[1])), (-1, (os_[0] - ot[0], os_[1] - ot[1]))):
+                        c = mom.cyz(b, ot, vv)
+                        if c is not None:
+                            v += 2.0 * sign * (wb[ot] * wb[os_])[..., None] * c
+        var += v
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return bias / Wtot[..., None], var / (Wtot ** 2)[..., None]
+
+
+def _channels(name, a):
+    if a is None:
+        raise InputError(f"`{name}` is missing: pass the variance of the mean of each "
+                         "independent pixel estimate (e.g. `PixelStats.mean_var`).")
+    shape = np.shape(a)
+    if len(shape) not in (3, 4):
+        raise InputError(f"`{name}` must have shape (H, W, C) or (B, H, W, C); got {shape}.")
+    return shape[-1]
+
+
+def _box_mean(a, valid, radius):
+    """Mean of ``a`` over the ``(2 radius + 1)²`` box, counting only ``valid`` pixels."""
+    if radius == 0:
+        return a
+    from scipy.ndimage import uniform_filter
+
+    size = (2 * radius + 1, 2 * radius + 1) + (1,) * (a.ndim - 2)
+    num = uniform_filter(a * valid.reshape(valid.shape + (1,) * (a.ndim - 2)), size,
+                         mode="constant")
+    den = uniform_filter(valid, 2 * radius + 1, mode="constant")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = num / den.reshape(den.shape + (1,) * (a.ndim - 2))
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+def _delta_var(mom, b, o):
+    """``Var(δ)`` of ``δ = (z_c − z_t) − (y_c − y_t)`` for the tap at offset ``o``."""
+    z = np.zeros((mom.H, mom.W, mom.C))
+    for sign, p, v in ((1, (0, 0), (0, 0)), (1, o, (0, 0)), (-2, (0, 0), o)):
+        c = mom.cz(b, p, v)
+        if c is not None:
+            z += sign * c
+    v = mom.vy(b, (0, 0)) + mom.vy(b, o) + z
+    # − 2 Cov(z_c − z_t, y_c) + 2 Cov(z_c − z_t, y_t)
+    for sign, p, vv in ((-2, (0, 0), (0, 0)), (2, (0, 0), o), (2, o, (-o[0], -o[1])), (-2, o, (0, 0))):
+        c = mom.cyz(b, p, vv)
+        if c is not None:
+            v += sign * c
+    return v
+
+
+def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch):
+    """Per-tap bias ``E[e_t] − μ_c`` of the estimates, ``{offset: (B, H, W, C)}``, and
+    the per-tap squared bias to use, ``{offset: (B, H, W, C)}``."""
+    B, H, W, C = ys.shape
+    mean, sq = {}, {}
+    for o in _offsets(k):
+        if o == (0, 0):
+            mean[o] = sq[o] = np.zeros((B, H, W, C))
+            continue
+        if isinstance(z_bias, str) and z_bias == "zero":
+            mean[o] = sq[o] = np.zeros((B, H, W, C))
+        elif isinstance(z_bias, str):  # "estimate"
+            valid = _valid(H, W, *o)
+            d = np.stack([(zs[b] - _shift(zs[b], *o)) - (ys[b] - _shift(ys[b], *o))
+                          for b in range(B)])
+            dv = np.stack([_delta_var(mom, b, o) for b in range(B)])
+            m = _box_mean((d * valid[..., None]).mean(axis=0), valid, patch)
+            s2 = _box_mean(((d * d - dv) * valid[..., None]).mean(axis=0), valid, patch)
+            mean[o] = np.broadcast_to(m, (B, H, W, C))
+            sq[o] = np.broadcast_to(np.maximum(s2, 0.0), (B, H, W, C))
+        else:
+            e = np.stack([zb[b] - _shift(zb[b], *o) for b in range(B)])
+            mean[o] = e
+            sq[o] = e * e
+    return mean, sq
+
+
+def _tap_moments(mom, sq, k, B, H, W):
+    """Per-tap ``Var(e_t)`` (channel mean), squared biases and validity, over ``n = B k²``."""
+    offs = _offsets(k)
+    n = B * len(offs)
+    v = np.empty((H, W, n))
+    b2 = np.empty((H, W, mom.C, n))
+    valid = np.empty((H, W, n), bool)
+    for b in range(B):
+        for j, o in enumerate(offs):
+            i = b * len(offs) + j
+            v[..., i] = mom.pair(b, o, o).mean(axis=-1)      # Var(y_t + z_c − z_t)
+            b2[..., i] = sq[o][b]
+            valid[..., i] = _valid(H, W, *o) > 0
+    # floor: a zero-variance tap must not divide by zero (relative to the largest MSE)
+    top = np.where(valid, v + b2.mean(axis=2), 0.0).max(axis=-1, keepdims=True)
+    v = np.where(valid, np.maximum(v, np.maximum(1e-12 * top, 1e-300)), np.inf)
+    return v, b2, valid
+
+
+def _to_weights(a, valid, k, B, H, W):
+    a = np.where(valid, np.maximum(a, 0.0), 0.0)
+    a /= a.sum(axis=-1, keepdims=True)
+    return a.reshape(H, W, B, k, k).astype(np.float32)
+
+
+def _diagonal_weights(mom, sq, k, B, H, W):
+    v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
+    mse = v + b2.mean(axis=2)
+    # inverse-MSE weights, scaled by the smallest MSE so nothing overflows
+    return _to_weights(mse.min(axis=-1, keepdims=True) / mse, valid, k, B, H, W)
+
+
+def _coherent_weights(mom, sq, k, B, H, W, max_iter=20):
+    """Minimise ``aᵀ(D + U Uᵀ)a`` s.t. ``Σa = 1, a ≥ 0``: Woodbury plus an active set."""
+    v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
+    C = b2.shape[2]
+    vmin = v.min(axis=-1, keepdims=True)
+    d_inv = vmin / v                                     # D⁻¹ up to a per-pixel scale
+    U = np.sqrt(b2 / (C * vmin[:, :, None]))             # (H, W, C, n), same scale
+    active = valid.copy()
+    eye = np.eye(C)
+    for _ in range(max_iter):
+        di = np.where(active, d_inv, 0.0)
+        G = eye + np.einsum("hwcn,hwn,hwdn->hwcd", U, di, U)
+        rhs = np.einsum("hwcn,hwn->hwc", U, di)
+        sol = np.linalg.solve(G, rhs[..., None])[..., 0]
+        a = di * (1.0 - np.einsum("hwcn,hwc->hwn", U, sol))
+        neg = active & (a < 0)
+        if not neg.any():
+            break
+        active &= ~neg
+    return _to_weights(a, active, k, B, H, W)
+
+
+def _full_weights(mom, mean, k, B, H, W, ridge):
+    offs = _offsets(k)
+    n1 = len(offs)
+    n = B * n1
+    need = H * W * n * n * 8
+    if need > 2 ** 30:
+        raise InputError(f"`method='full'` needs an (H·W) x n x n system with n = B·k² = {n}, "
+                         f"{need / 2 ** 30:.1f} GiB here; use method='diagonal', a smaller "
+                         "`size`, or a crop.")
+    M = np.zeros((H, W, n, n))
+    for b in range(B):
+        for i, ot in enumerate(offs):
+            for j in range(i, n1):
+                q = mom.pair(b, ot, offs[j]).mean(axis=-1)
+                M[:, :, b * n1 + i, b * n1 + j] = q
+                M[:, :, b * n1 + j, b * n1 + i] = q
+    e = np.stack([mean[o][b] for b in range(B) for o in offs], axis=-1)     # (H, W, C, n)
+    M += np.einsum("hwci,hwcj->hwij", e, e) / e.shape[2]
+    valid = np.tile(np.stack([_valid(H, W, *o) for o in offs], axis=-1), (1, 1, B)) > 0
+    eye = np.eye(n, dtype=bool)
+    diag = np.einsum("hwii->hwi", M)
+    scale = np.where(valid, diag, 0.0).sum(axis=-1) / valid.sum(axis=-1)
+    scale = np.where(scale > 0, scale, 1.0)
+    both = valid[..., :, None] & valid[..., None, :]
+    M = np.where(both, M, 0.0)
+    M = M + eye * np.where(valid, ridge * scale[..., None], 1.0)[..., None, :]
+    a = np.linalg.solve(M, valid.astype(np.float64)[..., None])[..., 0]
+    a /= a.sum(axis=-1, keepdims=True)
+    w = a.reshape(H, W, B, k, k)
+    return w.astype(np.float32)
+
+
+def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="estimate",
+                        cov_yz=None, patch=2, ridge=1e-9):
+    """Classical combination weights that minimise Eq. 10² + Eq. 11 of [1]_.
+
+    The estimate Eq. 8/14 averages the per-tap estimates ``e_t = y_t + z_c − z_t``
+    (``e_c = y_c``, one per tap and bin) of ``μ_c``.  For normalised weights ``a`` its
+    error is ``aᵀ M a`` with ``M = Cov(e) + β βᵀ``: ``β_t`` is the bias of ``e_t`` (the
+    ``E[ε_ci]`` of Eq. 10) and ``Cov(e)`` the matrix behind Eq. 11.  The three methods
+    minimise models of ``M`` (the weights are then normalised; Eq. 8 is scale-free):
+
+    * ``"coherent"`` (default): ``M ≈ D + |β||β|ᵀ`` with ``D = diag Var(e_t)``,
+      ``Var(e_t) = var(y_t) + var(z_c) + var(z_t) − 2 cov(z_c, z_t)`` (``+ 2 cov(y_t,
+      z_c) − 2 cov(y_t, z_t)`` with ``cov_yz``), minimised over ``a ≥ 0``.  The biases of
+      neighbouring taps are taken to add up (the worst case; they usually share a sign
+      near an edge a filter blurred), so biased taps cannot be averaged out.  Closed
+      form by the Woodbury identity (a ``C x C`` solve per pixel for ``C`` channels)
+      inside an active-set loop that drops taps with negative weight.
+    * ``"diagonal"``: ``M ≈ diag(β² + Var(e))``, i.e. inverse-MSE weights
+      ``w_t ∝ 1 / (β_t² + Var(e_t))`` — the classical rule for uncorrelated errors; it
+      lets many mildly biased taps outvote the unbiased centre.
+    * ``"full"``: the exact ``M`` with signed biases, minimised over all affine weights
+      (``a = M⁻¹1 / 1ᵀM⁻¹1``, signs free): the exact minimiser of Eq. 10² + Eq. 11 when
+      the moments are exact; ``O((B k²)³)`` per pixel, for small windows.  Negative
+      weights keep Eq. 8 the affine estimator of Eq. 4.
+
+    In all three a neighbour whose ``z`` is strongly correlated with ``z_c`` (small
+    ``Var(z_c − z_t)``) and whose difference ``z_c − z_t`` is unbiased gets a large
+    weight, and the centre gets ``1 / var(y_c)``.
+
+    Parameters
+    ----------
+    y, z : (H, W, C) or (B, H, W, C) ndarray
+        Independent and correlated estimates (one buffer, or ``B`` bins).
+    var_y : ndarray like ``y`` or (H, W, C)
+        Variance of each ``y`` estimate (``PixelStats.mean_var``, per bin).
+    cov_z : (H, W, m, m, C), (B, H, W, m, m, C) or (H, W, C) ndarray
+        Covariance stencil of ``z`` (see :func:`combine_bias_variance`).  ``m >= size``
+        is enough for ``"coherent"``/``"diagonal"``; ``"full"`` uses offsets up to
+        ``2 (size − 1)``.
+    size : int
+        Odd window width ``k``.
+    method : {"coherent", "diagonal", "full"}
+    z_bias : "estimate", "zero" or ndarray like ``var_y``
+        Bias of ``z``.  ``"estimate"`` (default) estimates the bias of ``z_c − z_t``
+        without the truth from ``δ_t = (z_c − z_t) − (y_c − y_t)``, whose mean is that
+        bias: ``β_t² ≈ mean(δ_t²) − Var(δ_t)`` over a ``(2 patch + 1)²`` box of centre
+        pixels (and over bins), clamped at 0 — unbiased before the clamp, like the
+        variance-cancelled distance of non-local means (``"full"`` uses the signed box
+        mean of ``δ_t``).  ``"zero"``: unbiased ``z`` (e.g. GPT-L2).  An array:
+        ``E[z] − μ`` (oracle or external estimate).
+    cov_yz : stencil like ``cov_z``, optional
+        Cross-covariance of ``y`` and ``z`` (needed when ``z`` is computed from ``y``).
+    patch : int
+        Radius of the box for ``z_bias="estimate"`` (default 2, a 5x5 box).
+    ridge : float
+        ``"full"`` only: relative Tikhonov term added to ``M`` (``ridge · mean diag``).
+
+    Returns
+    -------
+    weights : (H, W, B, size, size) float32 ndarray
+        Normalised to sum to one over the taps inside the image (``B = 1`` for a single
+        buffer, accepted by :func:`combine`); zero on taps outside the image.
+
+    Notes
+    -----
+    The paper fits the weights with a network because the moments are unknown (§4.3).
+    Given estimated moments (``PixelStats.mean_var``, :func:`buffer_moments`,
+    :func:`filter_covariance`), these weights are the classical plug-in answer; their
+    quality is that of the moments.  Weights computed from the data make Eq. 10/11
+    approximate (the paper's "≈").
+    """
+    multi = np.ndim(y) == 4
+    ys, zs, _ = _pair("y", y, "z", z, multi=multi)
+    B, H, W, C = ys.shape
+    if np.ndim(y) not in (3, 4):
+        raise InputError(f"`y` must have shape (H, W, C) or (B, H, W, C); got {np.shape(y)}.")
+    k = _check_size(size)
+    if method not in _METHODS:
+        raise InputError(f"`method` must be one of {_METHODS}; got {method!r}.")
+    if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)) or patch < 0:
+        raise InputError(f"`patch` must be an integer >= 0; got {patch!r}.")
+    ridge = float(ridge)
+    if not np.isfinite(ridge) or ridge < 0:
+        raise InputError(f"`ridge` must be a finite number >= 0; got {ridge!r}.")
+    mom = _Moments(_image_moment("var_y", var_y, B, H, W, C, nonneg=True),
+                   _stencil("cov_z", cov_z, B, H, W, C),
+                   _stencil("cov_yz", cov_yz, B, H, W, C, required=False))
+    zb = None
+    if isinstance(z_bias, str):
+        if z_bias not in _BIAS_MODES:
+            raise InputError(f"`z_bias` must be 'estimate', 'zero' or an array; got {z_bias!r}.")
+    else:
+        zb = _image_moment("z_bias", z_bias, B, H, W, C)
+    ys64, zs64 = ys.astype(np.float64), zs.astype(np.float64)
+    mean, sq = _bias_vectors(ys64, zs64, mom, zb, z_bias, k, int(patch))
+    if method == "coherent":
+        return _coherent_weights(mom, sq, k, B, H, W)
+    if method == "diagonal":
+        return _diagonal_weights(mom, sq, k, B, H, W)
+    return _full_weights(mom, mean, k, B, H, W, ridge)
+
+
+def filter_covariance(kernels, var, *, size=None, cross=False):
+    """Covariance stencil of a linear filter of an image with independent pixels.
+
+    For ``z = apply_kernels(kernels, x)`` (the convention of the module docstring, zero
+    outside) and independent pixels ``x_q`` with variances ``var_q``,
+    ``cov(z_p, z_{p+v}) = Σ_a K_p[a] K_{p+v}[a − v] var_{p+a−r}``.  Textbook
+    propagation of covariance, used to give :func:`combine_bias_variance` and
+    :func:`statistical_weights` the exact moments of a filtered (denoised-like) ``z``.
+
+    Parameters
+    ----------
+    kernels : (H, W, kf, kf) ndarray
+        Per-pixel filter weights (odd ``kf``).
+    var : (H, W, C) ndarray
+        Variance of each independent pixel of ``x`` (e.g. ``PixelStats.mean_var``).
+    size : int, optional
+        Odd stencil width ``m``; default ``2 kf − 1`` (every nonzero covariance).
+    cross : bool
+        Also return ``cov(x_p, z_{p+v}) = K_{p+v}[r − v] var_p`` (the ``cov_yz`` of
+        ``y = x``, ``z = filter(x)``).
+
+    Returns
+    -------
+    cov : (H, W, m, m, C) float64 ndarray
+        ``cov[p, m//2 + vy, m//2 + vx] = cov(z_p, z_{p+v})``; zero where ``p + v`` is
+        outside the image.
+    cross_cov : (H, W, m, m, C) float64 ndarray
+        Only with ``cross=True``.
+    """
+    K = np.asarray(kernels)
+    if K.dtype == object or not np.issubdtype(K.dtype, np.number):
+        raise InputError(f"`kernels` must be a numeric array; got dtype {K.dtype}.")
+    if K.ndim != 4 or K.shape[2] != K.shape[3] or K.shape[2] % 2 == 0:
+        raise InputError(f"`kernels` must have shape (H, W, k, k) with odd k; got {K.shape}.")
+    K = K.astype(np.float64)
+    check_finite("kernels", K)
+    H, W, kf, _ = K.shape
+    v = as_float_array("var", var, ndim=3, dtype=np.float64)
+    check_finite("var", v)
+    check_nonnegative("var", v)
+    if v.shape[:2] != (H, W):
+        raise InputError(f"`var` must have shape ({H}, {W}, C) to match `kernels` {K.shape}; "
+                         f"got {v.shape}.")
+    m = 2 * kf - 1 if size is None else _check_size(size)
+    R, r = m // 2, kf // 2
+    cov = np.zeros((H, W, m, m, v.shape[2]))
+    for vy in range(-R, R + 1):
+        for vx in range(-R, R + 1):
+            acc = cov[:, :, R + vy, R + vx]
+            for ay in range(kf):
+                by = ay - vy
+                if not 0 <= by < kf:
+                    continue
+                for ax in range(kf):
+                    bx = ax - vx
+                    if not 0 <= bx < kf:
+                        continue
+                    kq = _shift(K[:, :, by, bx], vy, vx)
+                    acc += (K[:, :, ay, ax] * kq)[..., None] * _shift(v, ay - r, ax - r)
+    if not cross:
+        return cov
+    xc = np.zeros_like(cov)
+    for vy in range(-min(R, r), min(R, r) + 1):
+        for vx in range(-min(R, r), min(R, r) + 1):
+            xc[:, :, R + vy, R + vx] = _shift(K[:, :, r - vy, r - vx], vy, vx)[..., None] * v
+    return cov, xc
+
+
+def buffer_moments(ys, zs, *, size):
+    """Moments of one bin's estimates, estimated from ``B >= 2`` independent bins.
+
+    With sample binning (§4.4 of [1]_) the bins of a pixel hold disjoint samples, so
+    ``(y_{·,b}, z_{·,b})`` are i.i.d. over ``b`` when every bin has the same sample count
+    and ``z_b`` is computed from bin ``b`` alone.  The unbiased sample covariances over
+    the bins (``ddof = 1``) then estimate the second moments of *one* bin:
+
+    ``var_y[p] = Σ_b (y_pb − ȳ_p)² / (B − 1)``,
+    ``cov_z[p, v] = Σ_b (z_pb − z̄_p)(z_{p+v,b} − z̄_{p+v}) / (B − 1)``,
+    ``cov_yz[p, v] = Σ_b (y_pb − ȳ_p)(z_{p+v,b} − z̄_{p+v}) / (B − 1)``.
+
+    With ``B = 4`` they have 3 degrees of freedom and are noisy: smooth them, or use
+    them where noise averages out (e.g. over a patch).
+
+    Parameters
+    ----------
+    ys, zs : (B, H, W, C) ndarray
+    size : int
+        Odd stencil width ``m``.
+
+    Returns
+    -------
+    var_y : (H, W, C), cov_z : (H, W, m, m, C), cov_yz : (H, W, m, m, C) float64 ndarrays
+        Shared by all bins (pass them as they are to :func:`statistical_weights` or
+        :func:`combine_bias_variance` with multi-buffer weights).
+    """
+    ysa, zsa, _ = _pair("ys", ys, "zs", zs, multi=True)
+    B, H, W, C = ysa.shape
+    if B < 2:
+        raise InputError(f"`ys` must hold B >= 2 buffers to estimate moments from their "
+                         f"spread; got shape {np.shape(ys)}.")
+    m = _check_size(size)
+    R = m // 2
+    dy = ysa.astype(np.float64) - ysa.mean(axis=0, dtype=np.float64)
+    dz = zsa.astype(np.float64) - zsa.mean(axis=0, dtype=np.float64)
+    var_y = (dy * dy).sum(axis=0) / (B - 1)
+    cov_z = np.zeros((H, W, m, m, C))
+    cov_yz = np.zeros((H, W, m, m, C))
+    for vy in range(-R, R + 1):
+        for vx in range(-R, R + 1):
+            sz = np.stack([_shift(dz[b], vy, vx) for b in range(B)])
+            cov_z[:, :, R + vy, R + vx] = (dz * sz).sum(axis=0) / (B - 1)
+            cov_yz[:, :, R + vy, R + vx] = (dy * sz).sum(axis=0) / (B - 1)
+    return var_y, cov_z, cov_yz

@@ -1,0 +1,608 @@
+"""Tests for statmc.combine (Back et al. 2020, Eq. 6-15).
+
+Theorems are checked against independent computations: Eq. 8/14 against a least-squares
+solver on Eq. 6/13, Eq. 15 against Eq. 8, Eq. 11 against dense linear algebra and, with
+the toy renderer, Eq. 10/11 against Monte Carlo bias and variance (chi-square tests on
+pixels far enough apart to be independent).  The compiled kernel is compared with the
+NumPy reference on random inputs including borders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from statmc import _combine_kernels as ck
+from statmc.analytic import apply_kernels
+from statmc.combine import (buffer_moments, combine, combine_bias_variance, combine_boosting,
+                            combine_multi, filter_covariance, gaussian_weights,
+                            statistical_weights, uniform_weights)
+from statmc.errors import InputError
+from statmc.toy import ToyRenderer
+
+ALPHA = 1e-3   # family-wise level of the statistical tests in this file
+
+
+# --------------------------------------------------------------------------- helpers
+def _window_pixels(H, W, k, y, x):
+    """``[(dy, dx, yy, xx)]`` of the taps of pixel (y, x) inside the image."""
+    r = k // 2
+    return [(dy, dx, y + dy - r, x + dx - r) for dy in range(k) for dx in range(k)
+            if 0 <= y + dy - r < H and 0 <= x + dx - r < W]
+
+
+def _lstsq_beta_c(ys, zs, w, y, x):
+    """Minimise Eq. 13 (Eq. 6 for B = 1) of pixel (y, x) with a generic solver.
+
+    Unknowns: beta_c and one beta_i per neighbour inside the image.  Rows are the
+    weighted residuals sqrt(w_c/2)(y_c - beta_c), sqrt(w_i)(y_i - beta_i) and
+    sqrt(w_i)((z_c - z_i) - (beta_c - beta_i)), per bin and channel.
+    """
+    B, H, W, C = ys.shape
+    k = w.shape[3]
+    r = k // 2
+    taps = [t for t in _window_pixels(H, W, k, y, x) if (t[0], t[1]) != (r, r)]
+    n = 1 + len(taps)
+    out = np.empty(C)
+    for c in range(C):
+        rows, rhs = [], []
+        for b in range(B):
+            s = np.sqrt(w[y, x, b, r, r] / 2.0)
+            row = np.zeros(n)
+            row[0] = s
+            rows.append(row)
+            rhs.append(s * ys[b, y, x, c])
+            for j, (dy, dx, yy, xx) in enumerate(taps, start=1):
+                s = np.sqrt(w[y, x, b, dy, dx])
+                row = np.zeros(n)
+                row[j] = s
+                rows.append(row)
+                rhs.append(s * ys[b, yy, xx, c])
+                row = np.zeros(n)
+                row[0], row[j] = s, -s
+                rows.append(row)
+                rhs.append(s * (zs[b, y, x, c] - zs[b, yy, xx, c]))
+        sol, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
+        out[c] = sol[0]
+    return out
+
+
+def _renormalised_gaussian(H, W, k, sigma):
+    """Per-pixel Gaussian kernels, renormalised over the taps inside the image."""
+    g = np.array(gaussian_weights(H, W, 1, k, sigma)[:, :, 0], dtype=np.float64)
+    r = k // 2
+    for dy in range(k):
+        for dx in range(k):
+            yy = np.arange(H)[:, None] + dy - r
+            xx = np.arange(W)[None, :] + dx - r
+            g[:, :, dy, dx] *= (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
+    return g / g.sum(axis=(2, 3), keepdims=True)
+
+
+def _dense_operator(K, H, W):
+    """The (HW x HW) matrix of ``apply_kernels(K, .)`` (zero outside)."""
+    k = K.shape[2]
+    r = k // 2
+    A = np.zeros((H * W, H * W))
+    for y in range(H):
+        for x in range(W):
+            for dy, dx, yy, xx in _window_pixels(H, W, k, y, x):
+                A[y * W + x, yy * W + xx] += K[y, x, dy, dx]
+    return A
+
+
+def _chi2_pvalue(zscores):
+    z = np.asarray(zscores).ravel()
+    return stats.chi2.sf(float(np.sum(z * z)), z.size)
+
+
+# --------------------------------------------------------------------------- Eq. 6 -> Eq. 8
+@pytest.mark.parametrize("B,k", [(1, 3), (1, 5), (3, 3)])
+def test_eq8_and_eq14_are_the_least_squares_minimisers(B, k):
+    rng = np.random.default_rng(10 + B + k)
+    H, W, C = 7, 9, 2
+    ys = rng.normal(size=(B, H, W, C))
+    zs = rng.normal(size=(B, H, W, C))
+    w = rng.uniform(0.05, 2.0, size=(H, W, B, k, k))
+    out = combine_multi(ys, zs, w) if B > 1 else combine(ys[0], zs[0], w[:, :, 0])
+    for (y, x) in [(3, 4), (0, 0), (0, 5), (6, 8), (1, 1), (6, 0)]:
+        ref = _lstsq_beta_c(ys, zs, w, y, x)
+        np.testing.assert_allclose(out[y, x], ref, rtol=1e-10, atol=1e-12)
+
+
+def test_eq7_printed_gradients_are_minus_and_half_the_true_ones():
+    """Erratum: Eq. 7 prints -dJ/dbeta_c and dJ/dbeta_i / 2; Eq. 8 is unaffected."""
+    rng = np.random.default_rng(1)
+    n = 6                                         # neighbours i
+    yc, zc, wc = rng.normal(), rng.normal(), rng.uniform(0.1, 2)
+    yi, zi, wi = rng.normal(size=n), rng.normal(size=n), rng.uniform(0.1, 2, n)
+    bc, bi = rng.normal(), rng.normal(size=n)     # an arbitrary point, not the optimum
+
+    def J(bc, bi):   # Eq. 6
+        return (0.5 * wc * (yc - bc) ** 2 + np.sum(wi * (yi - bi) ** 2)
+                + np.sum(wi * ((zc - zi) - (bc - bi)) ** 2))
+
+    h = 1e-5         # J is quadratic: central differences are exact up to rounding
+    g_c = (J(bc + h, bi) - J(bc - h, bi)) / (2 * h)
+    g_i = np.array([(J(bc, bi + h * e) - J(bc, bi - h * e)) / (2 * h) for e in np.eye(n)])
+    printed_c = wc * (yc - bc) + 2 * np.sum(wi * ((zc - zi) - (bc - bi)))
+    printed_i = -wi * (yi - bi) + wi * ((zc - zi) - (bc - bi))
+    np.testing.assert_allclose(printed_c, -g_c, rtol=1e-7)
+    np.testing.assert_allclose(printed_i, g_i / 2, rtol=1e-7)
+    assert not np.isclose(printed_c, g_c)
+    # Eq. 8 zeroes the true gradient once beta_i = (y_i - z_c + z_i + beta_c) / 2.
+    b8 = (wc * yc + np.sum(wi * yi) + np.sum(wi * (zc - zi))) / (wc + wi.sum())
+    bi8 = 0.5 * (yi - zc + zi + b8)
+    for j in range(n + 1):
+        e = np.zeros(n + 1)
+        e[j] = h
+        g = (J(b8 + e[0], bi8 + e[1:]) - J(b8 - e[0], bi8 - e[1:])) / (2 * h)
+        assert abs(g) < 1e-8
+
+
+# --------------------------------------------------------------------------- Eq. 15, conventions
+@pytest.mark.parametrize("shape,k", [((8, 11, 3), 5), ((4, 3, 1), 7), ((16, 9, 4), 3)])
+def test_eq15_boosting_form_equals_eq8(shape, k):
+    rng = np.random.default_rng(sum(shape) + k)
+    y = rng.normal(size=shape)
+    z = rng.normal(size=shape)
+    w = rng.uniform(0.01, 1.0, size=shape[:2] + (k, k))
+    np.testing.assert_allclose(combine_boosting(y, z, w), combine(y, z, w), rtol=1e-12, atol=1e-13)
+
+
+def test_window_convention_matches_apply_kernels():
+    rng = np.random.default_rng(5)
+    H, W, C, k = 10, 13, 3, 5
+    y, z = rng.normal(size=(2, H, W, C))
+    w = rng.uniform(0.1, 1.0, size=(H, W, k, k))
+    expected = z + apply_kernels(w, y - z) / apply_kernels(w, np.ones((H, W)))[..., None]
+    np.testing.assert_allclose(combine(y, z, w), expected, rtol=1e-12, atol=1e-13)
+    # outside taps are never read: poisoning them changes nothing
+    wp = w.copy()
+    wp[0, 0, 0, :] = np.nan
+    wp[-1, -1, -1, -1] = np.inf
+    np.testing.assert_array_equal(combine(y, z, wp), combine(y, z, w))
+
+
+def test_invariances_and_special_cases():
+    rng = np.random.default_rng(6)
+    H, W, C, k = 9, 10, 3, 5
+    y, z = rng.normal(size=(2, H, W, C))
+    w = rng.uniform(0.1, 1.0, size=(H, W, k, k))
+    out = combine(y, z, w)
+    np.testing.assert_allclose(combine(y, z + 7.5, w), out, atol=1e-12)        # z offset cancels
+    np.testing.assert_allclose(combine(y + 2.0, z + 2.0, w), out + 2.0, atol=1e-12)
+    np.testing.assert_allclose(combine(y, z, 3.0 * w), out, atol=1e-12)          # scale-free
+    np.testing.assert_allclose(combine(y, y, w), y, atol=1e-12)                  # z = y -> y
+    np.testing.assert_allclose(combine(z, z + 1.0, w), z, atol=1e-12)
+    cw = np.zeros((H, W, k, k))
+    cw[:, :, k // 2, k // 2] = 1.0                                               # centre only
+    np.testing.assert_allclose(combine(y, z, cw), y, atol=1e-14)
+    # a single buffer through combine_multi is combine
+    np.testing.assert_allclose(combine_multi(y[None], z[None], w[:, :, None]), out, atol=1e-14)
+    # (H, W) images
+    np.testing.assert_allclose(combine(y[..., 1], z[..., 1], w), out[..., 1], atol=1e-14)
+    # Eq. 14 with identical bins is Eq. 8
+    np.testing.assert_allclose(combine_multi(np.stack([y] * 4), np.stack([z] * 4),
+                                             np.stack([w] * 4, axis=2)), out, atol=1e-12)
+
+
+def test_dtype_policy():
+    rng = np.random.default_rng(7)
+    y, z = rng.random((2, 6, 7, 3), dtype=np.float32)
+    w = rng.random((6, 7, 3, 3), dtype=np.float32)
+    assert combine(y, z, w).dtype == np.float32
+    assert combine(y.astype(np.float64), z, w).dtype == np.float64
+    assert combine(y.astype(np.int32), z.astype(np.int32), w).dtype == np.float64
+    assert combine_boosting(y, z, w).dtype == np.float32
+
+
+# --------------------------------------------------------------------------- numba vs NumPy
+@pytest.mark.parametrize("B,H,W,C,k,dtype", [
+    (4, 23, 37, 3, 15, np.float32),   # the target configuration, window larger than the image rows
+    (4, 40, 41, 3, 5, np.float32),
+    (1, 17, 19, 3, 3, np.float64),
+    (2, 9, 30, 1, 7, np.float64),
+    (3, 12, 14, 4, 5, np.float32),    # channel groups 3 + 1
+    (1, 5, 6, 2, 9, np.float64),      # image smaller than the window
+    (2, 1, 1, 5, 3, np.float64),
+    (1, 8, 8, 3, 1, np.float32),
+])
+def test_numba_kernel_matches_numpy_reference(B, H, W, C, k, dtype):
+    rng = np.random.default_rng(B * 1000 + H * 10 + k)
+    ys = rng.normal(1.0, 1.0, size=(B, H, W, C)).astype(dtype)
+    zs = rng.normal(1.0, 0.5, size=(B, H, W, C)).astype(dtype)
+    w = rng.uniform(0.0, 1.0, size=(H, W, B, k, k)).astype(dtype)
+    ref = ck.combine_numpy(w, ys, zs)
+    out = combine_multi(ys, zs, w)
+    assert out.dtype == dtype
+    if dtype == np.float64:
+        np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
+    else:   # float64 accumulation, one rounding to float32 at the end
+        np.testing.assert_allclose(out, ref, rtol=2 ** -23, atol=2 ** -23 * np.abs(ref).max())
+
+
+def test_numba_kernel_with_broadcast_and_strided_inputs():
+    rng = np.random.default_rng(8)
+    B, H, W, C, k = 4, 20, 33, 3, 7
+    ys = rng.normal(size=(B, H, W + 5, C))[:, :, 2:-3]           # non-contiguous
+    zs = rng.normal(size=(B, W, H, C)).transpose(0, 2, 1, 3)    # transposed
+    w = gaussian_weights(H, W, B, k, 2.0)                       # broadcast, read-only
+    ref = ck.combine_numpy(np.asarray(w), ys, zs)
+    np.testing.assert_allclose(combine_multi(ys, zs, w), ref, rtol=1e-12, atol=1e-12)
+    signed = rng.normal(size=(H, W, B, k, k))
+    signed[:, :, 0, k // 2, k // 2] = 50.0                      # keep W_c away from 0
+    np.testing.assert_allclose(combine_multi(ys, zs, signed), ck.combine_numpy(signed, ys, zs),
+                               rtol=1e-10, atol=1e-10)
+
+
+# --------------------------------------------------------------------------- Eq. 10 / 11 exact
+@pytest.mark.parametrize("correlated", [False, True])
+def test_eq11_matches_dense_linear_algebra(correlated):
+    """Var of the linear map beta = A y + (I - A) z with z = F x, against Eq. 11."""
+    rng = np.random.default_rng(11 + correlated)
+    H, W, C, k, kf = 7, 8, 2, 3, 5
+    N = H * W
+    F = rng.random((H, W, kf, kf))
+    w = rng.random((H, W, k, k))
+    vx = rng.random((H, W, C)) + 0.1
+    vy = rng.random((H, W, C)) + 0.1
+    Fm, Wm = _dense_operator(F, H, W), _dense_operator(w, H, W)
+    A = Wm / Wm.sum(axis=1, keepdims=True)
+    Bz = np.eye(N) - A
+    cov_z, cross = filter_covariance(F, vx, size=2 * k - 1, cross=True)
+    if correlated:   # y = x, z = F y: the cross-covariance term is needed
+        _, var = combine_bias_variance(w, vx, cov_z, cov_yz=cross)
+    else:
+        _, var = combine_bias_variance(w, vy, cov_z)
+    for c in range(C):
+        Sx = np.diag(vx[..., c].ravel())
+        Sz = Fm @ Sx @ Fm.T
+        if correlated:
+            Sy, Syz = Sx, Sx @ Fm.T
+        else:
+            Sy, Syz = np.diag(vy[..., c].ravel()), np.zeros((N, N))
+        V = A @ Sy @ A.T + Bz @ Sz @ Bz.T + A @ Syz @ Bz.T + Bz @ Syz.T @ A.T
+        np.testing.assert_allclose(var[..., c], np.diag(V).reshape(H, W), rtol=1e-10, atol=1e-13)
+    # the stencil itself: every entry of F diag(v) F^T
+    Sz = Fm @ np.diag(vx[..., 0].ravel()) @ Fm.T
+    full, _ = filter_covariance(F, vx, cross=True)
+    R = full.shape[2] // 2
+    for p in range(N):
+        py, px = divmod(p, W)
+        for q in range(N):
+            qy, qx = divmod(q, W)
+            v = (qy - py, qx - px)
+            got = full[py, px, R + v[0], R + v[1], 0] if max(map(abs, v)) <= R else 0.0
+            assert abs(got - Sz[p, q]) < 1e-12
+
+
+def test_eq10_bias_is_exact_for_fixed_weights():
+    rng = np.random.default_rng(12)
+    H, W, C, k = 8, 9, 3, 5
+    w = rng.random((H, W, k, k))
+    mu = rng.random((H, W, C))
+    zb = rng.normal(size=(H, W, C))
+    # expectation of Eq. 8 with E[y] = mu and E[z] = mu + zb is Eq. 8 applied to them
+    expect = combine(mu, mu + zb, w)
+    bias, _ = combine_bias_variance(w, np.zeros((H, W, C)), np.zeros((H, W, C)), z_bias=zb)
+    np.testing.assert_allclose(bias, expect - mu, atol=1e-12)
+    # a constant bias of z cancels (Eq. 10 depends on differences only)
+    bias0, _ = combine_bias_variance(w, np.zeros((H, W, C)), np.zeros((H, W, C)),
+                                     z_bias=np.full((H, W, C), 3.0))
+    np.testing.assert_allclose(bias0, 0.0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- Eq. 10 / 11 by MC
+def _mc_setup(H=45, k=5, kf=5, sigma_f=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    w = np.array(gaussian_weights(H, H, 1, k, 1.5)[:, :, 0]) * rng.uniform(0.5, 1.5, (H, H, k, k))
+    F = _renormalised_gaussian(H, H, kf, sigma_f)
+    return w, F
+
+
+def _chi2_bias_var(samples, mu, bias, var, grid):
+    """p-values of the bias and variance of per-rep estimates at independent pixels."""
+    R = samples.shape[0]
+    s = samples[:, grid[0], grid[1]]                    # (R, n, C)
+    m = s.mean(axis=0)
+    z_bias = (m - mu[grid] - bias[grid]) / np.sqrt(var[grid] / R)
+    u = (s - m) ** 2
+    s2 = u.sum(axis=0) / (R - 1)
+    z_var = (s2 - var[grid]) / (u.std(axis=0, ddof=1) / np.sqrt(R))
+    return ([_chi2_pvalue(z_bias[:, c]) for c in range(s.shape[2])],
+            [_chi2_pvalue(z_var[:, c]) for c in range(s.shape[2])])
+
+
+def test_eq10_eq11_match_monte_carlo_independent_z():
+    """y: 8-spp render; z: a Gaussian filter of an independent 8-spp render (Eq. 11's
+    assumptions hold).  Bias and variance of Eq. 8 over 1500 renders vs Eq. 10 / 11."""
+    H, spp, R = 45, 8, 1500
+    w, F = _mc_setup(H)
+    r = ToyRenderer("edges", width=H, height=H)
+    mu, v1 = r.true_mean(), r.true_var() / spp
+    out = np.empty((R, H, H, 3))
+    for i in range(R):
+        y = r.render_uniform(spp, seed=2 * i, features=False).mean
+        x = r.render_uniform(spp, seed=2 * i + 1, features=False).mean
+        out[i] = combine(y, apply_kernels(F, x), w)
+    cov_z = filter_covariance(F, v1, size=9)
+    z_bias = apply_kernels(F, mu) - mu
+    bias, var = combine_bias_variance(w, v1, cov_z, z_bias=z_bias)
+    # pixels 9 apart depend on disjoint samples (window radius 2 + filter radius 2)
+    grid = np.ix_(np.arange(4, H, 9), np.arange(4, H, 9))
+    p_bias, p_var = _chi2_bias_var(out, mu, bias, var, grid)
+    n_tests = 2 * 3 * 3          # (bias, var) x channels, and the power checks below
+    assert min(p_bias + p_var) > ALPHA / n_tests, (p_bias, p_var)
+    # power: the bias is visible at these pixels, and z's covariances matter
+    p_nobias, _ = _chi2_bias_var(out, mu, 0 * bias, var, grid)
+    _, var_uncorr = combine_bias_variance(w, v1, v1 * np.sum(F ** 2, axis=(2, 3))[..., None],
+                                          z_bias=z_bias)
+    _, p_uncorr = _chi2_bias_var(out, mu, bias, var_uncorr, grid)
+    assert max(p_nobias) < ALPHA / n_tests and max(p_uncorr) < ALPHA / n_tests
+
+
+def test_eq10_eq11_match_monte_carlo_multibuffer_z_from_y():
+    """Two bins of 4 spp, z_b = F(y_b) (a 'denoised' bin, correlated with y_b): Eq. 14's
+    bias and variance match with the cross-covariance term; printed Eq. 11, which assumes
+    y independent of z, underestimates the variance (by ~30% here) and is rejected."""
+    H, spp, R, B = 45, 4, 1500, 2
+    w1, F = _mc_setup(H, seed=3)
+    w = np.stack([w1, w1[::-1]], axis=2)               # different weights per bin
+    r = ToyRenderer("edges", width=H, height=H)
+    mu, v1 = r.true_mean(), r.true_var() / spp
+    out = np.empty((R, H, H, 3))
+    for i in range(R):
+        ys = np.stack([r.render_uniform(spp, seed=(i, b), features=False).mean for b in range(B)])
+        zs = np.stack([apply_kernels(F, yb) for yb in ys])
+        out[i] = combine_multi(ys, zs, w)
+    cov_z, cross = filter_covariance(F, v1, size=9, cross=True)
+    z_bias = apply_kernels(F, mu) - mu
+    bias, var = combine_bias_variance(w, v1, cov_z, z_bias=z_bias, cov_yz=cross)
+    grid = np.ix_(np.arange(4, H, 9), np.arange(4, H, 9))
+    p_bias, p_var = _chi2_bias_var(out, mu, bias, var, grid)
+    n_tests = 2 * 3 + 3
+    assert min(p_bias + p_var) > ALPHA / n_tests, (p_bias, p_var)
+    _, var_printed = combine_bias_variance(w, v1, cov_z, z_bias=z_bias)   # no cross term
+    _, p_printed = _chi2_bias_var(out, mu, bias, var_printed, grid)
+    assert max(p_printed) < ALPHA / n_tests
+    assert np.mean(var_printed / var) < 0.8      # printed Eq. 11 underestimates it here
+
+
+# --------------------------------------------------------------------------- statistical weights
+def _oracle_problem(H=14, C=3, k=3, kf=3, seed=20):
+    rng = np.random.default_rng(seed)
+    F = rng.random((H, H, kf, kf))
+    F /= F.sum(axis=(2, 3), keepdims=True)
+    vx = rng.random((H, H, C)) + 0.1
+    vy = rng.random((H, H, C)) + 0.1
+    cov_z = filter_covariance(F, vx, size=2 * k - 1)
+    zb = 0.3 * rng.normal(size=(H, H, C))
+    return rng, vy, cov_z, zb
+
+
+def _mse(w, vy, cov_z, zb, cov_yz=None):
+    b, v = combine_bias_variance(w, vy, cov_z, z_bias=zb, cov_yz=cov_yz)
+    return (b * b + v).mean(axis=-1)
+
+
+def test_full_statistical_weights_minimise_eq10_eq11():
+    rng, vy, cov_z, zb = _oracle_problem()
+    H, k = vy.shape[0], 3
+    y, z = rng.normal(size=(2, H, H, 3))               # unused by oracle moments
+    wf = statistical_weights(y, z, vy, cov_z, k, method="full", z_bias=zb, ridge=0)
+    wd = statistical_weights(y, z, vy, cov_z, k, method="diagonal", z_bias=zb)
+    assert wf.shape == wd.shape == (H, H, 1, k, k)
+    np.testing.assert_allclose(wf.sum(axis=(2, 3, 4)), 1.0, rtol=1e-5)
+    base = _mse(wf.astype(np.float64), vy, cov_z, zb)
+    for i in range(10):   # no perturbation (renormalised by Eq. 8) improves any pixel
+        d = rng.normal(scale=0.05, size=wf.shape)
+        assert (_mse(wf + d, vy, cov_z, zb) >= base - 1e-9 * base).all()
+    m_diag = _mse(wd, vy, cov_z, zb)
+    m_coh = _mse(statistical_weights(y, z, vy, cov_z, k, z_bias=zb), vy, cov_z, zb)
+    m_uni = _mse(uniform_weights(H, H, 1, k), vy, cov_z, zb)
+    assert (base <= m_diag * (1 + 1e-6)).all() and (base <= m_coh * (1 + 1e-6)).all()
+    assert max(m_diag.mean(), m_coh.mean()) < m_uni.mean() and base.mean() < vy.mean()
+    # the diagonal weights are positive, and exactly inverse-MSE with uncorrelated errors
+    assert (wd >= 0).all()
+
+
+def test_diagonal_weights_are_exact_for_uncorrelated_estimates():
+    """With z = 0 deterministic and y independent, e_t = y_t are uncorrelated with bias
+    mu_t - mu_c; inverse-MSE weights are then the exact minimiser, equal to 'full'."""
+    rng = np.random.default_rng(21)
+    H, C, k = 10, 2, 3
+    vy = rng.random((H, H, C)) + 0.1
+    y, z = rng.normal(size=(2, H, H, C))
+    zero = np.zeros((H, H, C))
+    wd = statistical_weights(y, z, vy, zero, k, method="diagonal", z_bias="zero")
+    wf = statistical_weights(y, z, vy, zero, k, method="full", z_bias="zero", ridge=0)
+    np.testing.assert_allclose(wd, wf, rtol=1e-4, atol=1e-6)
+    # centre weight 1/var_y(c): ratios of weights are inverse variance ratios
+    r = k // 2
+    ratio = wd[5, 5, 0, r, r + 1] / wd[5, 5, 0, r, r]
+    np.testing.assert_allclose(ratio, vy[5, 5].mean() / vy[5, 6].mean(), rtol=1e-5)
+
+
+def test_coherent_weights_solve_their_quadratic_programme():
+    """'coherent' minimises a^T (D + |b||b|^T) a over the simplex; compare with SLSQP.
+
+    D_t = Var(e_t) and b_t = bias of e_t come from Eq. 10/11 with one-hot weights (an
+    independent computation of the per-tap moments)."""
+    from scipy.optimize import minimize
+
+    rng, vy, cov_z, zb = _oracle_problem(H=6, C=2, k=3, kf=3, seed=22)
+    H, k = vy.shape[0], 3
+    y, z = rng.normal(size=(2, H, H, 2))
+    w = statistical_weights(y, z, vy, cov_z, k, method="coherent", z_bias=zb)
+    assert (w >= 0).all()
+    D, Bt = np.zeros((H, H, k * k)), np.zeros((H, H, 2, k * k))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for t in range(k * k):
+            onehot = np.zeros((H, H, k, k))
+            onehot.reshape(H, H, -1)[..., t] = 1.0
+            b, v = combine_bias_variance(onehot, vy, cov_z, z_bias=zb)
+            D[..., t], Bt[..., t] = v.mean(axis=-1), np.abs(b)
+    for (py, px) in [(2, 3), (0, 0), (5, 2), (3, 3)]:
+        ok = np.isfinite(D[py, px])
+        d, bt = D[py, px][ok], Bt[py, px][:, ok]
+
+        def f(a):
+            return float(a @ (d * a) + np.mean((bt @ a) ** 2))
+
+        res = minimize(f, np.full(d.size, 1.0 / d.size), method="SLSQP", bounds=[(0, 1)] * d.size,
+                       constraints=[{"type": "eq", "fun": lambda a: a.sum() - 1.0}],
+                       options={"ftol": 1e-14, "maxiter": 500})
+        mine = w[py, px, 0].reshape(-1)[ok].astype(np.float64)
+        assert f(mine) <= res.fun * (1 + 1e-5), (f(mine), res.fun)
+        np.testing.assert_allclose(mine, res.x, atol=2e-4)
+
+
+def test_coherent_equals_full_when_the_model_is_exact():
+    """z deterministic (var 0) and a bias peak at one pixel: Cov(e) is diagonal and all
+    biases of that pixel's taps share a sign, so 'coherent' is the exact optimum."""
+    rng = np.random.default_rng(23)
+    H, C, k = 5, 2, 3
+    vy = rng.random((H, H, C)) + 0.1
+    zb = np.zeros((H, H, C))
+    zb[2, 2] = [0.4, 0.7]
+    y, z = rng.normal(size=(2, H, H, C))
+    zero = np.zeros((H, H, C))
+    wc = statistical_weights(y, z, vy, zero, k, method="coherent", z_bias=zb)
+    wf = statistical_weights(y, z, vy, zero, k, method="full", z_bias=zb, ridge=0)
+    np.testing.assert_allclose(wc[2, 2], wf[2, 2], rtol=1e-5, atol=1e-7)
+    assert wc[2, 2, 0, 1, 1] > 3 * wc[2, 2, 0, 0, 0]     # biased taps are held back
+
+
+def test_statistical_weights_reduce_measured_error():
+    """Weights from moments estimated without the truth (4 bins of 4 spp, buffer_moments,
+    bias estimated from the data) for z = a sigma-2 Gaussian filter of each bin: Eq. 14
+    beats y, z, uniform weights and the inverse-MSE rule on a scene with edges."""
+    H, B, spp, reps, k = 32, 4, 4, 12, 5
+    r = ToyRenderer("edges", width=H, height=H)
+    mu = r.true_mean()
+    F = _renormalised_gaussian(H, H, 9, 2.0)
+    G = _renormalised_gaussian(H, H, 5, 1.5)
+    err = {name: [] for name in ("y", "z", "uniform", "diagonal", "coherent")}
+    for i in range(reps):
+        ys = np.stack([r.render_uniform(spp, seed=(7, i, b), features=False).mean for b in range(B)])
+        zs = np.stack([apply_kernels(F, yb) for yb in ys])
+        var_y, cov_z, cov_yz = buffer_moments(ys, zs, size=k)
+        # smooth the 3-dof estimates over a few pixels
+        var_y = apply_kernels(G, var_y)
+        cov_z = apply_kernels(G, cov_z.reshape(H, H, -1)).reshape(cov_z.shape)
+        cov_yz = apply_kernels(G, cov_yz.reshape(H, H, -1)).reshape(cov_yz.shape)
+        est = {"y": ys.mean(axis=0), "z": zs.mean(axis=0),
+               "uniform": combine_multi(ys, zs, uniform_weights(H, H, B, k))}
+        for method in ("diagonal", "coherent"):
+            w = statistical_weights(ys, zs, var_y, cov_z, k, cov_yz=cov_yz, method=method)
+            est[method] = combine_multi(ys, zs, w)
+        for name, e in est.items():
+            err[name].append(((e - mu) ** 2).mean())
+    err = {name: np.array(v) for name, v in err.items()}
+    for other in ("y", "z", "uniform", "diagonal"):   # paired one-sided t-tests
+        t = stats.ttest_1samp(np.log(err["coherent"] / err[other]), 0.0, alternative="less")
+        assert t.pvalue < ALPHA / 4, (other, err["coherent"].mean(), err[other].mean())
+    assert err["coherent"].mean() < 0.6 * min(err["y"].mean(), err["z"].mean())
+
+
+# --------------------------------------------------------------------------- moment helpers
+def test_buffer_moments_are_unbiased():
+    """E over renders of the bin-spread covariance estimates equals the exact moments."""
+    H, B, spp, reps, m = 12, 4, 4, 400, 3
+    r = ToyRenderer("gradient", width=H, height=H, channels=1)
+    F = _renormalised_gaussian(H, H, 3, 1.0)
+    v1 = r.true_var() / spp
+    exact_z, exact_yz = filter_covariance(F, v1, size=m, cross=True)
+    acc = [np.zeros((H, H, 1)), np.zeros(exact_z.shape), np.zeros(exact_z.shape)]
+    sq = [np.zeros((H, H, 1)), np.zeros(exact_z.shape), np.zeros(exact_z.shape)]
+    for i in range(reps):
+        ys = np.stack([r.render_uniform(spp, seed=(9, i, b), features=False).mean for b in range(B)])
+        zs = np.stack([apply_kernels(F, yb) for yb in ys])
+        for j, est in enumerate(buffer_moments(ys, zs, size=m)):
+            acc[j] += est
+            sq[j] += est * est
+    pvals = []
+    for j, exact in enumerate((v1, exact_z, exact_yz)):
+        mean = acc[j] / reps
+        se = np.sqrt(np.maximum(sq[j] / reps - mean ** 2, 1e-300) / (reps - 1))
+        # one statistic per quantity at independent pixels (3 px apart > 2 * (1 + 1))
+        sel = (slice(1, None, 5), slice(1, None, 5))
+        zsc = ((mean - exact) / se)[sel]
+        zsc = zsc[np.isfinite(zsc) & (se[sel] > 0)]
+        pvals.append(_chi2_pvalue(zsc))
+    assert min(pvals) > ALPHA / 3, pvals
+
+
+# --------------------------------------------------------------------------- weight builders
+def test_weight_builders():
+    u = uniform_weights(4, 5, 2, 3)
+    assert u.shape == (4, 5, 2, 3, 3) and u.dtype == np.float32 and not u.flags.writeable
+    g = gaussian_weights(4, 5, 2, 5, 1.0)
+    np.testing.assert_allclose(g[0, 0].sum(), 1.0, rtol=1e-6)
+    assert g[0, 0, 0, 2, 2] == g.max() and g[0, 0, 0, 0, 0] == g.min()
+    np.testing.assert_allclose(g[1, 2, 1, 2, 3] / g[1, 2, 1, 2, 2], np.exp(-0.5), rtol=1e-6)
+
+
+# --------------------------------------------------------------------------- bad input
+def test_bad_input_messages_name_the_shapes():
+    y = np.zeros((6, 7, 3))
+    w = np.ones((6, 7, 3, 3))
+    with pytest.raises(InputError, match=r"`z` must have the shape of `y` \(6, 7, 3\); got \(6, 8, 3\)"):
+        combine(y, np.zeros((6, 8, 3)), w)
+    with pytest.raises(InputError, match=r"B = 2 buffers on axis 2 to match the 2 buffers of `ys`/`zs`; got weights of shape \(6, 7, 4, 3, 3\)"):
+        combine_multi(np.zeros((2, 6, 7, 3)), np.zeros((2, 6, 7, 3)), np.ones((6, 7, 4, 3, 3)))
+    with pytest.raises(InputError, match=r"B = 4 buffers .* use `combine_multi"):
+        combine(y, y, np.ones((6, 7, 4, 3, 3)))
+    with pytest.raises(InputError, match=r"leading shape \(H, W\) = \(6, 7\); got \(7, 6, 3, 3\)"):
+        combine(y, y, np.ones((7, 6, 3, 3)))
+    with pytest.raises(InputError, match="odd window size"):
+        combine(y, y, np.ones((6, 7, 4, 4)))
+    with pytest.raises(InputError, match=r"shape \(H, W, k, k\)"):
+        combine(y, y, np.ones((6, 7, 3, 5)))
+    with pytest.raises(InputError, match="NaN"):
+        combine(np.full((6, 7, 3), np.nan), y, w)
+    bad = w.copy()
+    bad[2, 3] = 0.0
+    with pytest.raises(InputError, match=r"1 pixel\(s\) fail, the first at \(row 2, column 3\)"):
+        combine(y, y, bad)
+    bad = w.copy()
+    bad[4, 1, 1, 1] = np.nan
+    with pytest.raises(InputError, match=r"row 4, column 1"):
+        combine(y, y, bad)
+    with pytest.raises(InputError, match="numeric"):
+        combine(y, y, np.full((6, 7, 3, 3), "a"))
+
+
+def test_bad_moments_messages():
+    y = np.zeros((6, 7, 3))
+    w = np.ones((6, 7, 3, 3))
+    with pytest.raises(InputError, match="`var_y` is missing"):
+        combine_bias_variance(w, None, y)
+    with pytest.raises(InputError, match="`cov_z` is missing"):
+        combine_bias_variance(w, y, None)
+    with pytest.raises(InputError, match="`var_y` is missing"):
+        statistical_weights(y, y, None, y, 3)
+    with pytest.raises(InputError, match="`cov_z` is missing"):
+        statistical_weights(y, y, y, None, 3)
+    with pytest.raises(InputError, match=r"`var_y` must have shape \(6, 7, 3\) or \(2, 6, 7, 3\).*got \(3, 6, 7, 3\)"):
+        combine_bias_variance(np.ones((6, 7, 2, 3, 3)), np.zeros((3, 6, 7, 3)), y)
+    with pytest.raises(InputError, match=r"`cov_z` must be a covariance stencil .*got \(6, 7, 4, 4, 3\)"):
+        combine_bias_variance(w, y, np.zeros((6, 7, 4, 4, 3)))
+    with pytest.raises(InputError, match=">= 0"):
+        combine_bias_variance(w, -np.ones((6, 7, 3)), y)
+    with pytest.raises(InputError, match="`method`"):
+        statistical_weights(y, y, y, y, 3, method="nnls")
+    with pytest.raises(InputError, match="`z_bias`"):
+        statistical_weights(y, y, y, y, 3, z_bias="guess")
+    with pytest.raises(InputError, match="`size`"):
+        statistical_weights(y, y, y, y, 4)
+    with pytest.raises(InputError, match="B >= 2"):
+        buffer_moments(y[None], y[None], size=3)
+    with pytest.raises(InputError, match=r"`var` must have shape \(6, 7, C\)"):
+        filter_covariance(w, np.zeros((5, 7, 3)))
+    with pytest.raises(InputError, match="`sigma`"):
+        gaussian_weights(2, 2, 1, 3, 0.0)
+    with pytest.raises(InputError, match="`buffers`"):
+        uniform_weights(2, 2, 0, 3)
