@@ -606,52 +606,53 @@ def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch):
 
 
 def _tap_moments(mom, sq, k, B, H, W):
-    """Per-tap ``Var(e_t)`` (channel mean), squared biases and validity, over ``n = B k²``."""
+    """Per-tap ``Var(e_t)`` (channel mean), squared biases and validity, tap-major:
+    ``(n, H, W)``, ``(n, H, W, C)``, ``(n, H, W)`` with ``n = B k²``."""
     offs = _offsets(k)
     n = B * len(offs)
-    v = np.empty((H, W, n))
-    b2 = np.empty((H, W, mom.C, n))
-    valid = np.empty((H, W, n), bool)
+    v = np.empty((n, H, W))
+    b2 = np.empty((n, H, W, mom.C))
+    valid = np.empty((n, H, W), bool)
     for b in range(B):
         for j, o in enumerate(offs):
             i = b * len(offs) + j
-            v[..., i] = mom.pair(b, o, o).mean(axis=-1)      # Var(y_t + z_c − z_t)
-            b2[..., i] = sq[o][b]
-            valid[..., i] = _valid(H, W, *o) > 0
+            v[i] = mom.pair(b, o, o).mean(axis=-1)      # Var(y_t + z_c − z_t)
+            b2[i] = sq[o][b]
+            valid[i] = _valid(H, W, *o) > 0
     # floor: a zero-variance tap must not divide by zero (relative to the largest MSE)
-    top = np.where(valid, v + b2.mean(axis=2), 0.0).max(axis=-1, keepdims=True)
+    top = np.where(valid, v + b2.mean(axis=-1), 0.0).max(axis=0)
     v = np.where(valid, np.maximum(v, np.maximum(1e-12 * top, 1e-300)), np.inf)
     return v, b2, valid
 
 
 def _to_weights(a, valid, k, B, H, W):
     a = np.where(valid, np.maximum(a, 0.0), 0.0)
-    a /= a.sum(axis=-1, keepdims=True)
-    return a.reshape(H, W, B, k, k).astype(np.float32)
+    a /= a.sum(axis=0)
+    return np.moveaxis(a.reshape(B, k, k, H, W), (3, 4), (0, 1)).astype(np.float32)
 
 
 def _diagonal_weights(mom, sq, k, B, H, W):
     v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
-    mse = v + b2.mean(axis=2)
+    mse = v + b2.mean(axis=-1)
     # inverse-MSE weights, scaled by the smallest MSE so nothing overflows
-    return _to_weights(mse.min(axis=-1, keepdims=True) / mse, valid, k, B, H, W)
+    return _to_weights(mse.min(axis=0) / mse, valid, k, B, H, W)
 
 
 def _coherent_weights(mom, sq, k, B, H, W, max_iter=20):
     """Minimise ``aᵀ(D + U Uᵀ)a`` s.t. ``Σa = 1, a ≥ 0``: Woodbury plus an active set."""
     v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
-    C = b2.shape[2]
-    vmin = v.min(axis=-1, keepdims=True)
+    C = b2.shape[-1]
+    vmin = v.min(axis=0)
     d_inv = vmin / v                                     # D⁻¹ up to a per-pixel scale
-    U = np.sqrt(b2 / (C * vmin[:, :, None]))             # (H, W, C, n), same scale
+    U = np.sqrt(b2 / (C * vmin[..., None]))              # (n, H, W, C), same scale
     active = valid.copy()
     eye = np.eye(C)
     for _ in range(max_iter):
         di = np.where(active, d_inv, 0.0)
-        G = eye + np.einsum("hwcn,hwn,hwdn->hwcd", U, di, U)
-        rhs = np.einsum("hwcn,hwn->hwc", U, di)
+        G = eye + np.einsum("nhwc,nhw,nhwd->hwcd", U, di, U, optimize=True)
+        rhs = np.einsum("nhwc,nhw->hwc", U, di)
         sol = np.linalg.solve(G, rhs[..., None])[..., 0]
-        a = di * (1.0 - np.einsum("hwcn,hwc->hwn", U, sol))
+        a = di * (1.0 - np.einsum("nhwc,hwc->nhw", U, sol))
         neg = active & (a < 0)
         if not neg.any():
             break

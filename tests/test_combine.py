@@ -304,15 +304,17 @@ def _mc_setup(H=45, k=5, kf=5, sigma_f=1.0, seed=0):
 
 def _chi2_bias_var(samples, mu, bias, var, grid):
     """p-values of the bias and variance of per-rep estimates at independent pixels."""
-    R = samples.shape[0]
-    s = samples[:, grid[0], grid[1]]                    # (R, n, C)
+    R, C = samples.shape[0], samples.shape[-1]
+    s = samples[:, grid[0], grid[1]].reshape(R, -1, C)          # (R, n, C)
+    mu, bias, var = (a[grid].reshape(-1, C) for a in (mu, bias, var))
     m = s.mean(axis=0)
-    z_bias = (m - mu[grid] - bias[grid]) / np.sqrt(var[grid] / R)
+    z_bias = (m - mu - bias) / np.sqrt(var / R)
     u = (s - m) ** 2
     s2 = u.sum(axis=0) / (R - 1)
-    z_var = (s2 - var[grid]) / (u.std(axis=0, ddof=1) / np.sqrt(R))
-    return ([_chi2_pvalue(z_bias[:, c]) for c in range(s.shape[2])],
-            [_chi2_pvalue(z_var[:, c]) for c in range(s.shape[2])])
+    z_var = (s2 - var) / (u.std(axis=0, ddof=1) / np.sqrt(R))
+    # one chi-square per channel (the channels of a pixel share the throughput S)
+    return ([_chi2_pvalue(z_bias[:, c]) for c in range(C)],
+            [_chi2_pvalue(z_var[:, c]) for c in range(C)])
 
 
 def test_eq10_eq11_match_monte_carlo_independent_z():
