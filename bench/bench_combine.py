@@ -1,9 +1,10 @@
 """Benchmark for :mod:`statmc.combine`.
 
-1. Speed of the multi-buffer combination kernel (Eq. 14).  Target (issue 5): 1920x1080x3, B = 4 buffers, 15x15 windows, per-pixel float32 weights
-(7.5 GB, as a kernel-predicting network would export them) in at most 1.5 s on 2 cores.
-Peer: the plain NumPy reference (``_combine_kernels.combine_numpy``) on a crop of full
-width, scaled to 1080 rows, measured in the same run.
+1. Speed of the multi-buffer combination kernel (Eq. 14).  Target (issue 5):
+   1920x1080x3, B = 4 buffers, 15x15 windows, per-pixel float32 weights (7 GiB, as a
+   kernel-predicting network would export them) in at most 1.5 s on 2 cores.  Peer: the
+   plain NumPy reference (``_combine_kernels.combine_numpy``) on a crop of full width,
+   scaled to 1080 rows, measured in the same run.
 
 The machine is shared: the script prints the load average and the CPU time of the timed
 call beside its wall time (CPU time / wall time close to 2 means both cores were ours).
@@ -47,7 +48,8 @@ def _fill_weights(w, seed):  # pragma: no cover - compiled
                         s ^= s << np.uint64(13)
                         s ^= s >> np.uint64(7)
                         s ^= s << np.uint64(17)
-                        w[y, x, b, i, j] = np.float32((s >> np.uint64(40)) + np.uint64(1)) * np.float32(2.0 ** -24)
+                        u = np.float32((s >> np.uint64(40)) + np.uint64(1))
+                        w[y, x, b, i, j] = u * np.float32(2.0 ** -24)
 
 
 def _available_gib():
@@ -103,7 +105,8 @@ def main():
           f"({numba.get_num_threads()} numba threads, load average {load:.2f}):")
     print(f"  numba  {wall:7.3f} s wall  ({cpu:.3f} s CPU)   target <= {TARGET_S} s   "
           f"{'OK' if wall <= TARGET_S else 'MISSED'}")
-    print(f"  numpy  {t_ref:7.3f} s wall  (reference on {W}x{CROP_ROWS}, scaled x{H / CROP_ROWS:.0f})")
+    print(f"  numpy  {t_ref:7.3f} s wall  (reference on {W}x{CROP_ROWS}, "
+          f"scaled x{H / CROP_ROWS:.0f})")
     print(f"  speed-up x{t_ref / wall:.1f}; max relative difference on the crop {err:.1e}")
 
 

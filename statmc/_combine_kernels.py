@@ -69,7 +69,8 @@ def _fmuladd(typingctx, a, b, c):
 
     def codegen(context, builder, signature, args):
         dbl = ir.DoubleType()
-        fn = builder.module.declare_intrinsic("llvm.fmuladd", [dbl], ir.FunctionType(dbl, [dbl] * 3))
+        fnty = ir.FunctionType(dbl, [dbl] * 3)
+        fn = builder.module.declare_intrinsic("llvm.fmuladd", [dbl], fnty)
         return builder.call(fn, args)
 
     return sig, codegen
@@ -157,8 +158,9 @@ def _combine_group(w, d, zs, c0, nc, out, bad):  # pragma: no cover - compiled
     """Eq. 14/15 for one group of (up to) three channels ``c0 .. c0 + nc - 1``.
 
     ``d = y - z`` is ``(B, H, W, 3)`` float64 from :func:`_prepare_group`; ``zs`` the
-    ``(B, H, W, C)`` correlated buffers (read at the centre pixel only).  Writes channels ``c0 .. c0 + nc - 1`` of ``out``; ``bad[y]`` counts the pixels of
-    row ``y`` whose ``W_c`` is 0 or not finite (their output is ``nan``/``inf``).
+    ``(B, H, W, C)`` correlated buffers (read at the centre pixel only).  Writes those
+    channels of ``out``; ``bad[y]`` counts the pixels of row ``y`` whose ``W_c`` is 0 or
+    not finite (their output is ``nan``/``inf``).
     """
     B, H, Wd, _ = d.shape
     k = w.shape[3]

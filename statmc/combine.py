@@ -255,6 +255,10 @@ def combine_boosting(y, z, weights):
 
     ys, zs, squeeze = _pair("y", y, "z", z, multi=False)
     w = _weights(weights, 1, *ys.shape[1:3], multi=False)[:, :, 0]
+    H, W, k = w.shape[0], w.shape[1], w.shape[2]
+    inside = np.stack([_valid(H, W, dy - k // 2, dx - k // 2)
+                       for dy in range(k) for dx in range(k)], axis=-1).reshape(H, W, k, k)
+    w = np.where(inside > 0, w, 0.0)                # outside taps are never used (as in Eq. 8)
     y64, z64 = ys[0].astype(np.float64), zs[0].astype(np.float64)
     num = apply_kernels(w, y64 - z64)
     den = apply_kernels(w, np.ones(y64.shape[:2]))

@@ -163,6 +163,7 @@ def test_window_convention_matches_apply_kernels():
     wp[0, 0, 0, :] = np.nan
     wp[-1, -1, -1, -1] = np.inf
     np.testing.assert_array_equal(combine(y, z, wp), combine(y, z, w))
+    np.testing.assert_allclose(combine_boosting(y, z, wp), combine(y, z, w), rtol=1e-12, atol=1e-13)
 
 
 def test_invariances_and_special_cases():
