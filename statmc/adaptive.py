@@ -33,9 +33,15 @@ def _gem_sampler(stats: PixelStats, budget: int, rng, *, gamma: float = 0.2) -> 
     return sampling_map(stats.mean, stats.mean_var, stats.n, budget, gamma=gamma, rng=rng)
 
 
+def _expected_error_sampler(stats: PixelStats, budget: int, rng, **options) -> np.ndarray:
+    from .analytic import expected_error_sampler
+    return expected_error_sampler(stats, budget, rng, **options)
+
+
 SAMPLERS: dict[str, Callable] = {
     "uniform": _uniform_sampler,
     "gem": _gem_sampler,
+    "expected-error": _expected_error_sampler,
 }
 
 

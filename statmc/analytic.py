@@ -680,3 +680,25 @@ def optimal_sample_counts(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, rn
     smap, info = res if options.get("return_info") else (res, None)
     counts = counts_from_density(smap, int(b), rng=rng)
     return (counts, info) if info is not None else counts
+
+
+def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
+                           loss: str = "mrse") -> np.ndarray:
+    """One iteration of the ``expected-error`` adaptive sampler (a classical sampler).
+
+    Counts minimising the closed-form expected loss (Lemma A.1 of [1]_) of a fixed
+    Gaussian denoiser of standard deviation ``sigma`` after adding ``budget`` samples,
+    with the current mean as the estimate of the true mean and the per-pixel sample
+    variance as the estimate of the true per-sample variance.
+
+    Parameters
+    ----------
+    stats : PixelStats
+        Statistics so far (every pixel needs ``n >= 1``).
+    budget : int
+        Samples to add; the counts sum to it exactly.
+    """
+    from .denoisers import gaussian
+    kernels = gaussian(sigma).kernels(stats.mean.shape)
+    return optimal_sample_counts(kernels, stats.mean, stats.n, stats.mean, stats.sample_var,
+                                 budget, loss=loss, rng=rng)

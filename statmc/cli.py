@@ -266,9 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
     r.add_argument("--reference", help="reference EXR: metrics go into report.json")
-    r.add_argument("--sampler", choices=["uniform", "gem"], default="uniform",
-                   help="uniform counts, or adaptive GEM sampling (4 spp, then 8 iterations)")
-    r.add_argument("--reconstruct", choices=["none", "gem"], default="none",
+    r.add_argument("--sampler", choices=["uniform", "gem", "expected-error"], default="uniform",
+                   help="uniform counts, or adaptive sampling (4 spp, then 8 iterations): GEM "
+                        "(Rousselle 2011) or minimum expected error of a fixed Gaussian denoiser "
+                        "(Salehi 2022 Lemma A.1)")
+    r.add_argument("--reconstruct", choices=["none", "gem", "gaussian"], default="none",
                    help="reconstruction written beside the raw render")
     r.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
     r.add_argument("-q", "--quiet", action="store_true")

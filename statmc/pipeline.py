@@ -10,10 +10,11 @@ from .stats import PixelStats
 
 __all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
 
-RECONSTRUCTIONS = ("none", "gem")
+RECONSTRUCTIONS = ("none", "gem", "gaussian")
 
 
-def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2):
+def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2,
+                      sigma: float = 1.0):
     """Reconstruct an image from pixel statistics.
 
     Returns ``(image (H, W, C) float32, maps)`` where ``maps`` holds per-pixel diagnostics
@@ -29,6 +30,9 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         scales = np.asarray(info["scales"])
         sigma = np.asarray(info["sigmas"], np.float32)[scales]
         return img, {"scale": scales.astype(np.float32), "sigma": sigma}
+    if method == "gaussian":
+        from .denoisers import gaussian
+        return gaussian(sigma)(stats.mean.astype(np.float32)), {}
     raise InputError(f"unknown reconstruction {method!r}; expected one of {RECONSTRUCTIONS}.")
 
 
