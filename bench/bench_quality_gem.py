@@ -16,12 +16,17 @@ from statmc.demo import METHODS, cached_reference, compare
 from statmc.renderers import make_renderer
 from statmc.scenes import BUILTIN_SCENES
 
+# The caustic of a tiny bright light converges slowly: two independent 4096-spp references
+# differ by relMSE 0.079 there (1e-4..3e-4 for the other scenes), more than the errors
+# being compared, so that scene gets a reference with 8x the samples.
+REF_SPP = {"glass-caustic": 32768}
+
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="*", default=list(BUILTIN_SCENES))
     p.add_argument("--spp", nargs="*", type=int, default=[16, 32, 64])
-    p.add_argument("--ref-spp", type=int, default=4096)
+    p.add_argument("--ref-spp", type=int, default=4096, help="reference spp (see REF_SPP)")
     p.add_argument("--gamma", type=float, default=0.2)
     p.add_argument("--seeds", type=int, default=2, help="independent repeats averaged per cell")
     p.add_argument("--out", default="out/bench")
@@ -32,7 +37,7 @@ def main(argv=None):
     ok = True
     for scene in a.scenes:
         r = make_renderer(scene)
-        ref, _ = cached_reference(r, a.ref_spp, "out/cache")
+        ref, _ = cached_reference(r, max(a.ref_spp, REF_SPP.get(scene, 0)), "out/cache")
         rows = []
         for s in range(a.seeds):
             rows += compare(r, ref, a.spp, METHODS, seed=1000 * s, gamma=a.gamma, quiet=True)
@@ -48,7 +53,8 @@ def main(argv=None):
             print(lines[-1], flush=True)
     table = "\n".join(lines)
     with open(os.path.join(a.out, "quality_gem.md"), "w") as f:
-        f.write(f"relMSE (ε = 0.01), mean of {a.seeds} seeds, γ = {a.gamma}, reference {a.ref_spp} spp\n\n")
+        f.write(f"relMSE (ε = 0.01), mean of {a.seeds} seeds, γ = {a.gamma}, reference {a.ref_spp} spp "
+                f"({', '.join(f'{k}: {v}' for k, v in REF_SPP.items())})\n\n")
         f.write(table + "\n")
     print("\n" + table)
     return 0 if ok else 1
