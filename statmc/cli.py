@@ -199,6 +199,73 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0):
+    """A denoiser bound to ``stats``' features (OIDN) or variance (GEM)."""
+    from . import denoisers
+    if name == "oidn":
+        return denoisers.oidn(albedo=stats.albedo, normal=stats.normal if stats.albedo is not None else None)
+    if name == "gem":
+        return denoisers.gem(stats.mean_var.astype(np.float32), gamma=gamma, n=stats.n)
+    if name == "gaussian":
+        return denoisers.gaussian(sigma)
+    raise InputError(f"unknown denoiser {name!r}; expected oidn, gem or gaussian.")
+
+
+def cmd_denoise(args) -> int:
+    from .exr import read_exr, write_exr, write_png_preview
+    from .stats import PixelStats
+    stats = read_exr(args.input, spp=args.spp)
+    den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma)
+    x = stats.mean.astype(np.float32)
+    out = np.asarray(den(x), np.float32)
+    result = out
+    if args.variance:
+        # Store the denoised output as statistics whose variance of the mean is the
+        # first-order variance of the output (Firmino 2023), with the input's counts.
+        from .sure import output_variance
+        method = "exact" if hasattr(den, "kernels") else "fd"  # linear filters: Σ_j w_ij² σ_j²
+        var = output_variance(den, x, stats.mean_var.astype(np.float32), method=method, rng=args.seed)
+        n = stats.n.astype(np.float64)[..., None]
+        result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
+                            albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
+    write_exr(args.out, result, protect=[args.input])
+    write_png_preview(os.path.splitext(args.out)[0] + ".png", out, protect=[args.input])
+    if not args.quiet:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_combine(args) -> int:
+    from . import combine as cb
+    from .exr import read_exr, read_image, write_exr, write_png_preview
+    y_stats = read_exr(args.y, spp=args.spp)
+    y = y_stats.mean.astype(np.float32)
+    h, w, _ = y.shape
+    if args.weights == "statistical":
+        z_stats = read_exr(args.z, spp=args.spp)  # needs Variance.* (e.g. `statmc denoise --variance`)
+        z = z_stats.mean.astype(np.float32)
+    else:
+        z = read_image(args.z)
+    if z.shape != y.shape:
+        raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
+                         f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
+    if args.size < 1 or args.size % 2 == 0:
+        raise InputError(f"--size must be an odd window width; got {args.size}.")
+    if args.weights == "uniform":
+        weights = cb.uniform_weights(h, w, 1, args.size)
+    elif args.weights == "gaussian":
+        weights = cb.gaussian_weights(h, w, 1, args.size, args.sigma)
+    else:
+        weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32),
+                                         z_stats.mean_var.astype(np.float32), args.size)
+    out = cb.combine(y, z, weights)
+    write_exr(args.out, out, protect=[args.y, args.z])
+    write_png_preview(os.path.splitext(args.out)[0] + ".png", out, protect=[args.y, args.z])
+    if not args.quiet:
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_reference(args) -> int:
     from tqdm import tqdm
 
@@ -305,6 +372,31 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("info", help="channels, size, sample counts and NaN/Inf counts of an EXR")
     i.add_argument("file")
     i.set_defaults(func=cmd_info)
+
+    d = sub.add_parser("denoise", help="denoise a statistics EXR (OIDN uses its albedo/normal)")
+    d.add_argument("input")
+    d.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn")
+    d.add_argument("--out", required=True)
+    d.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
+    d.add_argument("--variance", action="store_true",
+                   help="also store the output's first-order variance (Firmino 2023) as Variance.*")
+    d.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
+    d.add_argument("--sigma", type=float, default=1.0, help="Gaussian standard deviation (pixels)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("-q", "--quiet", action="store_true")
+    d.set_defaults(func=cmd_denoise)
+
+    c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 Eq. 8)")
+    c.add_argument("y", help="statistics EXR of the independent render")
+    c.add_argument("z", help="correlated image (e.g. its denoised version); with --weights "
+                             "statistical it needs Variance.* too (statmc denoise --variance)")
+    c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical")
+    c.add_argument("--size", type=int, default=15, help="odd window width")
+    c.add_argument("--sigma", type=float, default=3.0, help="spatial σ of --weights gaussian")
+    c.add_argument("--spp", type=int)
+    c.add_argument("--out", required=True)
+    c.add_argument("-q", "--quiet", action="store_true")
+    c.set_defaults(func=cmd_combine)
 
     s = sub.add_parser("scenes", help="list built-in scenes")
     s.set_defaults(func=cmd_scenes)

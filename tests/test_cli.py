@@ -151,3 +151,54 @@ def test_metrics_refuses_nan_pixels_unless_asked(tmp_path, toy_ref):
     fixed[~np.isfinite(fixed)] = 0
     from statmc.metrics import mse
     assert json.loads(out)["mse"] == pytest.approx(mse(fixed, ref), rel=1e-6)
+
+
+@pytest.fixture(scope="module")
+def toy_render(tmp_path_factory):
+    d = tmp_path_factory.mktemp("y")
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--out", d, "-q")
+    assert code == 0, err
+    return d / "render.exr"
+
+
+@pytest.mark.parametrize("den", ["gaussian", "gem", "oidn"])
+def test_denoise_lowers_error_and_writes_variance(tmp_path, toy_render, toy_ref, den):
+    from statmc.exr import read_exr, read_image
+    from statmc.metrics import mse
+    out = tmp_path / "d.exr"
+    code, _, err = run_cli("denoise", toy_render, "--denoiser", den, "--variance", "--out", out, "-q")
+    assert code == 0, err
+    ref = read_image(toy_ref)
+    raw = read_exr(toy_render)
+    d = read_exr(out)
+    assert mse(d.mean, ref) < mse(raw.mean, ref)
+    assert np.array_equal(d.n, raw.n) and d.mean_var.max() > 0
+    if den == "gaussian":  # linear: the output variance is exactly sum_j w_ij^2 var_j
+        from statmc.denoisers import gaussian
+        from statmc.sure import kernel_variance
+        exact = kernel_variance(gaussian(1.0).kernels(raw.mean.shape), raw.mean_var)
+        np.testing.assert_allclose(d.mean_var, exact, rtol=1e-4, atol=1e-9)
+
+
+def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
+    from statmc.exr import read_exr, read_image
+    from statmc.metrics import mse
+    z = tmp_path / "z.exr"
+    assert run_cli("denoise", toy_render, "--denoiser", "gaussian", "--variance", "--out", z, "-q")[0] == 0
+    y = read_exr(toy_render).mean
+    for weights in ("uniform", "gaussian", "statistical"):
+        out = tmp_path / f"c-{weights}.exr"
+        code, _, err = run_cli("combine", toy_render, z, "--weights", weights, "--size", 5, "--out", out, "-q")
+        assert code == 0, err
+        assert mse(read_image(out), read_image(toy_ref)) < mse(y, read_image(toy_ref))
+    plain = tmp_path / "plain.exr"
+    from statmc.exr import write_exr
+    write_exr(plain, read_image(z))
+    code, _, err = run_cli("combine", toy_render, plain, "--weights", "statistical", "--out", tmp_path / "x.exr")
+    assert code == 2 and "Variance" in err and not (tmp_path / "x.exr").exists()
+    small = tmp_path / "small.exr"
+    write_exr(small, read_image(z)[:8, :8])
+    code, _, err = run_cli("combine", toy_render, small, "--weights", "uniform", "--out", tmp_path / "x.exr")
+    assert code == 2 and "same size" in err and not (tmp_path / "x.exr").exists()
+    code, _, err = run_cli("combine", toy_render, z, "--weights", "uniform", "--out", z)
+    assert code == 2 and "overwrite" in err
