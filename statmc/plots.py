@@ -18,6 +18,16 @@ def _pyplot():
     return plt
 
 
+def _save(plt, fig, path, protect) -> None:
+    """Lay out ``fig``, write it atomically as PNG to ``path``, and free it."""
+    try:
+        fig.tight_layout()
+        with atomic_path(path, protect=protect) as tmp:
+            fig.savefig(tmp, format="png")
+    finally:
+        plt.close(fig)
+
+
 def write_map_png(path, values, *, cmap: str = "viridis", label: str = "", log: bool = False,
                   protect=()) -> None:
     """A false-colour PNG of an ``(H, W)`` map with a colour bar (e.g. sample counts)."""
@@ -33,12 +43,7 @@ def write_map_png(path, values, *, cmap: str = "viridis", label: str = "", log: 
     im = ax.imshow(v, cmap=cmap, norm=norm, interpolation="nearest")
     ax.set_axis_off()
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label=label)
-    fig.tight_layout()
-    try:
-        with atomic_path(path, protect=protect) as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
-        plt.close(fig)
+    _save(plt, fig, path, protect)
 
 
 def write_convergence_plot(path, series: dict, *, xlabel: str = "samples per pixel",
@@ -60,9 +65,4 @@ def write_convergence_plot(path, series: dict, *, xlabel: str = "samples per pix
         ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    try:
-        with atomic_path(path, protect=protect) as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
-        plt.close(fig)
+    _save(plt, fig, path, protect)
