@@ -397,3 +397,28 @@ def split_by_scale(amount, scales, parts):  # pragma: no cover - compiled
         s = scales[y]
         for i in range(W):
             parts[s[i], y, i] = a[i]
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def estimate_mse_debiased(vals, vars_, dvar, C, frac, scales, out):  # pragma: no cover
+    """Estimated MSE of the selected scale with noise-corrected bias terms.
+
+    ``Var[s] + max(0, Σ_{k<s} frac_k ((v_{k+1} − v_k)² − Var(v_{k+1} − v_k)))``: each
+    squared difference of §5 of Rousselle et al. 2011 has expectation
+    ``bias-difference² + Var(difference)``; subtracting the known variance leaves an
+    unbiased estimate of the bias part, clamped at 0 after accumulation.
+    """
+    K, H, Lx = vals.shape
+    W = Lx // C
+    for y in prange(H):
+        s_row = scales[y]
+        o = out[y]
+        for i in range(W):
+            s = s_row[i]
+            for c in range(C):
+                j = i * C + c
+                acc = 0.0
+                for k in range(s):
+                    d = vals[k + 1, y, j] - vals[k, y, j]
+                    acc += frac[k] * (d * d - dvar[k, y, j])
+                o[j] = vars_[s, y, j] + max(acc, 0.0)

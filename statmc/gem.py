@@ -30,13 +30,14 @@ import math
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, check_finite
+from .errors import InputError, as_float_array, check_finite, check_nonnegative
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
-    "estimate_mse", "select", "select_scales", "reconstruct", "sampling_map",
+    "estimate_mse", "difference_variance", "select", "select_scales", "reconstruct",
+    "sampling_map",
     "DEFAULT_GAMMA", "RELMSE_EPS",
 ]
 
@@ -299,7 +300,119 @@ def _estimate_mse_reference(values, variances, r2, scales):
     return (np.take_along_axis(cum, s, 0) + np.take_along_axis(np.asarray(variances, np.float64), s, 0))[0]
 
 
-def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank):
+def _product_taps(sa, sb, truncate):
+    """1-D taps ``g_a(k)·g_b(k)`` on a common centred support (odd length)."""
+    ga, gb = gaussian_kernel_1d(sa, truncate=truncate), gaussian_kernel_1d(sb, truncate=truncate)
+    r = max(len(ga), len(gb)) // 2
+    out = np.zeros(2 * r + 1)
+    out[r - len(ga) // 2:r + len(ga) // 2 + 1] += ga
+    prod = np.zeros(2 * r + 1)
+    prod[r - len(gb) // 2:r + len(gb) // 2 + 1] = gb
+    return out * prod, ga, gb
+
+
+def _pair_covariance_rows(vr, cv, sa, sb, truncate):
+    """``Cov(f_a, f_b)(p) = Σ_q w_a(p, q) w_b(p, q) mean_var(q)`` on (H, W·C) rows.
+
+    The product of two border-renormalised separable Gaussians is separable, with taps
+    ``g_a g_b`` and per-output factors ``1/(N_a N_b)``: one filter pass.
+    """
+    h, L = vr.shape
+    wd = L // cv
+    dt = vr.dtype
+    if sa == 0.0:  # pixel filter: w_a(p, q) = [p = q], so Cov = w_b(p, p) mean_var(p)
+        gb = gaussian_kernel_1d(sb, truncate=truncate)
+        g0 = gb[len(gb) // 2]
+        fy = g0 * border_scale(h, gb)
+        fx = np.repeat(g0 * border_scale(wd, gb), cv)
+        return (vr * fy[:, None].astype(dt)) * fx[None, :].astype(dt)
+    taps, ga, gb = _product_taps(sa, sb, truncate)
+    sy = border_scale(h, ga) * border_scale(h, gb)
+    sx = border_scale(wd, ga) * border_scale(wd, gb)
+    out = np.empty_like(vr)
+    _k.sep_filter(vr, cv, np.empty((h, 0), dt), 1, taps.astype(dt), sy.astype(dt),
+                  sx.astype(dt), out, np.empty((h, 0), dt))
+    return out
+
+
+def _difference_variance_rows(vr, cv, bank_vars, sig, truncate):
+    """``Var(v_{k+1} − v_k) = Var_{k+1} + Var_k − 2 Cov_k``, clamped at 0, (K−1, H, L)."""
+    out = np.empty((len(sig) - 1,) + vr.shape, vr.dtype)
+    for k in range(len(sig) - 1):
+        cov = _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate)
+        np.maximum(bank_vars[k] + bank_vars[k + 1] - 2 * cov, 0, out=out[k])
+    return out
+
+
+def difference_variance(mean_var, sigmas=ADAPTIVE_SIGMAS, *,
+                        truncate: float = DEFAULT_TRUNCATE) -> np.ndarray:
+    """Variance of the difference of consecutive bank scales, ``Var(v_{k+1} − v_k)``.
+
+    With pixel estimates uncorrelated (as in Eq. 2 of [1]_),
+    ``Var(c − f)(p) = Σ_q (w_c(p, q) − w_f(p, q))² mean_var(q)
+    = Var[c] + Var[f] − 2 Σ_q w_c(p, q) w_f(p, q) mean_var(q)``.
+    ``E[(c − f)²] = (Bias[c] − Bias[f])² + Var(c − f)``, so this is the noise part of the
+    squared differences that §5 accumulates into the estimated MSE; ``sampling_map(...,
+    debias=True)`` subtracts it.
+
+    Parameters
+    ----------
+    mean_var : (H, W, C) ndarray
+        Variance of the mean of each pixel estimate (>= 0).
+    sigmas : sequence of float
+        Increasing scales (0 = pixel filter), default the adaptive set.
+
+    Returns
+    -------
+    (K − 1, H, W, C) ndarray, >= 0
+    """
+    v = as_float_array("mean_var", mean_var, ndim=(2, 3))
+    check_finite("mean_var", v)
+    check_nonnegative("mean_var", v)
+    sig = _check_sigmas(sigmas)
+    vr, cv = _rows(v)
+    bank = []
+    for s in sig:
+        if s == 0.0:
+            bank.append(vr)
+        else:
+            bank.append(_run(vr, cv, vr, cv, s, truncate)[1])
+    out = _difference_variance_rows(vr, cv, bank, sig, truncate)
+    return out.reshape((len(sig) - 1,) + v.shape)
+
+
+def _difference_variance_reference(mean_var, sigmas, truncate=DEFAULT_TRUNCATE):
+    """Dense NumPy reference of :func:`difference_variance`."""
+    v = np.asarray(mean_var, np.float64)
+    h, w = v.shape[:2]
+    mats = [(np.eye(h), np.eye(w)) if s == 0 else
+            (_weight_matrix(h, s, truncate), _weight_matrix(w, s, truncate)) for s in sigmas]
+    out = []
+    for (ay, ax), (by, bx) in zip(mats[:-1], mats[1:]):
+        out.append(np.einsum("ip,jq,pqc->ijc", by ** 2, bx ** 2, v)
+                   + np.einsum("ip,jq,pqc->ijc", ay ** 2, ax ** 2, v)
+                   - 2 * np.einsum("ip,jq,pqc->ijc", ay * by, ax * bx, v))
+    return np.maximum(np.array(out), 0.0)
+
+
+def _variance_prior(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
+    """Pooled-prior (shrunk) variance of the mean for the sampler; see :func:`sampling_map`.
+
+    ``s̃² = ((n − 1) s² + k s̄²) / (n − 1 + k)`` with ``s² = n·mean_var`` the pixel's
+    sample variance and ``s̄²`` its Gaussian-pooled neighbourhood average: the posterior
+    mean of σ² under a scaled-inverse-χ² prior of ``k`` pseudo-degrees of freedom centred
+    on the neighbourhood (conjugate for Gaussian samples).  Returns ``s̃² / n``.
+    """
+    nb = nn.reshape(nn.shape + (1,) * (v.ndim - 2)).astype(v.dtype)
+    s2 = v * nb
+    x, c = _rows(s2)
+    pooled = _run(x, c, None, 0, sigma, truncate)[0].reshape(s2.shape)
+    k = v.dtype.type(weight)
+    return np.ascontiguousarray(((nb - 1) * s2 + k * pooled) / ((nb - 1 + k) * nb))
+
+
+def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
+          debias=False):
     """Bank → stopping maps → post-processing → selection → image.
 
     With ``keep_bank`` the per-channel variances of every scale are kept and the
@@ -348,7 +461,11 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank)
            "bias_factors": frac, "raw": raw, "maps": maps}
     if keep_bank:
         est = np.empty((h, w * c), dt)
-        _k.estimate_mse(vals, vars_, c, fr, scales, est)
+        if debias:
+            dvar = _difference_variance_rows(vr, cv, vars_, sig, truncate)
+            _k.estimate_mse_debiased(vals, vars_, dvar, c, fr, scales, est)
+        else:
+            _k.estimate_mse(vals, vars_, c, fr, scales, est)
         shape = (nsc,) + m.shape
         out.update(values=vals.reshape(shape), variances=vars_.reshape(shape),
                    est_mse=est.reshape(m.shape))
@@ -482,9 +599,32 @@ def _allocate(gain, budget, batch):
     return amount.reshape(gain.shape)
 
 
+def _allocate_rounds(rel, n, budget, batch, rounds):
+    """Greedy allocation in ``rounds`` rounds, updating the gains analytically in between.
+
+    Each round hands out its share of ``budget`` with :func:`_allocate`; a pixel that
+    received ``a`` samples then has ``rel ← rel·n/(n + a)`` and ``n ← n + a`` (§5 of [1]:
+    relative MSE is inversely proportional to the samples), so its next gain is
+    ``rel·batch/(n + batch)`` at its new count.  ``rounds = 1`` is the paper's single step.
+    """
+    if rounds == 1:
+        return _allocate(rel * batch / (n + batch), budget, batch)
+    amount = np.zeros(rel.shape)
+    r = rel.astype(np.float64, copy=True)
+    nn = n.astype(np.float64, copy=True)
+    for i in range(rounds):
+        part = budget // rounds + (1 if i < budget % rounds else 0)
+        a = _allocate(r * batch / (nn + batch), part, batch)
+        amount += a
+        r *= nn / (nn + a)
+        nn += a
+    return amount
+
+
 def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA,
                  batch: int | None = None, eps: float = RELMSE_EPS, rng=None,
-                 extra_output: bool = False):
+                 rounds: int = 1, var_prior: float = 0.0, var_prior_sigma: float = 2.0,
+                 debias: bool = False, extra_output: bool = False):
     """Integer sample counts for one adaptive GEM iteration (§5 of [1]).
 
     Selects scales with the adaptive settings (:data:`~statmc.filters.ADAPTIVE_SIGMAS`),
@@ -548,19 +688,31 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     if not eps > 0 or not math.isfinite(eps):
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
     h, w = m.shape[:2]
+    if isinstance(rounds, bool) or not float(rounds).is_integer() or rounds < 1:
+        raise InputError(f"`rounds` must be a whole number >= 1; got {rounds!r}.")
+    rounds = int(rounds)
+    var_prior, var_prior_sigma = float(var_prior), float(var_prior_sigma)
+    if not (var_prior >= 0 and math.isfinite(var_prior)):
+        raise InputError(f"`var_prior` must be a finite number >= 0 (pseudo-samples); got {var_prior!r}.")
+    if not (var_prior_sigma > 0 and math.isfinite(var_prior_sigma)):
+        raise InputError(f"`var_prior_sigma` must be a finite number > 0; got {var_prior_sigma!r}.")
     if batch is None:
-        batch = max(1, math.ceil(8 * budget / (h * w)))
+        batch = max(1, math.ceil(8 * math.ceil(budget / rounds) / (h * w)))
     if isinstance(batch, bool) or not float(batch).is_integer() or batch < 1:
         raise InputError(f"`batch` must be a whole number >= 1; got {batch!r}.")
     batch = int(batch)
     sig = list(ADAPTIVE_SIGMAS)
-    sel = _core(m, v, vsum, nn, gamma, sig, False, True, DEFAULT_TRUNCATE, keep_bank=True)
+    if var_prior > 0:
+        v = _variance_prior(v, nn, var_prior, var_prior_sigma)
+        vsum = np.ascontiguousarray(v.sum(axis=2) if v.ndim == 3 else v)
+    sel = _core(m, v, vsum, nn, gamma, sig, False, True, DEFAULT_TRUNCATE, keep_bank=True,
+                debias=debias)
     c = 1 if m.ndim == 2 else m.shape[2]
     rel = np.empty((h, w))
     gain = np.empty((h, w))
     _k.relative_gain(sel["image"].reshape(h, w * c), sel["est_mse"].reshape(h, w * c), c,
                      eps, nn, float(batch), rel, gain)
-    amount = _allocate(gain, budget, batch)
+    amount = _allocate_rounds(rel, nn, budget, batch, rounds)
     scales = sel["scales"]
     parts = np.empty((len(sig), h, w))
     _k.split_by_scale(amount, scales, parts)

@@ -353,3 +353,130 @@ def test_bad_input():
         gem.select(m, v, sigmas=[2.0, 1.0])
     with pytest.raises(InputError, match="`n`.*required"):
         gem.sampling_map(m, v, None, 10)
+
+
+# ------------------------------------------- robust sampler options (docs/gem.md §5)
+def test_difference_variance_equals_dense_reference():
+    rng = np.random.default_rng(21)
+    for shape, sig in (((23, 29, 3), F.ADAPTIVE_SIGMAS), ((17, 40, 1), F.FINAL_SIGMAS[:5])):
+        v = rng.uniform(0.0, 2.0, shape)
+        got = gem.difference_variance(v, sig)
+        ref = gem._difference_variance_reference(v, sig)
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-13)
+        got32 = gem.difference_variance(v.astype(np.float32), sig)
+        assert got32.dtype == np.float32
+        np.testing.assert_allclose(got32, ref, rtol=2e-4, atol=1e-6)
+    # 2-D input is one channel
+    assert gem.difference_variance(rng.uniform(size=(9, 11))).shape == (4, 9, 11)
+    with pytest.raises(InputError, match="mean_var"):
+        gem.difference_variance(-np.ones((5, 5, 1)))
+
+
+def test_debiased_squared_difference_is_unbiased_on_a_constant_noisy_image():
+    """E[(c − f)² − Var(c − f)] = 0 when the truth is constant (no bias), with the
+    variances estimated from the samples; the raw (c − f)² of §5 is not."""
+    rng = np.random.default_rng(22)
+    h = w = 25
+    reps, n = 2000, 4                  # channels are independent replicates
+    x = 0.5 + rng.normal(size=(n, h, w, reps)) * 2.0
+    m, mv = x.mean(0), x.var(0, ddof=1) / n
+    vals, _ = F.filter_bank(m, mv, F.ADAPTIVE_SIGMAS)
+    dvar = gem.difference_variance(mv, F.ADAPTIVE_SIGMAS)
+    c = h // 2                        # centre pixel: one independent value per replicate
+    for k in range(len(F.ADAPTIVE_SIGMAS) - 1):
+        d2 = (vals[k + 1, c, c] - vals[k, c, c]) ** 2
+        corrected = d2 - dvar[k, c, c]
+        t, p = sps.ttest_1samp(corrected, 0.0)
+        assert p > 0.001 / 4, (k, corrected.mean(), p)          # Bonferroni over 4 pairs
+        assert sps.ttest_1samp(d2, 0.0, alternative="greater").pvalue < 1e-10
+
+
+def test_debiased_estimated_mse_equals_reference():
+    rng = np.random.default_rng(23)
+    truth = np.full((30, 34, 3), 0.4)
+    truth[:, 17:] = 0.9
+    m, mv = _noisy(truth, 4, 0.3, rng)
+    n = np.full((30, 34), 4)
+    _, info = gem.sampling_map(m, mv, n, 1000, rng=0, debias=True, extra_output=True)
+    sel = gem.select(m, mv, final=False, n=n)
+    np.testing.assert_array_equal(info["scales"], sel["scales"])
+    frac = gem.bias_factor(sel["r2"][:-1], sel["r2"][1:])
+    inc = frac[:, None, None, None] * ((sel["values"][1:] - sel["values"][:-1]) ** 2
+                                       - gem.difference_variance(mv))
+    cum = np.concatenate([np.zeros_like(inc[:1]), np.cumsum(inc, 0)])
+    s = sel["scales"][None, :, :, None]
+    ref = (np.take_along_axis(sel["variances"], s, 0)
+           + np.maximum(np.take_along_axis(cum, s, 0), 0))[0]
+    np.testing.assert_allclose(info["est_mse"], ref, rtol=1e-9, atol=1e-14)
+    assert np.all(info["est_mse"] <= sel["est_mse"] + 1e-12)   # noise removed, never added
+
+
+def test_zero_variance_firefly_pixels_get_samples_with_the_variance_prior():
+    """Regression (issue 3): 4 equal samples give sample variance 0, so the paper's
+    estimated MSE is 0 and the pixel is never sampled again, although its neighbours
+    show it is a firefly pixel.  The pooled variance prior gives it its share."""
+    rng = np.random.default_rng(24)
+    h, w, n = 40, 40, 4
+    x = np.where(rng.random((n, h, w, 1)) < 0.05, 20.0, 0.0)   # p = 0.05 fireflies
+    m, mv = x.mean(0), x.var(0, ddof=1) / n
+    zero = mv[..., 0] == 0
+    assert zero.mean() > 0.7
+    counts = np.full((h, w), n)
+    _, paper = gem.sampling_map(m, mv, counts, 4 * h * w, rng=0, extra_output=True,
+                                var_prior=0.0, debias=False, rounds=1)
+    _, robust = gem.sampling_map(m, mv, counts, 4 * h * w, rng=0, extra_output=True,
+                                 var_prior=2.0)
+    assert np.mean(paper["rel_mse"][zero] == 0) > 0.9         # the failure being fixed
+    assert np.all(robust["rel_mse"][zero] > 0)
+    # all pixels share one law: zero-variance pixels should get about the average density
+    assert paper["density"][zero].mean() < 0.2 * paper["density"].mean()
+    assert robust["density"][zero].mean() > 0.8 * robust["density"].mean()
+
+
+def test_variance_prior_is_the_conjugate_posterior_mean():
+    rng = np.random.default_rng(25)
+    v = rng.uniform(0, 1, (12, 13, 2))
+    nn = rng.integers(2, 30, (12, 13)).astype(float)
+    got = gem._variance_prior(v, nn, 3.0, 2.0)
+    s2 = v * nn[..., None]
+    pooled = F.gaussian_filter(s2, 2.0)
+    ref = ((nn[..., None] - 1) * s2 + 3.0 * pooled) / (nn[..., None] - 1 + 3.0) / nn[..., None]
+    np.testing.assert_allclose(got, ref, rtol=1e-12)
+    # an image whose sample variance is already uniform is left unchanged
+    flat = np.full((8, 9, 1), 0.3) / nn[:8, :9, None]
+    np.testing.assert_allclose(gem._variance_prior(flat, nn[:8, :9], 3.0, 2.0), flat, rtol=1e-12)
+
+
+def test_rounds_update_the_gain_analytically():
+    rel = np.array([[1.0, 0.3]])
+    n = np.array([[4.0, 4.0]])
+    # one round: two batches of 4 go to the two pixels
+    np.testing.assert_array_equal(gem._allocate_rounds(rel, n, 8, 4, 1), [[4, 4]])
+    # two rounds: after 4 samples pixel 0 has rel 1·4/8 = 0.5 at n = 8, gain
+    # 0.5·4/12 = 0.167 > 0.3·4/8 = 0.15, so it takes the second batch too
+    np.testing.assert_array_equal(gem._allocate_rounds(rel, n, 8, 4, 2), [[8, 0]])
+
+
+def test_many_small_rounds_approach_the_optimal_allocation():
+    """Greedy with shrinking increments approaches the minimiser of Σ rel·n/(n + a)
+    subject to Σ a = B, a ≥ 0 (water filling: n + a ∝ √(rel·n))."""
+    rng = np.random.default_rng(26)
+    rel = rng.lognormal(0, 1.5, (30, 40))
+    n = rng.integers(4, 12, (30, 40)).astype(float)
+    budget = 8 * rel.size
+
+    def loss(a):
+        return np.sum(rel * n / (n + a))
+
+    lo, hi = 0.0, 1e6                 # bisection on the water level λ: n + a = λ√(rel n)
+    for _ in range(200):
+        lam = 0.5 * (lo + hi)
+        if np.maximum(lam * np.sqrt(rel * n) - n, 0).sum() > budget:
+            hi = lam
+        else:
+            lo = lam
+    best = loss(np.maximum(lo * np.sqrt(rel * n) - n, 0))
+    one = loss(gem._allocate_rounds(rel, n, budget, math.ceil(8 * budget / rel.size), 1))
+    many = loss(gem._allocate_rounds(rel, n, budget, 1, 64))
+    assert best <= many < one
+    assert many < 1.02 * best
