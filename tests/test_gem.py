@@ -266,7 +266,8 @@ def test_sampling_map_budget_gain_and_spreading():
     truth[:, 24:] = np.where((np.arange(24) // 2) % 2, 1.0, 0.1)[None, :, None]  # fine stripes
     m, mv = _noisy(truth, 4, 0.4, rng)
     n = np.full((32, 48), 4)
-    counts, info = gem.sampling_map(m, mv, n, 3000, rng=1, extra_output=True)
+    paper = dict(rounds=1, var_prior=0.0, debias=False)   # the literal §5 sampler
+    counts, info = gem.sampling_map(m, mv, n, 3000, rng=1, extra_output=True, **paper)
     assert counts.dtype == np.int64 and counts.sum() == 3000 and counts.min() >= 0
     # gain = relMSE · batch / (n + batch), relMSE = mean_c MSE / (value² + ε)  (§5)
     val = np.take_along_axis(F.filter_bank(m, mv, F.ADAPTIVE_SIGMAS)[0],
@@ -283,7 +284,7 @@ def test_sampling_map_budget_gain_and_spreading():
     # the textured half cannot be filtered, so it needs and gets more samples
     assert counts[:, 24:].sum() > counts[:, :24].sum()
     # reproducible
-    np.testing.assert_array_equal(counts, gem.sampling_map(m, mv, n, 3000, rng=1))
+    np.testing.assert_array_equal(counts, gem.sampling_map(m, mv, n, 3000, rng=1, **paper))
     assert not gem.sampling_map(m, mv, n, 0).any()
 
 
@@ -301,7 +302,7 @@ def test_spread_follows_the_selected_filter():
     mv = np.full_like(m, 1e-4)
     mv[10, 10] = 1.0                      # the only pixel with something to gain
     counts, info = gem.sampling_map(m, mv, np.full((21, 21), 4), 64, batch=64, rng=0,
-                                    extra_output=True)
+                                    extra_output=True, rounds=1, var_prior=0.0, debias=False)
     s = info["scales"][10, 10]
     sigma = F.ADAPTIVE_SIGMAS[s]
     expect = np.zeros((21, 21))
@@ -397,7 +398,8 @@ def test_debiased_estimated_mse_equals_reference():
     truth[:, 17:] = 0.9
     m, mv = _noisy(truth, 4, 0.3, rng)
     n = np.full((30, 34), 4)
-    _, info = gem.sampling_map(m, mv, n, 1000, rng=0, debias=True, extra_output=True)
+    _, info = gem.sampling_map(m, mv, n, 1000, rng=0, debias=True, var_prior=0.0,
+                               extra_output=True)
     sel = gem.select(m, mv, final=False, n=n)
     np.testing.assert_array_equal(info["scales"], sel["scales"])
     frac = gem.bias_factor(sel["r2"][:-1], sel["r2"][1:])
