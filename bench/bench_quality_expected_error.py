@@ -97,7 +97,8 @@ def main(argv=None):
     for obj in a.objective:
         samplers[f"ee-{obj}"] = ("expected-error", {"objective": obj, "sigma": a.sigma})
     head = ("| scene | spp | closed form: uniform | expected-error | ratio | "
-            "measured relMSE: uniform | expected-error | ratio ± s.e. | p (one-sided) | s/render ee : uniform |")
+            "measured relMSE: uniform | expected-error | ratio ± s.e. | p (one-sided) | "
+            "time ee : uniform |")
     lines = [head, "| --- " * 10 + "|"]
     scenes = [f"toy:{s}" for s in a.toy] + list(a.mitsuba)
     for scene in scenes:

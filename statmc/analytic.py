@@ -750,7 +750,8 @@ def pooled_sample_variance(sample_var, n, *, sigma=POOL_SIGMA, prior_dof=None):
     try:
         sigma, nu0 = float(sigma), 0.0 if prior_dof is None else float(prior_dof)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"`sigma` and `prior_dof` must be numbers >= 0; got {sigma!r}, {prior_dof!r}.") from exc
+        raise InputError(f"`sigma` and `prior_dof` must be numbers >= 0; got {sigma!r}, "
+                         f"{prior_dof!r}.") from exc
     if not (np.isfinite(sigma) and sigma >= 0 and np.isfinite(nu0) and nu0 >= 0):
         raise InputError(f"`sigma` and `prior_dof` must be finite numbers >= 0; got {sigma}, {nu0}.")
     from .filters import gaussian_filter
