@@ -1,0 +1,239 @@
+"""Private numba kernels for the confidence gate of progressive denoising.
+
+Only :mod:`statmc.progressive` calls these; the public wrapper validates input, fixes
+dtypes and contiguity and allocates outputs.  :func:`gate_sums_numpy` and
+:func:`gate_finish_numpy` are the plain NumPy references the tests compare against.
+
+What is computed (Eq. 12–18 of Firmino et al. 2022, per channel ``c`` and pixel ``p``,
+with ``u = α (y − x)``, ``v = Var[x]`` and the window ``N_p`` of ``(2r+1)²`` in-image
+pixels):
+
+* ``M_p = argmax_{q ∈ N_p} v_q`` (Eq. 16; ties go to the first in row-major order);
+* ``num_p = u_{M_p} + Σ_q κ_pq u_q`` — the difference ``z̄_p − x̄_p`` of Eq. 14 and 12;
+* ``var_p = v_{M_p} + Σ_q κ_pq² v_q`` — Eq. 13;
+
+with ``κ_pq = g(p_y − q_y) g(p_x − q_x)·norm``, ``g(d) = exp(−d²/(2σ_s²))`` and
+``norm = 1/(σ_s √(2π))`` (Eq. 15).  κ is separable, and so is the window argmax (the
+maximum over each row segment, then over the rows), so each pixel costs ``O(r)`` work.
+
+Layout: an ``(H, W, C)`` image is seen as ``(H, W*C)`` rows; the horizontal pass strides
+by ``C``.  Inner loops index slices from 0 so that LLVM can prove indices non-negative.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+# =========================================================================== numba
+@njit(parallel=True, cache=True, nogil=True, fastmath=False)
+def _row_pass(u, v, g, g2, r, c, su, sv, rm, ri):  # pragma: no cover - compiled
+    """Per row: Σ_dx g u, Σ_dx g² v, and the max of v over the row window and its dx."""
+    h, n = u.shape
+    w = n // c
+    for y in prange(h):
+        a_su = su[y]
+        a_sv = sv[y]
+        a_rm = rm[y]
+        a_ri = ri[y]
+        for j in range(n):
+            a_su[j] = 0.0
+            a_sv[j] = 0.0
+            a_rm[j] = -np.inf
+            a_ri[j] = 0
+        for k in range(-r, r + 1):
+            x0 = max(0, -k)
+            x1 = min(w, w - k)
+            if x1 <= x0:
+                continue
+            j0 = x0 * c
+            j1 = x1 * c
+            off = k * c
+            src_u = u[y, j0 + off:j1 + off]
+            src_v = v[y, j0 + off:j1 + off]
+            d_su = a_su[j0:j1]
+            d_sv = a_sv[j0:j1]
+            d_rm = a_rm[j0:j1]
+            d_ri = a_ri[j0:j1]
+            wk = g[k + r]
+            wk2 = g2[k + r]
+            for j in range(j1 - j0):   # branch-free so that LLVM vectorises the argmax
+                val = src_v[j]
+                d_su[j] += wk * src_u[j]
+                d_sv[j] += wk2 * val
+                cur = d_rm[j]
+                gt = val > cur
+                d_rm[j] = val if gt else cur
+                d_ri[j] = k if gt else d_ri[j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _scale(s, logistic, inv_sqrt2):  # pragma: no cover - compiled
+    """``1 − S(s)``; S is the standard normal CDF or the logistic function."""
+    if logistic:
+        return 1.0 / (1.0 + math.exp(s)) if s < 700.0 else 0.0
+    if s < -8.3:          # 1 − Φ(s) rounds to 1 in double precision below −8.3
+        return 1.0
+    return 0.5 * math.erfc(s * inv_sqrt2)
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=False)
+def _col_pass(u, v, g, g2, r, c, norm, norm2, su, sv, rm, ri, num, var,
+              finish, alpha, shared, a, cc, eps, logistic, t_out, a_out):  # pragma: no cover
+    """Per output row: the vertical sums, the window argmax, Eq. 13/14 with the gather,
+    and (``finish``) Eq. 17/18 for that row while it is in cache."""
+    h, n = u.shape
+    w = n // c
+    inv_sqrt2 = 1.0 / math.sqrt(2.0)
+    for y in prange(h):
+        o_num = num[y]
+        o_var = var[y]
+        best = np.empty(n, rm.dtype)
+        bdy = np.zeros(n, np.int32)
+        for j in range(n):
+            o_num[j] = 0.0
+            o_var[j] = 0.0
+            best[j] = -np.inf
+        for k in range(-r, r + 1):
+            yy = y + k
+            if yy < 0 or yy >= h:
+                continue
+            s_su = su[yy]
+            s_sv = sv[yy]
+            s_rm = rm[yy]
+            wk = g[k + r]
+            wk2 = g2[k + r]
+            for j in range(n):
+                o_num[j] += wk * s_su[j]
+                o_var[j] += wk2 * s_sv[j]
+                val = s_rm[j]
+                cur = best[j]
+                gt = val > cur
+                best[j] = val if gt else cur
+                bdy[j] = k if gt else bdy[j]
+        for j in range(n):
+            ym = y + bdy[j]
+            jm = j + ri[ym, j] * c
+            o_num[j] = u[ym, jm] + norm * o_num[j]
+            o_var[j] = v[ym, jm] + norm2 * o_var[j]
+        if not finish:
+            continue
+        o_t = t_out[y]
+        o_a = a_out[y]
+        i_a = alpha[y]
+        for x in range(w):
+            j0 = x * c
+            if shared:
+                sn = 0.0
+                sw = 0.0
+                for k in range(c):
+                    sn += o_num[j0 + k]
+                    sw += o_var[j0 + k]
+                t = sn / (math.sqrt(max(sw, 0.0)) + eps)
+                scale = _scale(a * (abs(t) - cc), logistic, inv_sqrt2)
+                for k in range(c):
+                    o_t[j0 + k] = t
+                    o_a[j0 + k] = scale * i_a[j0 + k]
+            else:
+                for k in range(c):
+                    t = o_num[j0 + k] / (math.sqrt(max(o_var[j0 + k], 0.0)) + eps)
+                    o_t[j0 + k] = t
+                    o_a[j0 + k] = _scale(a * (abs(t) - cc), logistic, inv_sqrt2) * i_a[j0 + k]
+
+
+def _run(u, v, r, sigma_s, alpha=None, **finish):
+    h, w, c = u.shape
+    dt = u.dtype
+    u2 = np.ascontiguousarray(u).reshape(h, w * c)
+    v2 = np.ascontiguousarray(v, dtype=dt).reshape(h, w * c)
+    d = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (d / sigma_s) ** 2)
+    norm = 1.0 / (sigma_s * math.sqrt(2.0 * math.pi))
+    gd, g2d = g.astype(dt), (g * g).astype(dt)
+    su = np.empty_like(u2)
+    sv = np.empty_like(u2)
+    rm = np.empty_like(u2)
+    ri = np.empty(u2.shape, np.int32)
+    _row_pass(u2, v2, gd, g2d, r, c, su, sv, rm, ri)
+    num = np.empty_like(u2)
+    var = np.empty_like(u2)
+    if alpha is None:
+        empty = np.empty((h, 0), dt)
+        args = (False, empty, False, 0.0, 0.0, 0.0, False, empty, empty)
+    else:
+        a2 = np.ascontiguousarray(alpha, dtype=dt).reshape(h, w * c)
+        t = np.empty_like(u2)
+        out = np.empty_like(u2)
+        args = (True, a2, bool(finish["shared"]), float(finish["a"]), float(finish["c"]),
+                float(finish["eps"]), bool(finish["logistic"]), t, out)
+    _col_pass(u2, v2, gd, g2d, r, c, dt.type(norm), dt.type(norm * norm), su, sv, rm, ri,
+              num, var, *args)
+    shp = (h, w, c)
+    if alpha is None:
+        return num.reshape(shp), var.reshape(shp)
+    return num.reshape(shp), var.reshape(shp), t.reshape(shp), out.reshape(shp)
+
+
+def gate_sums(u, v, r, sigma_s):
+    """``(num, var)`` of the module docstring for ``(H, W, C)`` arrays ``u`` and ``v``."""
+    return _run(u, v, r, sigma_s)
+
+
+def gate(u, v, alpha, r, sigma_s, *, shared, a, c, eps, logistic):
+    """``(num, var, t, alpha_gated)``: :func:`gate_sums`, then Eq. 17 and 18 row by row."""
+    return _run(u, v, r, sigma_s, alpha, shared=shared, a=a, c=c, eps=eps, logistic=logistic)
+
+
+# =========================================================================== NumPy reference
+def gate_sums_numpy(u, v, r, sigma_s):
+    """Plain NumPy reference of :func:`gate_sums`: one shifted view per window offset."""
+    h, w, c = u.shape
+    u = np.asarray(u, np.float64)
+    v = np.asarray(v, np.float64)
+    norm = 1.0 / (sigma_s * math.sqrt(2.0 * math.pi))
+    up = np.zeros((h + 2 * r, w + 2 * r, c))
+    vp = np.full((h + 2 * r, w + 2 * r, c), -np.inf)
+    up[r:r + h, r:r + w] = u
+    vp[r:r + h, r:r + w] = v
+    su = np.zeros((h, w, c))
+    sv = np.zeros((h, w, c))
+    best = np.full((h, w, c), -np.inf)
+    u_at = np.zeros((h, w, c))
+    v_at = np.zeros((h, w, c))
+    for dy in range(-r, r + 1):          # row-major order: ties keep the first maximum
+        for dx in range(-r, r + 1):
+            kappa = math.exp(-(dy * dy + dx * dx) / (2.0 * sigma_s ** 2)) * norm
+            us = up[r + dy:r + dy + h, r + dx:r + dx + w]
+            vs = vp[r + dy:r + dy + h, r + dx:r + dx + w]
+            inside = np.isfinite(vs)
+            su += kappa * us
+            sv += kappa * kappa * np.where(inside, vs, 0.0)
+            better = vs > best
+            best = np.where(better, vs, best)
+            u_at = np.where(better, us, u_at)
+            v_at = np.where(better, vs, v_at)
+    return u_at + su, v_at + sv
+
+
+def gate_numpy(u, v, alpha, r, sigma_s, *, shared, a, c, eps, logistic):
+    """Plain NumPy reference of :func:`gate`."""
+    num, var = gate_sums_numpy(u, v, r, sigma_s)
+    return (num, var) + gate_finish_numpy(num, var, alpha, shared=shared, a=a, c=c, eps=eps,
+                                          logistic=logistic)
+
+
+def gate_finish_numpy(num, var, alpha, *, shared, a, c, eps, logistic):
+    """Plain NumPy reference of Eq. 17 and 18 given ``num`` and ``var``."""
+    from scipy.special import ndtr
+
+    if shared:
+        t = num.sum(axis=2, keepdims=True) / (np.sqrt(np.clip(var.sum(axis=2, keepdims=True), 0, None)) + eps)
+        t = np.broadcast_to(t, num.shape)
+    else:
+        t = num / (np.sqrt(np.clip(var, 0, None)) + eps)
+    s = a * (np.abs(t) - c)
+    cdf = 1.0 / (1.0 + np.exp(-s)) if logistic else ndtr(s)
+    return np.array(t), (1.0 - cdf) * alpha
