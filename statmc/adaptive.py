@@ -101,9 +101,10 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     total = int(round(spp * h * w))
     if initial_spp < 0 or iterations < 0:
         raise InputError(f"`initial_spp` and `iterations` must be >= 0; got {initial_spp}, {iterations}.")
-    first = min(initial_spp, int(spp)) if iterations else int(spp)
-    if first * h * w > total:
-        raise InputError(f"`spp`={spp} is below the initial pass of {initial_spp} spp.")
+    if iterations and initial_spp * h * w > total:
+        raise InputError(f"`spp`={spp} is below the initial pass of {initial_spp} spp; "
+                         "lower `initial_spp` or give more samples.")
+    first = initial_spp if iterations else int(spp)
     if iterations and first < 2:
         raise InputError("adaptive sampling needs an initial pass of >= 2 spp to estimate variances.")
     pick = get_sampler(sampler, **sampler_options)

@@ -59,6 +59,12 @@ def write_convergence_plot(path, series: dict, *, xlabel: str = "samples per pix
         if x.shape != y.shape:
             raise InputError(f"curve {label!r}: x {x.shape} and y {y.shape} differ in shape.")
         ax.loglog(x, y, "o-", label=label)
+    xs = sorted({float(v) for x, _ in series.values() for v in np.ravel(x)})
+    if 0 < len(xs) <= 12:  # label the measured sample counts plainly (4, 16, 64, ...)
+        from matplotlib.ticker import NullFormatter
+        ax.set_xticks(xs)
+        ax.set_xticklabels([f"{v:g}" for v in xs])
+        ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:

@@ -1,0 +1,78 @@
+"""The adaptive render loop: exact budgets, sampler contract, pictures."""
+
+import numpy as np
+import pytest
+
+from statmc import InputError
+from statmc.adaptive import adaptive_render
+from statmc.pipeline import reconstruct_stats, render_with_sampler
+from statmc.plots import write_convergence_plot, write_map_png
+from statmc.toy import ToyRenderer
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return ToyRenderer("mixed", width=24, height=20)
+
+
+@pytest.mark.parametrize("sampler", ["uniform", "gem", "expected-error"])
+@pytest.mark.parametrize("spp", [5, 12.5])
+def test_budget_is_met_exactly_and_passes_merge(toy, sampler, spp):
+    res = adaptive_render(toy, spp, sampler=sampler, seed=3)
+    total = int(round(spp * toy.height * toy.width))
+    assert res.stats.n.sum() == total
+    assert len(res.counts) == 9 and np.all(res.counts[0] == 4)
+    np.testing.assert_array_equal(sum(res.counts), res.stats.n)
+    budgets = [c.sum() for c in res.counts[1:]]
+    assert max(budgets) - min(budgets) <= 1  # the rest is split evenly over the iterations
+
+
+def test_adaptive_samplers_move_samples(toy):
+    n = adaptive_render(toy, 16, sampler="gem", seed=1).stats.n
+    assert n.min() >= 4 and n.max() > 3 * 16  # concentrated somewhere, never below the first pass
+
+
+def test_same_seed_same_result(toy):
+    a = adaptive_render(toy, 8, sampler="gem", seed=7).stats
+    b = adaptive_render(toy, 8, sampler="gem", seed=7).stats
+    np.testing.assert_array_equal(a.n, b.n)
+    np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_bad_sampler_and_budgets(toy):
+    with pytest.raises(InputError, match="unknown sampler"):
+        adaptive_render(toy, 8, sampler="nope")
+    with pytest.raises(InputError, match="sampler returned"):
+        adaptive_render(toy, 8, sampler=lambda stats, budget, rng: np.zeros(stats.n.shape, int))
+    with pytest.raises(InputError, match="initial pass"):
+        adaptive_render(toy, 2, sampler="gem", initial_spp=4)
+    with pytest.raises(InputError, match=">= 2 spp"):
+        adaptive_render(toy, 8, sampler="gem", initial_spp=1)
+    with pytest.raises(InputError, match="sample map"):
+        render_with_sampler(toy, 8, sampler="gem", counts=np.ones((20, 24), int))
+
+
+def test_reconstructions(toy):
+    st = toy.render_uniform(16, seed=0)
+    truth = toy.true_mean()
+    raw, _ = reconstruct_stats(st, "none")
+    gem, maps = reconstruct_stats(st, "gem")
+    gau, _ = reconstruct_stats(st, "gaussian", sigma=1.0)
+    mse = lambda x: float(np.mean((x - truth) ** 2))  # noqa: E731
+    assert mse(gem) < mse(raw) and mse(gau) < mse(raw)
+    assert maps["scale"].shape == (20, 24) and maps["sigma"].max() > 0
+    with pytest.raises(InputError, match="unknown reconstruction"):
+        reconstruct_stats(st, "magic")
+
+
+def test_pictures_are_written_atomically(tmp_path):
+    write_map_png(tmp_path / "m.png", np.arange(12.0).reshape(3, 4), label="spp", log=True)
+    write_convergence_plot(tmp_path / "c.png", {"a": ([4, 16], [1.0, 0.25])})
+    for f in ("m.png", "c.png"):
+        assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(InputError, match="differ in shape"):
+        write_convergence_plot(tmp_path / "bad.png", {"a": ([4, 16], [1.0])})
+    with pytest.raises(InputError, match="NaN"):
+        write_map_png(tmp_path / "bad.png", np.full((2, 2), np.nan))
+    assert not (tmp_path / "bad.png").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".statmc-")]
