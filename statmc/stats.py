@@ -9,6 +9,12 @@ mixed up:
 * **variance of the mean** ``s² / n``: the variance of the pixel estimate
   (:attr:`PixelStats.mean_var`).
 
+Optionally the full per-pixel channel co-moment ``M2_cross[a, b] = Σ (x_a − mean_a)(x_b −
+mean_b)`` is kept too (:attr:`PixelStats.m2_cross`, diagonal equal to ``M2``), giving the
+**sample covariance** ``M2_cross / (n − 1)`` and the **covariance of the mean** (divided by
+``n`` again).  Render noise is correlated across colour channels (one path throughput
+scales R, G and B), and estimators such as MC-SURE for channel-mixing denoisers need it.
+
 Passes are combined with the parallel update of Chan, Golub and LeVeque (1979), which is
 exact: merging any split of the samples gives the single-pass statistics up to rounding.
 """
@@ -23,6 +29,65 @@ from .errors import (InputError, as_float_array, check_finite, check_nonnegative
                      check_same_shape)
 
 __all__ = ["PixelStats", "replace_nonfinite"]
+
+
+def _pair_index(c):
+    """Upper-triangle channel pairs ``(a, b)``, ``a < b``, in row-major order (RG, RB, GB)."""
+    return np.triu_indices(c, 1)
+
+
+def _full_from_pairs(name, pairs, diag):
+    """``(H, W, C, C)`` symmetric matrix from upper-triangle ``pairs`` (H, W, P) and ``diag``."""
+    h, w, c = diag.shape
+    iu = _pair_index(c)
+    if pairs.shape != (h, w, iu[0].size):
+        raise InputError(f"`{name}` must be (H, W, C, C) = {(h, w, c, c)} or the channel pairs "
+                         f"(H, W, C(C-1)/2) = {(h, w, iu[0].size)}; got {pairs.shape}.")
+    full = np.zeros((h, w, c, c))
+    full[..., iu[0], iu[1]] = pairs
+    full[..., iu[1], iu[0]] = pairs
+    k = np.arange(c)
+    full[..., k, k] = diag
+    return full
+
+
+def _as_pairs(name, a, mean_shape):
+    """``a`` given as a full ``(H, W, C, C)`` matrix or as pairs ``(H, W, C(C-1)/2)``,
+    returned as the float64 pairs ``a < b`` (row-major: RG, RB, GB)."""
+    h, w, c = mean_shape
+    iu = _pair_index(c)
+    arr = as_float_array(name, a, ndim=(3, 4), dtype=np.float64)
+    if arr.ndim == 4 and arr.shape == (h, w, c, c):
+        arr = arr[..., iu[0], iu[1]]
+    if arr.shape != (h, w, iu[0].size):
+        raise InputError(f"`{name}` must be (H, W, C, C) = {(h, w, c, c)} or the channel pairs "
+                         f"(H, W, C(C-1)/2) = {(h, w, iu[0].size)}; got {arr.shape}.")
+    check_finite(name, arr)
+    return arr
+
+
+def _check_cross(m2_cross, m2):
+    """Validate a full ``(H, W, C, C)`` co-moment against ``m2``; return it exactly symmetric
+    with its diagonal set to ``m2`` (the two agree up to rounding when computed apart)."""
+    a = as_float_array("m2_cross", m2_cross, ndim=4, dtype=np.float64)
+    h, w, c = m2.shape
+    if a.shape != (h, w, c, c):
+        raise InputError(f"`m2_cross` must be (H, W, C, C) = {(h, w, c, c)}; got {a.shape}.")
+    check_finite("m2_cross", a)
+    k = np.arange(c)
+    ia, ib = _pair_index(c)
+    # rounding allowance: relative to the Cauchy-Schwarz bound sqrt(M2_a M2_b) per pair
+    floor = 1e-15 * m2.max(initial=0.0) + 1e-300
+    upper, lower = a[..., ia, ib], a[..., ib, ia]
+    tol = 1e-6 * np.sqrt(m2[..., ia] * m2[..., ib]) + floor
+    if np.any(np.abs(upper - lower) > tol):
+        raise InputError(f"`m2_cross` must be symmetric in its last two axes; largest "
+                         f"asymmetry {np.abs(upper - lower).max():.3g}.")
+    diag = a[..., k, k]
+    if np.any(np.abs(diag - m2) > 1e-6 * m2 + floor):
+        raise InputError("the diagonal of `m2_cross` must equal `m2` (the per-channel M2); largest "
+                         f"difference {np.abs(diag - m2).max():.3g}.")
+    return _full_from_pairs("m2_cross", 0.5 * (upper + lower), m2)
 
 
 def _check_feature(name, a, hw):
@@ -50,6 +115,12 @@ class PixelStats:
         Feature buffers (``float32``), carried along unchanged by merges.
     depth : (H, W) ndarray, optional
         Depth buffer (``float32``).
+    meta : dict, optional
+        Free-form provenance (renderer, scene, seed, ...).
+    m2_cross : (H, W, C, C) ndarray, optional
+        Channel co-moment ``Σ (x_a − mean_a)(x_b − mean_b)`` (``float64``), symmetric with
+        diagonal ``m2``; ``None`` (default) when only per-channel statistics are known.
+        Gives :attr:`sample_cov` and :attr:`mean_cov`.
 
     Notes
     -----
@@ -73,6 +144,7 @@ class PixelStats:
     normal: np.ndarray | None = None
     depth: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    m2_cross: np.ndarray | None = None
 
     def __post_init__(self):
         n = np.asarray(self.n)
@@ -92,6 +164,8 @@ class PixelStats:
         check_finite("mean", self.mean)
         check_finite("m2", self.m2)
         check_nonnegative("m2", self.m2)
+        if self.m2_cross is not None:
+            self.m2_cross = _check_cross(self.m2_cross, self.m2)
         hw = self.n.shape
         self.albedo = _check_feature("albedo", self.albedo, hw)
         self.normal = _check_feature("normal", self.normal, hw)
@@ -106,13 +180,18 @@ class PixelStats:
 
     @classmethod
     def from_samples(cls, samples) -> "PixelStats":
-        """Statistics of ``S`` samples in every pixel, ``samples`` of shape ``(S, H, W, C)``."""
+        """Statistics of ``S`` samples in every pixel, ``samples`` of shape ``(S, H, W, C)``.
+
+        Two passes (mean, then deviations), including the channel co-moment ``m2_cross``.
+        """
         x = as_float_array("samples", samples, ndim=4, dtype=np.float64)
         check_finite("samples", x)
         s = x.shape[0]
         mean = x.mean(axis=0) if s else np.zeros(x.shape[1:])
-        m2 = ((x - mean) ** 2).sum(axis=0)
-        return cls(np.full(x.shape[1:3], s, np.int64), mean, m2)
+        d = x - mean
+        cross = np.einsum("shwa,shwb->hwab", d, d)
+        m2 = (d * d).sum(axis=0)
+        return cls(np.full(x.shape[1:3], s, np.int64), mean, m2, m2_cross=cross)
 
     @classmethod
     def from_pixel_samples(cls, pixel_index, values, shape: tuple[int, int]) -> "PixelStats":
@@ -129,7 +208,8 @@ class PixelStats:
 
         Notes
         -----
-        Two passes (means first, then squared deviations), so no cancellation.
+        Two passes (means first, then products of deviations), so no cancellation;
+        the channel co-moment ``m2_cross`` is computed too.
         """
         h, w = (int(v) for v in shape)
         idx = np.asarray(pixel_index)
@@ -145,16 +225,32 @@ class PixelStats:
         n = np.bincount(idx, minlength=h * w)
         safe = np.maximum(n, 1)[:, None]
         mean = np.stack([np.bincount(idx, vals[:, k], minlength=h * w) for k in range(c)], 1) / safe
-        dev = (vals - mean[idx]) ** 2
-        m2 = np.stack([np.bincount(idx, dev[:, k], minlength=h * w) for k in range(c)], 1)
-        return cls(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c))
+        d = vals - mean[idx]
+        m2 = np.stack([np.bincount(idx, d[:, k] * d[:, k], minlength=h * w) for k in range(c)], 1)
+        ia, ib = _pair_index(c)
+        pairs = np.zeros((h * w, ia.size))
+        for p, (a, b) in enumerate(zip(ia, ib)):
+            pairs[:, p] = np.bincount(idx, d[:, a] * d[:, b], minlength=h * w)
+        m2 = m2.reshape(h, w, c)
+        cross = _full_from_pairs("m2_cross", pairs.reshape(h, w, -1), m2)
+        return cls(n.reshape(h, w), mean.reshape(h, w, c), m2, m2_cross=cross)
 
     @classmethod
-    def from_sums(cls, n, sum_x, sum_x2) -> "PixelStats":
+    def from_sums(cls, n, sum_x, sum_x2, sum_xy=None) -> "PixelStats":
         """Statistics from per-pixel sums ``Σx`` and ``Σx²`` (e.g. one render pass).
 
         ``M2 = Σx² − (Σx)²/n``, clipped at 0.  Pass float64 sums: in float32 this
         difference cancels catastrophically at high sample counts.
+
+        Parameters
+        ----------
+        n : (H, W) ndarray
+        sum_x, sum_x2 : (H, W, C) ndarray
+        sum_xy : (H, W, C, C) or (H, W, C(C-1)/2) ndarray, optional
+            Cross sums ``Σ x_a x_b``: the full matrix (its diagonal is ignored, ``sum_x2``
+            gives it) or the pairs ``a < b`` in row-major order (RG, RB, GB for RGB).
+            Gives ``m2_cross[a, b] = Σ x_a x_b − Σx_a Σx_b / n`` (not clipped: covariances
+            may be negative).
         """
         n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
         s1 = as_float_array("sum_x", sum_x, ndim=3, dtype=np.float64)
@@ -165,11 +261,22 @@ class PixelStats:
         safe = np.maximum(n_a, 1)[..., None]
         mean = s1 / safe
         m2 = np.maximum(s2 - s1 * mean, 0.0)
-        return cls(n_a, mean, m2)
+        cross = None
+        if sum_xy is not None:
+            ia, ib = _pair_index(s1.shape[2])
+            sxy = _as_pairs("sum_xy", sum_xy, s1.shape)
+            pairs = np.where((n_a > 0)[..., None], sxy - s1[..., ia] * mean[..., ib], 0.0)
+            cross = _full_from_pairs("sum_xy", pairs, m2)
+        return cls(n_a, mean, m2, m2_cross=cross)
 
     @classmethod
-    def from_mean_var(cls, mean, sample_var, n, **features) -> "PixelStats":
-        """Statistics from a mean image, its *sample* variance and the counts (EXR files)."""
+    def from_mean_var(cls, mean, sample_var, n, *, sample_cov=None, **features) -> "PixelStats":
+        """Statistics from a mean image, its *sample* variance and the counts (EXR files).
+
+        ``sample_cov`` (optional): the per-pixel channel **sample covariance**, full
+        ``(H, W, C, C)`` (its diagonal is ignored, ``sample_var`` gives it) or the pairs
+        ``a < b`` ``(H, W, C(C-1)/2)`` (RG, RB, GB); then ``m2_cross = sample_cov (n − 1)``.
+        """
         mean = as_float_array("mean", mean, ndim=3, dtype=np.float64)
         var = as_float_array("sample_var", sample_var, ndim=3, dtype=np.float64)
         check_same_shape("sample_var", var, "mean", mean.shape)
@@ -177,7 +284,11 @@ class PixelStats:
         check_nonnegative("sample_var", var)
         n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
         m2 = var * np.maximum(n_a - 1, 0)[..., None]
-        return cls(n_a, mean, m2, **features)
+        cross = None
+        if sample_cov is not None:
+            pairs = _as_pairs("sample_cov", sample_cov, mean.shape)
+            cross = _full_from_pairs("sample_cov", pairs * np.maximum(n_a - 1, 0)[..., None], m2)
+        return cls(n_a, mean, m2, m2_cross=cross, **features)
 
     # ------------------------------------------------------------------ shape
     @property
@@ -200,12 +311,41 @@ class PixelStats:
         """Variance of the mean ``sample_var / n``, ``(H, W, C)``; 0 where ``n < 2``."""
         return self.sample_var / np.maximum(self.n, 1)[..., None]
 
+    @property
+    def has_cov(self) -> bool:
+        """Whether the channel co-moment :attr:`m2_cross` is known."""
+        return self.m2_cross is not None
+
+    @property
+    def sample_cov(self) -> np.ndarray:
+        """Sample covariance ``M2_cross/(n−1)`` of one sample, ``(H, W, C, C)``; 0 where ``n < 2``.
+
+        Raises :class:`~statmc.errors.InputError` when :attr:`m2_cross` is ``None``.
+        """
+        if self.m2_cross is None:
+            raise InputError("these statistics carry no channel covariance (`m2_cross` is None): "
+                             "render them with a backend that records it, or use the diagonal "
+                             "`sample_var`/`mean_var`.")
+        return self.m2_cross / np.maximum(self.n - 1, 1)[..., None, None]
+
+    @property
+    def mean_cov(self) -> np.ndarray:
+        """Covariance of the mean ``sample_cov / n``, ``(H, W, C, C)``; 0 where ``n < 2``.
+
+        Its diagonal is :attr:`mean_var`.  This is the ``Σ`` that SURE/MC-SURE
+        (Firmino 2022 Eq. 1, 2) need for channel-mixing denoisers.
+        """
+        return self.sample_cov / np.maximum(self.n, 1)[..., None, None]
+
     # ------------------------------------------------------------------ merging
     def merge(self, other: "PixelStats") -> "PixelStats":
         """Exact union of two independent sets of samples (Chan et al. 1979).
 
         ``δ = mean_b − mean_a``, ``n = n_a + n_b``,
-        ``mean = mean_a + δ n_b/n``, ``M2 = M2_a + M2_b + δ² n_a n_b / n``.
+        ``mean = mean_a + δ n_b/n``, ``M2 = M2_a + M2_b + δ² n_a n_b / n``; the channel
+        co-moment likewise, ``M2_cross = M2_cross_a + M2_cross_b + δ δᵀ n_a n_b / n``
+        (Chan, Golub and LeVeque 1979, Eq. 2.1b; the outer-product form is the
+        multivariate version), kept only when both sides have it (never invented).
         Features are taken from ``self`` when present, else from ``other``.
         """
         if not isinstance(other, PixelStats):
@@ -218,13 +358,21 @@ class PixelStats:
         safe = np.where(n > 0, n, 1.0)
         delta = other.mean - self.mean
         mean = self.mean + delta * (nb / safe)
-        m2 = self.m2 + other.m2 + delta * delta * (na * nb / safe)
+        wgt = na * nb / safe
+        m2 = self.m2 + other.m2 + delta * delta * wgt
+        cross = None
+        if self.m2_cross is not None and other.m2_cross is not None:
+            cross = (self.m2_cross + other.m2_cross
+                     + delta[..., :, None] * delta[..., None, :] * wgt[..., None])
+            k = np.arange(m2.shape[2])
+            cross[..., k, k] = m2
         return PixelStats(
             self.n + other.n, mean, m2,
             albedo=self.albedo if self.albedo is not None else other.albedo,
             normal=self.normal if self.normal is not None else other.normal,
             depth=self.depth if self.depth is not None else other.depth,
             meta={**other.meta, **self.meta},
+            m2_cross=cross,
         )
 
     __add__ = merge
@@ -241,7 +389,8 @@ class PixelStats:
                           albedo=None if self.albedo is None else self.albedo.copy(),
                           normal=None if self.normal is None else self.normal.copy(),
                           depth=None if self.depth is None else self.depth.copy(),
-                          meta=dict(self.meta))
+                          meta=dict(self.meta),
+                          m2_cross=None if self.m2_cross is None else self.m2_cross.copy())
 
 
 def replace_nonfinite(a, value: float = 0.0):

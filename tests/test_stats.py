@@ -137,3 +137,124 @@ def test_replace_nonfinite_counts():
     x = np.array([1.0, np.nan, np.inf, -np.inf])
     y, k = replace_nonfinite(x, 0.0)
     assert k == 3 and np.array_equal(y, [1, 0, 0, 0]) and np.isnan(x[1])
+
+
+# ----------------------------------------------------------------------------- channel covariance
+def _np_cov(x):
+    """Per-pixel sample covariance of ``x`` (S, H, W, C) with plain NumPy (reference)."""
+    s, h, w, c = x.shape
+    out = np.zeros((h, w, c, c))
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = np.cov(x[:, i, j, :], rowvar=False, ddof=1).reshape(c, c)
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), s=st.integers(2, 10), h=st.integers(1, 3), w=st.integers(1, 3),
+       c=st.integers(1, 4))
+def test_channel_covariance_merges_exactly_and_matches_numpy(data, s, h, w, c):
+    x = data.draw(arrays(np.float64, (s, h, w, c), elements=finite))
+    cuts = sorted(data.draw(st.lists(st.integers(0, s), min_size=1, max_size=4)))
+    bounds = [0, *cuts, s]
+    acc = PixelStats.empty(h, w, c)
+    acc = PixelStats(acc.n, acc.mean, acc.m2, m2_cross=np.zeros((h, w, c, c)))
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        acc = acc.merge(PixelStats.from_samples(x[a:b]))
+    ref = _np_cov(x)
+    scale = (1.0 + np.abs(x).max()) ** 2
+    np.testing.assert_allclose(acc.sample_cov, ref, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(PixelStats.from_samples(x).sample_cov, ref, rtol=1e-9,
+                               atol=1e-9 * scale)
+    np.testing.assert_allclose(acc.mean_cov, ref / s, rtol=1e-9, atol=1e-9 * scale)
+    k = np.arange(c)
+    assert np.array_equal(acc.sample_cov[..., k, k], acc.sample_var)
+    assert np.array_equal(acc.m2_cross, np.swapaxes(acc.m2_cross, -1, -2))
+
+
+def test_channel_covariance_from_pixel_samples_and_sums():
+    rng = np.random.default_rng(11)
+    h, w, c = 3, 4, 3
+    counts = rng.integers(0, 7, (h, w))
+    idx = np.repeat(np.arange(h * w), counts.ravel())
+    vals = rng.normal(size=(idx.size, c)) @ np.array([[1, .5, .2], [0, 1, -.3], [0, 0, 1.]])
+    perm = rng.permutation(idx.size)
+    st_ = PixelStats.from_pixel_samples(idx[perm], vals[perm], (h, w))
+    for p in range(h * w):
+        v = vals[idx == p]
+        m2c = (v - v.mean(0)).T @ (v - v.mean(0)) if len(v) else np.zeros((c, c))
+        np.testing.assert_allclose(st_.m2_cross.reshape(-1, c, c)[p], m2c, atol=1e-12)
+    # from_sums: full cross-sum matrix or the (RG, RB, GB) pairs give the same statistics
+    sx = np.stack([np.bincount(idx, vals[:, a], minlength=h * w) for a in range(c)], 1)
+    sxy = np.stack([np.stack([np.bincount(idx, vals[:, a] * vals[:, b], minlength=h * w)
+                              for b in range(c)], 1) for a in range(c)], 1)
+    sx, sxy = sx.reshape(h, w, c), sxy.reshape(h, w, c, c)
+    sx2 = np.diagonal(sxy, axis1=2, axis2=3)
+    full = PixelStats.from_sums(counts, sx, sx2, sxy)
+    pairs = PixelStats.from_sums(counts, sx, sx2, sxy[..., [0, 0, 1], [1, 2, 2]])
+    assert np.array_equal(full.m2_cross, pairs.m2_cross)
+    np.testing.assert_allclose(full.m2_cross, st_.m2_cross, atol=1e-10)
+    assert PixelStats.from_sums(counts, sx, sx2).m2_cross is None
+    # from_mean_var with a sample covariance (the EXR path)
+    back = PixelStats.from_mean_var(st_.mean, st_.sample_var, st_.n,
+                                    sample_cov=st_.sample_cov[..., [0, 0, 1], [1, 2, 2]])
+    np.testing.assert_allclose(back.m2_cross, st_.m2_cross, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(back.m2, PixelStats.from_mean_var(st_.mean, st_.sample_var, st_.n).m2)
+
+
+def test_sample_cov_is_unbiased_for_correlated_channels():
+    """E[s_ab] = Σ_ab; for normal samples Var[s_ab] = (Σ_aa Σ_bb + Σ_ab²)/(n−1) (Wishart),
+    so the pixel average is tested entrywise by z (Bonferroni over the 6 entries).  Power:
+    a covariance computed with 1/n instead of 1/(n−1) is rejected."""
+    from scipy import stats as sps
+    rng = np.random.default_rng(12)
+    L = np.array([[1.0, 0, 0], [0.8, 0.6, 0], [0.5, -0.4, 0.7]])
+    sigma = L @ L.T
+    n, h, w = 4, 100, 100
+    x = rng.normal(size=(n, h, w, 3)) @ L.T
+    st_ = PixelStats.from_samples(x)
+    iu = np.triu_indices(3)
+    se = np.sqrt((np.outer(np.diag(sigma), np.diag(sigma)) + sigma ** 2) / (n - 1) / (h * w))
+    crit = sps.norm.ppf(1 - 1e-3 / (2 * iu[0].size))
+    for est, ok in ((st_.sample_cov, True), (st_.m2_cross / n, False)):
+        z = (est.mean(axis=(0, 1)) - sigma)[iu] / se[iu]
+        assert (np.abs(z).max() < crit) == ok, f"z = {np.round(z, 2)}"
+
+
+def test_channel_covariance_is_never_invented():
+    rng = np.random.default_rng(13)
+    x = rng.normal(size=(5, 2, 2, 3))
+    with_cov = PixelStats.from_samples(x)
+    without = PixelStats(with_cov.n, with_cov.mean, with_cov.m2)
+    assert not without.has_cov and with_cov.has_cov
+    assert with_cov.merge(without).m2_cross is None
+    assert without.merge(with_cov).m2_cross is None
+    with pytest.raises(InputError, match="no channel covariance"):
+        _ = without.mean_cov
+    c = with_cov.copy()
+    assert c.m2_cross is not with_cov.m2_cross and np.array_equal(c.m2_cross, with_cov.m2_cross)
+    assert with_cov.with_features(depth=np.ones((2, 2))).has_cov
+
+
+def test_bad_channel_covariance_is_named():
+    x = np.random.default_rng(14).normal(size=(5, 2, 2, 3))
+    s = PixelStats.from_samples(x)
+    bad = s.m2_cross.copy()
+    bad[0, 0, 0, 1] += 1.0
+    with pytest.raises(InputError, match="symmetric"):
+        PixelStats(s.n, s.mean, s.m2, m2_cross=bad)
+    bad = s.m2_cross.copy()
+    bad[0, 0, 1, 1] *= 2
+    with pytest.raises(InputError, match="diagonal of `m2_cross`"):
+        PixelStats(s.n, s.mean, s.m2, m2_cross=bad)
+    with pytest.raises(InputError, match="m2_cross"):
+        PixelStats(s.n, s.mean, s.m2, m2_cross=s.m2_cross[..., :2, :2])
+    with pytest.raises(InputError, match="sum_xy"):
+        PixelStats.from_sums(s.n, s.mean, s.m2, np.zeros((2, 2, 2)))
+    with pytest.raises(InputError, match="sample_cov"):
+        PixelStats.from_mean_var(s.mean, s.sample_var, s.n, sample_cov=np.zeros((2, 2, 3, 2)))
+    # rounding-level asymmetry is accepted and symmetrised exactly
+    tiny = s.m2_cross.copy()
+    tiny[..., 0, 1] *= 1 + 1e-12
+    t = PixelStats(s.n, s.mean, s.m2, m2_cross=tiny)
+    assert np.array_equal(t.m2_cross, np.swapaxes(t.m2_cross, -1, -2))
