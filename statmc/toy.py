@@ -532,7 +532,8 @@ class ToyRenderer:
         Returns
         -------
         PixelStats
-            With ``n == counts`` and ``meta`` holding ``renderer``, ``scene`` and ``seed``.
+            With ``n == counts``, the channel co-moment ``m2_cross`` (so ``mean_cov`` is
+            available) and ``meta`` holding ``renderer``, ``scene`` and ``seed``.
         """
         n = self.check_counts(counts)
         chunk = _positive_int("chunk_size", chunk_size)
@@ -543,6 +544,7 @@ class ToyRenderer:
         cum_start = cum_end - flat
         total = int(cum_end[-1]) if flat.size else 0
         stats = PixelStats.empty(h, w, c)
+        stats = PixelStats(stats.n, stats.mean, stats.m2, m2_cross=np.zeros((h, w, c, c)))
         bar = None
         if progress:
             from tqdm.auto import tqdm
@@ -564,7 +566,8 @@ class ToyRenderer:
         feats = self.features() if features else {}
         meta = {"renderer": "toy", "scene": self.scene,
                 "seed": seed if isinstance(seed, (int, np.integer)) or seed is None else repr(seed)}
-        return PixelStats(stats.n, stats.mean, stats.m2, meta=meta, **feats)
+        return PixelStats(stats.n, stats.mean, stats.m2, meta=meta, m2_cross=stats.m2_cross,
+                          **feats)
 
     def render_uniform(self, spp: int, *, seed=0, progress: bool = False,
                        features: bool = True, chunk_size: int = DEFAULT_CHUNK) -> PixelStats:
@@ -591,11 +594,13 @@ def _stats_from_deviations(idx, dev, mu, shape):
 
     Notes
     -----
-    Shifted sums: with ``d = x − μ``, ``mean = μ + Σd/n`` and ``M2 = Σd² − (Σd)²/n``.
+    Shifted sums: with ``d = x − μ``, ``mean = μ + Σd/n`` and ``M2 = Σd² − (Σd)²/n``; the
+    channel co-moment likewise, ``M2_ab = Σ d_a d_b − Σd_a Σd_b / n``.
     Because the shift is the true mean, ``(Σd)²/n`` is only ``O(1/n)`` of ``Σd²``, so
     there is no catastrophic cancellation (unlike unshifted ``Σx² − (Σx)²/n``).  The
     plain two-pass reference is :meth:`PixelStats.from_pixel_samples`; the tests
-    compare the two.  Runs whose samples are all equal get ``M2 = 0`` exactly.
+    compare the two.  Runs whose samples are all equal in a channel get ``M2 = 0``
+    exactly in that channel and in its cross terms.
     """
     h, w = shape
     c = dev.shape[0]
@@ -606,6 +611,10 @@ def _stats_from_deviations(idx, dev, mu, shape):
     # runs of identical samples (e.g. a firefly pixel without a hit) have M2 = 0 exactly,
     # which the shifted sums would only give up to rounding
     flat = np.maximum.reduceat(dev, starts, axis=1) == np.minimum.reduceat(dev, starts, axis=1)
+    ia, ib = np.triu_indices(c, 1)
+    s_ab = np.empty((ia.size, starts.size))
+    for p, (a, b) in enumerate(zip(ia, ib)):
+        s_ab[p] = np.add.reduceat(dev[a] * dev[b], starts)
     dev *= dev
     s2 = np.add.reduceat(dev, starts, axis=1)
     n = np.zeros(h * w, np.int64)
@@ -614,4 +623,10 @@ def _stats_from_deviations(idx, dev, mu, shape):
     n[pix] = counts
     mean[pix] = mu[pix] + (s1 / counts).T
     m2[pix] = np.where(flat, 0.0, np.maximum(s2 - s1 * s1 / counts, 0.0)).T
-    return PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c))
+    cross = np.zeros((h * w, c, c))
+    cross[pix[:, None], ia, ib] = np.where(flat[ia] | flat[ib], 0.0, s_ab - s1[ia] * s1[ib] / counts).T
+    cross[:, ib, ia] = cross[:, ia, ib]
+    k = np.arange(c)
+    cross[:, k, k] = m2
+    return PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c),
+                      m2_cross=cross.reshape(h, w, c, c))
