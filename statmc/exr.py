@@ -6,6 +6,8 @@ The channel layout (``docs/file-format.md`` has the full table):
 ``R, G, B``                            mean radiance of the pixel
 ``Variance.R, Variance.G, Variance.B`` **sample variance** ``M2/(n-1)`` of *one* sample
 ``SampleCount``                        samples in the pixel (statmc; pbrt-v4 omits it)
+``Covariance.RG, .RB, .GB``            **sample covariance** ``M2_ab/(n-1)`` of *one* sample
+                                       between two channels (statmc; optional)
 ``Albedo.R, Albedo.G, Albedo.B``       albedo feature
 ``N.X, N.Y, N.Z``                      normal feature
 ``Z`` (else pbrt-v4's ``P.Z``)         depth feature
@@ -38,6 +40,7 @@ SAMPLE_COUNT = "SampleCount"
 _RGB = ("R", "G", "B")
 _ALBEDO = ("Albedo.R", "Albedo.G", "Albedo.B")
 _NORMAL = ("N.X", "N.Y", "N.Z")
+_COV = ("Covariance.RG", "Covariance.RB", "Covariance.GB")   # pairs a < b of R, G, B, row-major
 _DEPTH = ("Z", "P.Z")            # preference order: our own ``Z``, then pbrt-v4's camera-space P.Z
 _MAX_F32_COUNT = 2 ** 24         # integers above this are not all representable in float32
 _TONEMAPS = ("srgb", "reinhard", "aces")
@@ -166,8 +169,11 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     PixelStats
         ``n`` from ``SampleCount`` (or ``spp``); ``mean`` from ``R, G, B`` (or ``Y``);
         ``M2 = Variance · (n − 1)`` since ``Variance.*`` holds the *sample* variance;
+        with ``Covariance.RG/RB/GB`` (sample covariances, statmc's extension) also the
+        channel co-moment ``m2_cross = Covariance · (n − 1)``, else ``m2_cross`` is None;
         albedo, normal and depth when present.  ``meta`` holds ``source``, ``channels``,
-        ``extra_channels`` (present but unused), ``has_variance``, ``depth_channel``,
+        ``extra_channels`` (present but unused), ``has_variance``, ``has_covariance``,
+        ``depth_channel``,
         ``sample_count_source`` (``"file"`` or ``"spp"``), ``nonfinite_replaced`` and
         ``nonfinite_by_group``.
 
@@ -206,6 +212,10 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
             f"{p!r} has no {', '.join(var_names)} channels (the sample variance per sample, "
             f"as pbrt-v4's gbuffer film writes). Channels present: {sorted(arrays)}. Pass "
             "require_variance=False to read it with zero variance, or use read_image().")
+    cov = _group(p, arrays, _COV, "covariance") if color == _RGB else None
+    if cov is not None and var is None:
+        raise FileFormatError(f"{p!r} has Covariance channels but no {', '.join(var_names)}: a "
+                              "channel covariance needs the variances on its diagonal.")
     albedo = _group(p, arrays, _ALBEDO, "albedo")
     normal = _group(p, arrays, _NORMAL, "normal")
     depth_name = next((d for d in _DEPTH if d in arrays), None)
@@ -217,7 +227,8 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
             f"(pbrt-v4 does not write them): pass the render's uniform spp=. Channels present: "
             f"{sorted(arrays)}.")
 
-    groups = {"+".join(color): mean, "Variance": var, "Albedo": albedo, "N": normal,
+    groups = {"+".join(color): mean, "Variance": var, "Covariance": cov, "Albedo": albedo,
+              "N": normal,
               depth_name or "Z": depth, SAMPLE_COUNT: count}
     groups = {k: v for k, v in groups.items() if v is not None}
     by_group = _handle_nonfinite(p, groups, nonfinite, replace_value)
@@ -237,12 +248,15 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         n, source = _spp_map(spp, mean.shape[:2]).astype(np.float64), "spp"
     if var is None:
         var = np.zeros_like(mean)
-    stats = PixelStats.from_mean_var(mean, var, n, albedo=albedo, normal=normal, depth=depth)
+    stats = PixelStats.from_mean_var(mean, var, n, sample_cov=cov, albedo=albedo, normal=normal,
+                                     depth=depth)
     stats.meta.update({
         "source": p, "channels": sorted(arrays),
         "extra_channels": sorted(set(arrays) - set(color) - set(var_names) - set(_ALBEDO)
-                                 - set(_NORMAL) - {depth_name, SAMPLE_COUNT}),
+                                 - set(_NORMAL) - {depth_name, SAMPLE_COUNT}
+                                 - (set(_COV) if cov is not None else set())),
         "has_variance": bool(all(v in arrays for v in var_names)),
+        "has_covariance": cov is not None,
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -406,6 +420,10 @@ def _stats_channels(stats: PixelStats) -> dict:
     for k, n in enumerate(color):
         out[n] = _f32("mean", stats.mean[..., k])
         out["Variance." + n] = _f32("sample_var", var[..., k])
+    if stats.m2_cross is not None and c == 3:
+        cov = stats.sample_cov
+        for name, (a, b) in zip(_COV, ((0, 1), (0, 2), (1, 2))):
+            out[name] = _f32("sample_cov", cov[..., a, b])
     nmax = int(stats.n.max()) if stats.n.size else 0
     if nmax <= _MAX_F32_COUNT:
         out[SAMPLE_COUNT] = stats.n.astype(np.float32)
@@ -439,8 +457,10 @@ def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> 
         Output file.
     data : PixelStats or (H, W, 3) / (H, W) ndarray
         Statistics are written with all channels of the layout (float32, with the
-        *sample* variance in ``Variance.*`` and ``SampleCount`` as float32, or uint32
-        beyond 2**24 samples); a plain image as ``R, G, B`` (or ``Y``) only.
+        *sample* variance in ``Variance.*``, the sample covariances in
+        ``Covariance.RG/RB/GB`` when ``m2_cross`` is known (RGB only), and ``SampleCount``
+        as float32, or uint32 beyond 2**24 samples); a plain image as ``R, G, B`` (or
+        ``Y``) only.
     extra : dict of str to (H, W) ndarray, optional
         Further channels, e.g. selected filter scales; names must not clash with the layout.
     overwrite : bool, default True

@@ -439,3 +439,76 @@ def test_tonemaps():
     assert np.all(np.diff(to_display(np.linspace(0, 50, 100)[None, :], tonemap="aces")) >= 0)
     with pytest.raises(InputError, match="`tonemap`"):
         to_display(x, tonemap="filmic")
+
+
+# ---------------------------------------------------------------------------- channel covariance
+def _stats_with_cov(rng, h=5, w=4):
+    """Statistics whose sample variances and covariances are float32-representable."""
+    f32 = lambda a: a.astype(np.float32).astype(np.float64)
+    n = rng.integers(0, 300, size=(h, w))
+    n[0, :2] = [0, 1]
+    L = rng.normal(size=(h, w, 3, 3))
+    cov = f32(L @ np.swapaxes(L, -1, -2))
+    var = np.diagonal(cov, axis1=2, axis2=3).copy()
+    var[n < 2] = 0.0
+    pairs = cov[..., [0, 0, 1], [1, 2, 2]]
+    return PixelStats.from_mean_var(f32(rng.normal(size=(h, w, 3))), var, n, sample_cov=pairs)
+
+
+def test_covariance_round_trip_bit_exact(tmp_path):
+    s = _stats_with_cov(np.random.default_rng(3)).with_features(depth=np.ones((5, 4)))
+    p = tmp_path / "cov.exr"
+    write_exr(p, s)
+    assert all(c in exr_info(p)["channels"] for c in ("Covariance.RG", "Covariance.RB",
+                                                       "Covariance.GB"))
+    assert exr_info(p)["groups"]["Covariance"] == ["Covariance.GB", "Covariance.RB",
+                                                    "Covariance.RG"]
+    t = read_exr(p)
+    _assert_same(s, t)
+    np.testing.assert_array_equal(t.m2_cross, s.m2_cross)
+    np.testing.assert_array_equal(t.sample_cov, s.sample_cov)
+    assert t.meta["has_covariance"] and t.meta["extra_channels"] == []
+    np.testing.assert_array_equal(read_channels(p, "Covariance.RB")["Covariance.RB"],
+                                  s.sample_cov[..., 0, 2].astype(np.float32))
+    # the toy renderer's covariance survives a round trip to float32 precision
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("mixed", width=8, height=8).render_uniform(16, seed=0)
+    write_exr(tmp_path / "toy.exr", r)
+    np.testing.assert_allclose(read_exr(tmp_path / "toy.exr").sample_cov, r.sample_cov,
+                               rtol=1e-6, atol=1e-7 * r.sample_var.max())
+
+
+def test_files_without_covariance_read_as_before(tmp_path):
+    s = _stats(np.random.default_rng(4))
+    write_exr(tmp_path / "a.exr", s)
+    t = read_exr(tmp_path / "a.exr")
+    assert t.m2_cross is None and not t.meta["has_covariance"]
+    assert "Covariance.RG" not in exr_info(tmp_path / "a.exr")["channels"]
+    # a one-channel file never has covariance channels
+    y = PixelStats.from_samples(np.random.default_rng(5).normal(size=(4, 2, 3, 1)))
+    write_exr(tmp_path / "y.exr", y)
+    assert read_exr(tmp_path / "y.exr").m2_cross is None
+
+
+def test_partial_or_nonfinite_covariance_channels(tmp_path):
+    h, w = 2, 3
+    base = {"R": np.ones((h, w)), "G": np.ones((h, w)), "B": np.ones((h, w)),
+            "Variance.R": np.ones((h, w)), "Variance.G": np.ones((h, w)),
+            "Variance.B": np.ones((h, w)), "SampleCount": np.full((h, w), 8.0)}
+    _write_raw(tmp_path / "p.exr", {**base, "Covariance.RG": np.zeros((h, w))})
+    with pytest.raises(FileFormatError, match="covariance channels"):
+        read_exr(tmp_path / "p.exr")
+    bad = np.zeros((h, w))
+    bad[0, 0] = np.nan
+    full = {**base, "Covariance.RG": bad, "Covariance.RB": np.zeros((h, w)),
+            "Covariance.GB": np.full((h, w), 0.5)}
+    _write_raw(tmp_path / "n.exr", full)
+    with pytest.raises(FileFormatError, match="Covariance: 1 NaN"):
+        read_exr(tmp_path / "n.exr")
+    t = read_exr(tmp_path / "n.exr", nonfinite="replace")
+    assert t.meta["nonfinite_replaced"] == 1 and t.sample_cov[0, 0, 0, 1] == 0
+    assert t.sample_cov[1, 2, 2, 1] == 0.5
+    no_var = {k: v for k, v in full.items() if not k.startswith("Variance.")}
+    _write_raw(tmp_path / "v.exr", no_var)
+    with pytest.raises(FileFormatError, match="no Variance"):
+        read_exr(tmp_path / "v.exr", require_variance=False)
