@@ -439,7 +439,8 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     u = al * (yy - xx)
     with np.errstate(divide="ignore", invalid="ignore"):
         num, var, t, out = _pk.gate(u, v, al, int(window) // 2, ss, shared=(channels == "shared"),
-                                    a=aa, c=cc, eps=ee, logistic=(cdf == "logistic"))
+                                    a=aa, c=cc, eps=ee, logistic=(cdf == "logistic"),
+                                    keep=bool(extra_output))
     if not extra_output:
         return out
     from scipy.special import expit, ndtr
