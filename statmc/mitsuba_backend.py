@@ -5,7 +5,9 @@ renders any integer count map instead, as a wavefront: pixel indices are repeate
 counts (in chunks of about two million samples, so memory stays bounded), each sample is
 jittered inside its pixel, traced with ``sensor.sample_ray_differential`` and
 ``integrator.sample``, and summed per pixel with ``dr.scatter_reduce`` into ``float64``
-Dr.Jit arrays (sums and sums of squares).  The sums are copied to NumPy once, at the end,
+Dr.Jit arrays (sums, sums of squares and the cross sums ``Σ x_a x_b`` of the channel
+pairs RG, RB, GB, which give the channel covariance).  The sums are copied to NumPy once,
+at the end,
 and become :class:`statmc.stats.PixelStats`.  Keeping the accumulators inside Dr.Jit is
 what makes this as fast as ``mi.render`` (see ``bench/bench_render.py``).
 
@@ -74,6 +76,7 @@ _AUTO: dict[str, str] = {}
 # Salts separating the random streams of the passes of one render.
 _SALT_MAIN = 0x5EED
 _SALT_FEATURES = 0xFEA7
+_PAIRS = ((0, 1), (0, 2), (1, 2))   # channel pairs RG, RB, GB (PixelStats.from_sums order)
 
 
 def _llvm_version(path: str) -> int | None:
@@ -356,7 +359,7 @@ class MitsubaRenderer:
 
     # ------------------------------------------------------------------ public
     def render(self, counts, *, seed: int = 0, progress: bool = False, features: bool = True,
-               feature_spp: int = 16) -> PixelStats:
+               feature_spp: int = 16, cross: bool = True) -> PixelStats:
         """Render exactly ``counts[i, j]`` samples in pixel ``(i, j)``.
 
         Parameters
@@ -372,11 +375,16 @@ class MitsubaRenderer:
             of ``feature_spp`` samples per pixel (Mitsuba's ``aov`` integrator, shading
             normals in world space), so they do not slow down the main pass.
         feature_spp : int, optional
+        cross : bool, optional
+            Also accumulate the channel cross sums (default), so the result carries the
+            channel co-moment ``m2_cross`` (``sample_cov``, ``mean_cov``); ``False`` skips
+            them (``m2_cross`` is None).
 
         Returns
         -------
         PixelStats
-            ``n == counts``; ``mean`` and ``m2`` (float64) of the RGB samples; ``meta``
+            ``n == counts``; ``mean``, ``m2`` and (with ``cross``) ``m2_cross`` (float64)
+            of the RGB samples; ``meta``
             holds ``seconds``, ``samples``, ``samples_per_second`` (main pass),
             ``feature_seconds``, ``variant``, ``scene``, ``seed``, ``chunks`` and
             ``nonfinite_samples`` (NaN/Inf samples, counted as zeros).
@@ -388,9 +396,9 @@ class MitsubaRenderer:
             self._mi.set_variant(self.variant)
         render = self._render_jit if self._jit else self._render_scalar
         t0 = time.perf_counter()
-        s1, s2, n_bad, n_chunks = render(counts, seed, progress)
+        s1, s2, sxy, n_bad, n_chunks = render(counts, seed, progress, bool(cross))
         seconds = time.perf_counter() - t0
-        stats = PixelStats.from_sums(counts, s1, s2)
+        stats = PixelStats.from_sums(counts, s1, s2, sxy)
         total = int(counts.sum())
         stats.meta.update({
             "renderer": "mitsuba", "scene": self.name, "variant": self.variant, "seed": seed,
@@ -407,11 +415,13 @@ class MitsubaRenderer:
         return stats
 
     def render_uniform(self, spp: int, *, seed: int = 0, progress: bool = False,
-                       features: bool = True, feature_spp: int = 16) -> PixelStats:
+                       features: bool = True, feature_spp: int = 16,
+                       cross: bool = True) -> PixelStats:
         """:meth:`render` with ``spp`` samples in every pixel."""
         spp = _check_int("spp", spp, minimum=0)
         return self.render(np.full((self.height, self.width), spp, np.int64), seed=seed,
-                           progress=progress, features=features, feature_spp=feature_spp)
+                           progress=progress, features=features, feature_spp=feature_spp,
+                           cross=cross)
 
     # ------------------------------------------------------------------ internals
     def _check_counts(self, counts) -> np.ndarray:
@@ -457,14 +467,15 @@ class MitsubaRenderer:
         L, _valid, aovs = integrator.sample(self._scene, sampler, ray, None, True)
         return idx, L * weight, aovs
 
-    def _render_jit(self, counts: np.ndarray, seed: int, progress: bool):
+    def _render_jit(self, counts: np.ndarray, seed: int, progress: bool, cross: bool):
         mi, dr = self._mi, self._dr
         hw = self.height * self.width
         flat = counts.ravel()
         s1 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s2 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
+        s3 = [dr.zeros(mi.Float64, hw) for _ in _PAIRS] if cross else []
         bad = dr.zeros(mi.UInt32, hw)
-        mode = self._reduce_mode(6)
+        mode = self._reduce_mode(6 + len(s3))
         rsqrt_n = mi.Float(1.0 / np.sqrt(np.maximum(flat, 1)).astype(np.float32))
 
         def scale(idx):
@@ -476,25 +487,29 @@ class MitsubaRenderer:
                 idx, L, _ = self._trace(self._integrator, pix, _chunk_seed(seed, _SALT_MAIN, k),
                                         scale)
                 ok = dr.isfinite(L.x) & dr.isfinite(L.y) & dr.isfinite(L.z)
-                for c in range(3):
-                    v = mi.Float64(dr.select(ok, L[c], 0.0))
+                vs = [mi.Float64(dr.select(ok, L[c], 0.0)) for c in range(3)]
+                for c, v in enumerate(vs):
                     dr.scatter_reduce(dr.ReduceOp.Add, s1[c], v, idx, mode=mode)
                     dr.scatter_reduce(dr.ReduceOp.Add, s2[c], v * v, idx, mode=mode)
+                for acc, (a, b) in zip(s3, _PAIRS):
+                    dr.scatter_reduce(dr.ReduceOp.Add, acc, vs[a] * vs[b], idx, mode=mode)
                 dr.scatter_reduce(dr.ReduceOp.Add, bad, mi.UInt32(1), idx, active=~ok,
                                   mode=dr.ReduceMode.Direct)
-                dr.eval(s1, s2, bad)
+                dr.eval(s1, s2, s3, bad)
                 n_chunks += 1
                 bar.update(int(pix.size))
         shape = (self.height, self.width, 3)
         sum_x = np.stack([np.asarray(a) for a in s1], axis=-1).reshape(shape)
         sum_x2 = np.stack([np.asarray(a) for a in s2], axis=-1).reshape(shape)
-        return sum_x, sum_x2, int(np.asarray(bad).sum()), n_chunks
+        sum_xy = (np.stack([np.asarray(a) for a in s3], axis=-1).reshape(shape) if cross
+                  else None)
+        return sum_x, sum_x2, sum_xy, int(np.asarray(bad).sum()), n_chunks
 
-    def _render_scalar(self, counts: np.ndarray, seed: int, progress: bool):
+    def _render_scalar(self, counts: np.ndarray, seed: int, progress: bool, cross: bool):
         """Fallback: ``max(counts)`` one-sample passes of ``mi.render`` (box filter)."""
         mi = self._mi
         shape = (self.height, self.width, 3)
-        s1, s2 = np.zeros(shape), np.zeros(shape)
+        s1, s2, s3 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
         n_bad = 0
         passes = int(counts.max()) if counts.size else 0
         with _progress(passes, progress, f"mitsuba {self.name} (scalar)", "pass") as bar:
@@ -508,8 +523,11 @@ class MitsubaRenderer:
                 img = np.where(ok & active, img, 0.0)
                 s1 += img
                 s2 += img * img
+                if cross:
+                    for p, (a, b) in enumerate(_PAIRS):
+                        s3[..., p] += img[..., a] * img[..., b]
                 bar.update(1)
-        return s1, s2, n_bad, passes
+        return s1, s2, (s3 if cross else None), n_bad, passes
 
     def _render_features(self, seed: int, spp: int):
         """Albedo and shading normal, ``spp`` samples per pixel, averaged (box filter)."""

@@ -130,6 +130,40 @@ def test_random_counts_exact_and_consistent(cornell, pilot, reference):
     assert _ttest_zero(d_bad[ok2].mean(-1), "scaled")[0] < ALPHA
 
 
+def test_channel_covariance_predicts_the_cross_error(cornell):
+    """Two independent renders a, b with the same random counts (pixels split across
+    chunks): ``E[(a_R − b_R)(a_G − b_G)] = Cov_a + Cov_b`` of the means, per channel pair,
+    so ``(Δ_a Δ_b − mean_cov_a − mean_cov_b)/scale`` has mean 0 (scale from an independent
+    render).  Power: the same test rejects a zero covariance (a diagonal ``mean_var``).
+    Deterministic checks: diagonal = ``m2``, Cauchy-Schwarz, ``cross=False`` drops it."""
+    rng = np.random.default_rng(4)
+    counts = _random_counts(rng, SIZE, SIZE)
+    r = mb.MitsubaRenderer(cornell._scene, chunk_samples=5003)
+    a = r.render(counts, seed=31, features=False)
+    b = r.render(counts, seed=32, features=False)
+    scale_src = r.render_uniform(64, seed=33, features=False)
+    k = np.arange(3)
+    for s_ in (a, b):
+        assert np.array_equal(s_.m2_cross[..., k, k], s_.m2)
+        bound = np.sqrt(s_.m2[..., :, None] * s_.m2[..., None, :])
+        assert np.all(np.abs(s_.m2_cross) <= bound * (1 + 1e-6) + 1e-9 * s_.m2.max())
+    ok = (counts >= 2) & (scale_src.sample_var > 0).all(-1)
+    w = scale_src.sample_var / 64 + 1e-4                     # independent positive scale
+    d = a.mean - b.mean
+    for ca, cb in ((0, 1), (0, 2), (1, 2)):
+        ww = np.sqrt(w[..., ca] * w[..., cb])
+        prod = d[..., ca] * d[..., cb]
+        pred = a.mean_cov[..., ca, cb] + b.mean_cov[..., ca, cb]
+        p, msg = _ttest_zero(((prod - pred) / ww)[ok], f"cross error - mean_cov ({ca}{cb})")
+        assert p > ALPHA, msg
+        assert _ttest_zero((prod / ww)[ok], f"cross error, no covariance ({ca}{cb})")[0] < ALPHA
+    c = r.render(counts, seed=31, features=False, cross=False)
+    assert c.m2_cross is None
+    np.testing.assert_allclose(c.m2, a.m2, rtol=1e-9, atol=1e-12)
+    one = r.render(np.ones((SIZE, SIZE), np.int64), seed=1, features=False)
+    assert np.all(one.m2_cross == 0)
+
+
 def test_seeds_give_independent_renders(cornell, pilot, reference):
     spp = 8
     a = cornell.render_uniform(spp, seed=1, features=False)
@@ -356,6 +390,8 @@ def test_scalar_variant_renders_counts(cornell, pilot, reference):
         assert r.variant == "scalar_rgb" and s.meta["variant"] == "scalar_rgb"
         assert np.array_equal(s.n, counts)
         assert s.albedo.shape == (SIZE, SIZE, 3)
+        k = np.arange(3)
+        assert s.m2_cross is not None and np.array_equal(s.m2_cross[..., k, k], s.m2)
         ok = (counts >= 1) & (pilot > 0).all(-1)
         z = (s.mean - reference) / np.sqrt(pilot * (1 / np.maximum(counts, 1)[..., None] + 1 / 2048))
         p, msg = _ttest_zero(z[ok].mean(-1), "scalar variant error vs reference (z)")
