@@ -223,8 +223,11 @@ def cmd_denoise(args) -> int:
         # Store the denoised output as statistics whose variance of the mean is the
         # first-order variance of the output (Firmino 2023), with the input's counts.
         from .sure import output_variance
-        method = "exact" if hasattr(den, "kernels") else "fd"  # linear filters: Σ_j w_ij² σ_j²
-        var = output_variance(den, x, stats.mean_var.astype(np.float32), method=method, rng=args.seed)
+        if hasattr(den, "kernels"):  # linear filters: exactly Σ_j w_ij² σ_j²
+            var = output_variance(den, x, stats.mean_var.astype(np.float32), method="exact")
+        else:  # first order; the channel covariance when the file has it (OIDN mixes channels)
+            cov = stats.mean_cov if stats.has_cov else stats.mean_var
+            var = output_variance(den, x, cov.astype(np.float32), method="fd", rng=args.seed)
         n = stats.n.astype(np.float64)[..., None]
         result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
