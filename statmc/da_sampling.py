@@ -209,6 +209,25 @@ def _blur(m, variant, blur):
     return gaussian_filter(m, sigma, truncate=radius / sigma)
 
 
+def _output_variance(f, x, s2, k, method, gen):
+    """``(Var[f(x)], f(x))``: first order by :func:`statmc.sure.output_variance`, except for
+    GEM, whose output is the selected filter's (exact given the selection)."""
+    from .denoisers import GEMDenoiser
+    from .sure import output_variance
+
+    if isinstance(f, GEMDenoiser) and method != "jvp":
+        from .gem import select
+
+        info = select(x, f.mean_var, gamma=f.gamma, final=f.final, n=f.n)
+        var = np.take_along_axis(info["variances"], info["scales"][None, ..., None], axis=0)[0]
+        return np.asarray(var, np.float64), np.asarray(info["image"], np.float64)
+    var, info = output_variance(f, x, s2, k=k, method=method, rng=gen, extra_output=True)
+    out = info["denoised"]
+    if out is None:
+        out = np.asarray(f(x.astype(np.float32)), np.float64)
+    return var, out
+
+
 def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "variance",
                             output: str = "denoised", tonemap: str | None = None,
                             exposure: float = 1.0, eps: float = DEFAULT_EPS, k: int = DEFAULT_K,
@@ -246,6 +265,11 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         Random probes.
     method : {"fd", "jvp", "exact"}
         How :func:`statmc.sure.output_variance` gets ``J v`` (``variant="variance"``).
+        GEM (:class:`statmc.denoisers.GEMDenoiser`) is the exception: it switches filters
+        discontinuously, and finite differences across a switch measure the jump divided by
+        the step, not the noise (in the bench this piled up to 18 000 samples in single
+        pixels at 64 spp), so its variance is that of the selected filter, from its filter
+        bank — exact given the selection.
     covariance : bool
         Include ``Cov[x, y]`` in the variance of the progressive mix (``False``: the
         NJS-style formula).
@@ -265,7 +289,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         ``blur(max(mean_c T'(f_c)² num_c / (N + 1), 0))`` with a tone map.
     """
     from .progressive import bind_denoiser
-    from .sure import mc_sure, output_variance
+    from .sure import mc_sure
 
     _check_stats(stats)
     if variant not in VARIANTS:
@@ -288,10 +312,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     s2 = stats.mean_var
     if output == "denoised":
         if variant == "variance":
-            num, info = output_variance(f, x, s2, k=k, method=method, rng=gen, extra_output=True)
-            out = info["denoised"]
-            if out is None:
-                out = np.asarray(f(x.astype(np.float32)), np.float64)
+            num, out = _output_variance(f, x, s2, k, method, gen)
         else:
             num, info = mc_sure(f, x, s2, k=k, rng=gen, extra_output=True)
             out = info["denoised"]
@@ -303,7 +324,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         out, pinfo = progressive_denoise(stats, f, rng=gen, extra_output=True, **opts)
         ag = pinfo["alpha_gated"]
         if variant == "variance":
-            var_y = output_variance(f, x, s2, k=k, method=method, rng=gen)
+            var_y, _ = _output_variance(f, x, s2, k, method, gen)
             num = mix_variance(ag, s2, var_y, cov_xy=pinfo["divergence"] if covariance else None)
         else:
             num = mix_error(ag, s2, pinfo["sure"], pinfo["divergence"])

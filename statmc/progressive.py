@@ -192,8 +192,9 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     extra_output : bool
         Also return a dict with ``beta`` (Eq. 10 from the averaged terms, before
         shrinking and clipping), ``numerator`` and ``denominator`` of Eq. 9 (averaged
-        ``w(σ² − D)`` and ``w(SURE + σ² − 2D)``), ``shrink`` (the factor, 1 without) and
-        ``bias_z`` (``b/se``, NaN without shrinking).
+        ``w(σ² − D)`` and ``w(SURE + σ² − 2D)``), ``shrink`` (the factor, 1 without),
+        ``bias_z`` (``b/se``) and the two standard errors ``se_model`` and ``se_spread``
+        (see Notes; NaN without shrinking).
 
     Returns
     -------
@@ -218,23 +219,30 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     ``x`` the loss is steep in ``α`` (curvature ``A ≈ σ²``): a small random ``β`` then
     leaks a large part of the render's noise into ``z``.  ``shrink`` treats the averaged
     numerator ``b = Σ_q k_pq e_q``, ``e = w (SURE − D)``, as an estimate with standard
-    error ``se² = Σ_q k_pq² Var[e_q]`` (pixels independent) and multiplies ``β`` by
-    ``(1 − z² se²/b²)₊``.  With ``z = 1`` this is the plug-in estimate of the optimal
-    shrinkage ``b²/(b² + se²)`` — Eq. 9's own logic applied to ``β`` with the fixed
-    target 0; ``z = 2`` keeps ``β`` only where ``|b|`` exceeds about two standard
-    errors, a soft significance test for the bias of ``y``.  ``Var[e_q]`` comes from a
-    normal noise model, ``w_q² Σ_c (4 b̂² σ̂² + 2σ̂⁴ + 2σ̂⁴/(n − 1))`` with the local bias
-    ``b̂² = max(G[(y − x)² − σ̂²], 0)`` (``G`` the same smoothing; per pixel it would be
-    noise itself and inflate ``se`` where ``y`` is unbiased): the variance of
-    ``(y − x)²`` when ``y − x ~ N(b, σ²)``
-    (the noise of ``y − x`` taken as that of ``x``, which a smoothing denoiser leaves
-    almost intact) plus that of the sample variance of ``n`` normal samples (the last
-    term only with ``n``); the Monte Carlo noise of ``D`` is ignored.  The local spread
-    of ``e`` would be the model-free choice, but it counts the spatial variation of the
-    bias as noise: on a fine texture it kept ``se ≈ |b|`` at every sample count and the
-    output stopped converging (1.5× the render's relMSE at 4096 spp, ``docs/progressive.md``).
-    With the model, ``b/se`` grows like ``√n`` wherever ``y`` is biased, the factor
-    tends to 1 and Eq. 9 itself tends to 0; the confidence gate bounds the rest.
+    error ``se`` and multiplies ``β`` by ``(1 − z² se²/b²)₊``.  With ``z = 1`` this is the
+    plug-in estimate of the optimal shrinkage ``b²/(b² + se²)`` — Eq. 9's own logic
+    applied to ``β`` with the fixed target 0; ``z = 2`` keeps ``β`` only where ``|b|``
+    exceeds about two standard errors, a soft significance test for the bias of ``y``.
+
+    ``se² = Σ_q k_pq² Var[e_q]`` (pixels independent) is the smaller of two estimates,
+    each of which errs upwards in a known case:
+
+    * the local spread ``Var_k[e]`` (weighted by ``k``) — model-free, and calibrated on
+      the Mitsuba scenes (checked against the difference of two independent renders,
+      ``docs/progressive.md``), but it counts the spatial variation of the bias as
+      noise: on a fine texture it kept ``se ≈ |b|`` at every sample count, and the
+      output stopped converging (1.5× the render's relMSE at 4096 spp);
+    * a normal noise model, ``Var[e_q] = w_q² Σ_c (4 b̂² σ̂² + 2σ̂⁴ + 2σ̂⁴/(n − 1))`` with
+      the local bias ``b̂² = max(G[(y − x)² − σ̂²], 0)``: the variance of ``(y − x)²``
+      when ``y − x ~ N(b, σ²)`` (the noise of ``y − x`` taken as that of ``x``, which a
+      smoothing denoiser leaves almost intact) plus that of the sample variance of ``n``
+      normal samples (that term only with ``n``); the Monte Carlo noise of ``D`` is
+      ignored.  It falls like ``1/√n`` wherever ``y`` is biased, so the factor tends to
+      1, but heavy-tailed pixels inflate ``σ̂⁴`` far more than they move ``e``: on the
+      Cornell box it overstated ``se`` 2–6×.
+
+    Where the bias is significant (e.g. at high sample counts) the factor is ~1, Eq. 9
+    itself tends to 0, and the confidence gate bounds the rest.
 
     Examples
     --------
@@ -277,7 +285,7 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(pos, b / np.where(pos, den, 1.0), np.nan)
     lam = np.ones_like(b)
-    bias_z = np.full_like(b, np.nan)
+    bias_z = se_model = se_spread = np.full_like(b, np.nan)
     if z > 0:
         b2 = np.clip(_smooth((yy - xx) ** 2 - s2, sm), 0.0, None)   # local bias² of y
         vq = 4.0 * b2 * s2 + 2.0 * s2 * s2
@@ -287,7 +295,11 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
             vq = vq * (w * w)
         if not per_channel:
             vq = vq.sum(axis=2, keepdims=True)
-        se = np.sqrt(_smooth_k2(vq, sm))
+        e = terms[1]
+        spread = np.clip(_smooth(e * e, sm) - b * b, 0.0, None) * _smooth_k2(np.ones_like(e), sm)
+        se_model = np.sqrt(_smooth_k2(vq, sm))
+        se_spread = np.sqrt(spread)
+        se = np.minimum(se_model, se_spread)
         with np.errstate(divide="ignore", invalid="ignore"):
             bias_z = np.where(se > 0, b / np.where(se > 0, se, 1.0), np.inf * np.sign(b))
         se2 = se * se * (z * z)
@@ -302,7 +314,9 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
             "numerator": np.broadcast_to(num, shape).copy(),
             "denominator": np.broadcast_to(den, shape).copy(),
             "shrink": np.broadcast_to(lam, shape).copy(),
-            "bias_z": np.broadcast_to(bias_z, shape).copy()}
+            "bias_z": np.broadcast_to(bias_z, shape).copy(),
+            "se_model": np.broadcast_to(se_model, shape).copy(),
+            "se_spread": np.broadcast_to(se_spread, shape).copy()}
     return alpha, info
 
 

@@ -117,35 +117,54 @@ def test_smoothing_keeps_constant_moments_and_shares_channels():
     assert np.allclose(a_pix, (0.04 - 0.01) / (0.01 + 0.04 - 0.02))
 
 
-def test_shrinkage_standard_error_is_calibrated():
-    """Unbiased y (y = μ): Eq. 10's numerator is pure noise, so b/se should be ~N(0, s²)
-    with s at most 1 and a little below it (the plug-in b̂² >= 0 and E[σ̂⁴] > σ⁴ make the
-    normal model slightly conservative, by ~7 % here).  99.9 % chi-square interval of s from
-    900 z-scores 4σ apart; forgetting the factor 2 of Var[(y − x)²] is rejected."""
-    rng = np.random.default_rng(7)
-    h = w = 384
-    n = 64
-    mu = np.full((h, w, 1), 0.7)
-    sigma2 = np.full((h, w, 1), 0.01)
+def _h0_field(seed, h=384, n=64):
+    """Unbiased y = μ: Eq. 10's numerator b is pure noise.  Returns (b, info) at points 4σ
+    apart (nearly independent) for smoothing σ = 3."""
+    rng = np.random.default_rng(seed)
+    mu = np.full((h, h, 1), 0.7)
+    sigma2 = np.full((h, h, 1), 0.01)
     x = mu + np.sqrt(sigma2) * rng.standard_normal(mu.shape)
     s2_hat = sigma2 * rng.chisquare(n - 1, mu.shape) / (n - 1)   # independent of x (normal)
     sure = (mu - x) ** 2 - s2_hat        # SURE of y = μ, whose divergence is 0
     _, info = pg.mixing_weights(x, mu, s2_hat, sure, np.zeros_like(x), smooth=3.0,
-                                relative_eps=None, shrink=2.0, n=np.full((h, w), n),
+                                relative_eps=None, shrink=2.0, n=np.full((h, h), n),
                                 extra_output=True)
-    zs = info["bias_z"][12:-12:12, 12:-12:12, 0].ravel()   # 4σ apart: nearly independent
-    m = zs.size
-    assert m >= 800
+    pick = (slice(12, -12, 12), slice(12, -12, 12), 0)
+    b = (info["beta"] * info["denominator"])[pick].ravel()
+    return b, {k: v[pick].ravel() for k, v in info.items()}
 
-    def interval(z):
-        ss = np.sum(z * z)          # mean 0 is known under H0
-        return (math.sqrt(ss / sst.chi2.ppf(0.9995, m)), math.sqrt(ss / sst.chi2.ppf(0.0005, m)))
 
-    lo, hi = interval(zs)
-    assert lo <= 1.0 and hi >= 0.85, (lo, hi)            # consistent with s in [0.85, 1]
-    assert abs(zs.mean()) < 3.29 * hi / math.sqrt(m)       # and centred
-    lo2, hi2 = interval(zs / math.sqrt(2))                 # power: a model missing the 2
-    assert hi2 < 0.85, (lo2, hi2)
+def _sd_interval(z, level=0.999):
+    m = z.size
+    ss = np.sum(z * z)          # the mean 0 is known under H0
+    q = (1 - level) / 2
+    return math.sqrt(ss / sst.chi2.ppf(1 - q, m)), math.sqrt(ss / sst.chi2.ppf(q, m))
+
+
+def test_shrinkage_model_standard_error_is_calibrated():
+    """Normal noise: b/se_model ~ N(0, s²) with s at most 1 and a little below it (the
+    plug-in b̂² >= 0 and E[σ̂⁴] > σ⁴ make the model slightly conservative, ~7 % here);
+    99.9 % chi-square interval from 900 z-scores.  A model missing the factor 2 of
+    Var[(y − x)²] is rejected."""
+    b, info = _h0_field(7)
+    zs = b / info["se_model"]
+    assert zs.size >= 800
+    lo, hi = _sd_interval(zs)
+    assert lo <= 1.0 and hi >= 0.85, (lo, hi)             # consistent with s in [0.85, 1]
+    assert abs(zs.mean()) < 3.29 * hi / math.sqrt(zs.size)  # and centred
+    assert _sd_interval(zs / math.sqrt(2))[1] < 0.85        # power
+
+
+def test_shrinkage_spread_standard_error_is_calibrated():
+    """The local-spread estimate: E[se_spread²] = Var[b] (ratio inside the 99.9 % interval
+    of the sample variance of 900 b values); dropping Σ k² (using the kernel's effective
+    sample count wrongly by 2×) is rejected."""
+    b, info = _h0_field(8)
+    m = b.size
+    ratio = np.var(b, ddof=1) / np.mean(info["se_spread"] ** 2)
+    lo, hi = sst.chi2.ppf([0.0005, 0.9995], m - 1) / (m - 1)
+    assert lo < ratio < hi, (ratio, lo, hi)
+    assert not (lo < 2 * ratio < hi)
 
 
 def test_shrinkage_keeps_significant_bias_and_drops_noise():
