@@ -200,6 +200,50 @@ def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
     return num.reshape(shp), var.reshape(shp), t.reshape(shp), out.reshape(shp)
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _prepare(x, y, v, al, u, bad, vsum):  # pragma: no cover - compiled
+    """Per row: u = α(y − x); counts of non-finite x, y, v, α and of negative v; Σ v."""
+    h, n = x.shape
+    for i in prange(h):
+        b0 = 0
+        b1 = 0
+        b2 = 0
+        b3 = 0
+        b4 = 0
+        s = 0.0
+        for j in range(n):
+            xv = x[i, j]
+            yv = y[i, j]
+            vv = v[i, j]
+            av = al[i, j]
+            b0 += not np.isfinite(xv)
+            b1 += not np.isfinite(yv)
+            b2 += not np.isfinite(vv)
+            b3 += vv < 0
+            b4 += not np.isfinite(av)
+            s += vv
+            u[i, j] = av * (yv - xv)
+        bad[i, 0] = b0
+        bad[i, 1] = b1
+        bad[i, 2] = b2
+        bad[i, 3] = b3
+        bad[i, 4] = b4
+        vsum[i] = s
+
+
+def prepare(x, y, v, alpha):
+    """``(u, bad, Σv)``: ``u = α(y − x)`` ``(H, W, C)``; ``bad`` = counts of non-finite ``x``,
+    ``y``, ``v``, negative ``v`` and non-finite ``α``; the sum of ``v`` (float64)."""
+    h, w, c = x.shape
+    dt = x.dtype
+    as2 = lambda a: np.ascontiguousarray(a, dtype=dt).reshape(h, w * c)   # noqa: E731
+    u = np.empty((h, w * c), dt)
+    bad = np.zeros((h, 5), np.int64)
+    vsum = np.zeros(h, np.float64)
+    _prepare(as2(x), as2(y), as2(v), as2(alpha), u, bad, vsum)
+    return u.reshape(h, w, c), bad.sum(axis=0), float(vsum.sum())
+
+
 def gate_sums(u, v, r, sigma_s):
     """``(num, var)`` of the module docstring for ``(H, W, C)`` arrays ``u`` and ``v``."""
     return _run(u, v, r, sigma_s)

@@ -65,7 +65,7 @@ def _image(name, a, dtype=np.float64):
     return arr
 
 
-def _like(name, a, shape, *, nonneg=False, allow_2d=False, dtype=np.float64):
+def _like(name, a, shape, *, nonneg=False, allow_2d=False, dtype=np.float64, check=True):
     arr = as_float_array(name, a, ndim=(2, 3) if allow_2d else 3, dtype=dtype)
     if allow_2d and arr.ndim == 2:
         if arr.shape != tuple(shape[:2]):
@@ -74,13 +74,14 @@ def _like(name, a, shape, *, nonneg=False, allow_2d=False, dtype=np.float64):
         arr = np.repeat(arr[..., None], shape[2], axis=2)
     if arr.shape != tuple(shape):
         raise InputError(f"`{name}` must have the shape of `x` {tuple(shape)}; got {arr.shape}.")
-    check_finite(name, arr)
-    if nonneg:
-        check_nonnegative(name, arr)
+    if check:
+        check_finite(name, arr)
+        if nonneg:
+            check_nonnegative(name, arr)
     return arr
 
 
-def _variance(mean_var, shape, dtype=np.float64):
+def _variance(mean_var, shape, dtype=np.float64, check=True):
     """σ² of ``x``: an (H, W, C) variance of the mean, or the diagonal of (H, W, C, C)."""
     v = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=dtype)
     if v.ndim == 4:
@@ -92,8 +93,9 @@ def _variance(mean_var, shape, dtype=np.float64):
     elif v.shape != tuple(shape):
         raise InputError(f"`mean_var` must be the variance of the mean with the shape of `x` "
                          f"{tuple(shape)}; got {v.shape}.")
-    check_finite("mean_var", v)
-    check_nonnegative("mean_var", v)
+    if check:
+        check_finite("mean_var", v)
+        check_nonnegative("mean_var", v)
     return v
 
 
@@ -346,8 +348,11 @@ def auto_sigma_s(mean_var) -> float:
     v = np.asarray(mean_var, dtype=np.float64)
     if v.ndim == 4:
         v = np.diagonal(v, axis1=-2, axis2=-1)
-    m = float(v.mean()) if v.size else 0.0
-    return max(_SIGMA_S_SCALE * min(np.sqrt(max(m, 0.0)), 1.0), _SIGMA_S_FLOOR)
+    return _auto_sigma_s_from_mean(float(v.mean()) if v.size else 0.0)
+
+
+def _auto_sigma_s_from_mean(m):
+    return max(_SIGMA_S_SCALE * min(float(np.sqrt(max(m, 0.0))), 1.0), _SIGMA_S_FLOOR)
 
 
 def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigma_s="auto",
@@ -428,19 +433,26 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     xx = as_float_array("x", x, ndim=3)
     if xx.dtype != np.float32:
         xx = xx.astype(np.float64)
-    check_finite("x", xx)
     dt = xx.dtype
     shape = xx.shape
-    yy = _like("y", y, shape, dtype=dt)
-    v = _variance(mean_var, shape, dtype=dt)
-    al = _like("alpha", alpha, shape, allow_2d=True, dtype=dt)
+    yy = _like("y", y, shape, dtype=dt, check=False)
+    v = _variance(mean_var, shape, dtype=dt, check=False)
+    al = _like("alpha", alpha, shape, allow_2d=True, dtype=dt, check=False)
+    # One parallel pass: u = α(y − x), finiteness of every input, signs and sum of Var[x].
+    u, bad, v_sum = _pk.prepare(xx, yy, v, al)
+    for name, arr, n_bad in (("x", xx, bad[0]), ("y", yy, bad[1]), ("mean_var", v, bad[2]),
+                             ("alpha", al, bad[4])):
+        if n_bad:
+            check_finite(name, arr)
+    if bad[3]:
+        check_nonnegative("mean_var", v)
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1 \
             or window % 2 == 0:
         raise InputError(f"`window` must be an odd positive integer; got {window!r}.")
     if isinstance(sigma_s, str):
         if sigma_s != "auto":
             raise InputError(f"`sigma_s` must be a number > 0 or 'auto'; got {sigma_s!r}.")
-        ss = auto_sigma_s(v)
+        ss = _auto_sigma_s_from_mean(v_sum / v.size if v.size else 0.0)
     else:
         ss = _number("sigma_s", sigma_s, lo=0.0, lo_open=True)
     cc = _number("c", c)
@@ -450,7 +462,6 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         raise InputError(f"`channels` must be 'shared' or 'separate'; got {channels!r}.")
     if cdf not in ("normal", "logistic"):
         raise InputError(f"`cdf` must be 'normal' or 'logistic'; got {cdf!r}.")
-    u = al * (yy - xx)
     with np.errstate(divide="ignore", invalid="ignore"):
         num, var, t, out = _pk.gate(u, v, al, int(window) // 2, ss, shared=(channels == "shared"),
                                     a=aa, c=cc, eps=ee, logistic=(cdf == "logistic"),
