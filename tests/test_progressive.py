@@ -208,6 +208,27 @@ def test_gate_kernel_matches_numpy_reference(shape, window, sigma_s, dtype):
                 assert np.allclose(p, q, rtol=10 * tol, atol=10 * tol)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_prepare_kernel_matches_numpy(dtype):
+    rng = np.random.default_rng(21)
+    shape = (13, 11, 3)
+    x, y, v, a = (rng.standard_normal(shape).astype(dtype) for _ in range(4))
+    x[0, 0, 0] = np.nan
+    y[1, 2, :] = np.inf
+    v[3, 3, 1] = -np.inf
+    a[5, 5, 2] = np.nan
+    u, bad, vsum = pk.prepare(x, y, v, a)
+    with np.errstate(invalid="ignore"):
+        ref_u = a * (y - x)
+    assert np.array_equal(np.isnan(u), np.isnan(ref_u))
+    ok = np.isfinite(ref_u)
+    assert np.allclose(u[ok], ref_u[ok], rtol=1e-6 if dtype == np.float32 else 1e-15)
+    counts = [(~np.isfinite(q)).sum() for q in (x, y, v)] + [(v < 0).sum(), (~np.isfinite(a)).sum()]
+    assert list(bad) == counts
+    vf = np.where(np.isfinite(v), v, 0).astype(np.float64)
+    assert np.isinf(vsum) or np.isclose(vsum, vf.sum())
+
+
 def _literal_gate(x, y, var, alpha, window, sigma_s, a, c, eps):
     """Eq. 12-18 pixel by pixel, as printed (one channel)."""
     h, w = x.shape
@@ -432,6 +453,15 @@ def test_bad_input_raises_input_error():
         pg.confidence_gate(x, x, v, np.ones((3, 3)))
     with pytest.raises(InputError, match="`x`"):
         pg.confidence_gate(np.ones((6, 7)), x, v, x)
+    bad = x.copy()
+    bad[2, 3, 1] = np.nan
+    for kwargs, name in ((dict(x=bad, y=x, mean_var=v, alpha=x), "`x`"),
+                         (dict(x=x, y=bad, mean_var=v, alpha=x), "`y`"),
+                         (dict(x=x, y=x, mean_var=bad, alpha=x), "`mean_var`"),
+                         (dict(x=x, y=x, mean_var=v, alpha=bad), "`alpha`"),
+                         (dict(x=x, y=x, mean_var=-v, alpha=x), "`mean_var` must be >= 0")):
+        with pytest.raises(InputError, match=name):
+            pg.confidence_gate(**kwargs)
     with pytest.raises(InputError, match="`stats`"):
         pg.progressive_denoise(x, denoisers.gaussian(1.0))
     stt = ToyRenderer("constant", width=6, height=7).render_uniform(4, seed=0)
