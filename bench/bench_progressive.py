@@ -115,12 +115,14 @@ def _reference(scene, width, height):
 def convergence(scenes, spps, seed=0):
     rows = []
     print("\n2. relMSE of the render, OIDN and OIDN + progressive (one render per row; "
-          "prog/raw <= 1.05 everywhere, prog < min(OIDN, raw) at >= 64 spp, prog <= 1.05 OIDN below)")
+          "prog/raw <= 1.05 everywhere, prog < min(OIDN, raw) at >= 64 spp, "
+          "prog <= 1.05 OIDN below)")
     for scene, (w, h) in scenes:
         r, ref, floor = _reference(scene, w, h)
         print(f"\n  {scene} {w}x{h}" + ("" if not floor else
               f"  (reference {REF_SPP} spp: its own expected relMSE {floor:.2e})"))
-        print(f"  {'spp':>5s} {'raw':>9s} {'OIDN':>9s} {'prog':>9s} {'shrink=0':>9s} {'no gate':>9s}"
+        print(f"  {'spp':>5s} {'raw':>9s} {'OIDN':>9s} {'prog':>9s} {'shrink=0':>9s} "
+              f"{'no gate':>9s}"
               f" {'prog/raw':>8s} {'prog/OIDN':>9s} {'OIDN/raw':>8s}  checks")
         for spp in spps:
             t0 = time.perf_counter()
@@ -142,7 +144,8 @@ def convergence(scenes, spps, seed=0):
                 checks.append("peer" if e["prog"] < min(e["oidn"], e["raw"]) else "PEER-FAIL")
             else:
                 checks.append("peer" if e["prog"] <= 1.05 * e["oidn"] else "PEER-FAIL")
-            print(f"  {spp:5d} {e['raw']:9.3e} {e['oidn']:9.3e} {e['prog']:9.3e} {e['shrink0']:9.3e}"
+            print(f"  {spp:5d} {e['raw']:9.3e} {e['oidn']:9.3e} {e['prog']:9.3e} "
+                  f"{e['shrink0']:9.3e}"
                   f" {e['nogate']:9.3e} {e['prog'] / e['raw']:8.3f} {e['prog'] / e['oidn']:9.3f}"
                   f" {e['oidn'] / e['raw']:8.3f}  {' '.join(checks)}"
                   f"   (render {t_render:.1f} s, progressive {t_prog:.2f} s)", flush=True)

@@ -17,7 +17,8 @@ with ``κ_pq = g(p_y − q_y) g(p_x − q_x)·norm``, ``g(d) = exp(−d²/(2σ_s
 maximum over each row segment, then over the rows), so each pixel costs ``O(r)`` work.
 
 Layout: an ``(H, W, C)`` image is seen as ``(H, W*C)`` rows; the horizontal pass strides
-by ``C``.  Parallel tasks are bands of output rows (see ``_BAND``).  Inner loops index slices from 0 so that LLVM can prove indices non-negative.
+by ``C``.  Parallel tasks are bands of output rows (see ``_BAND``).  Inner loops index
+slices from 0 so that LLVM can prove indices non-negative.
 """
 
 from __future__ import annotations
@@ -302,7 +303,8 @@ def gate_finish_numpy(num, var, alpha, *, shared, a, c, eps, logistic):
     from scipy.special import ndtr
 
     if shared:
-        t = num.sum(axis=2, keepdims=True) / (np.sqrt(np.clip(var.sum(axis=2, keepdims=True), 0, None)) + eps)
+        sd = np.sqrt(np.clip(var.sum(axis=2, keepdims=True), 0, None))
+        t = num.sum(axis=2, keepdims=True) / (sd + eps)
         t = np.broadcast_to(t, num.shape)
     else:
         t = num / (np.sqrt(np.clip(var, 0, None)) + eps)

@@ -299,7 +299,8 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     if tonemap is not None:
         _tm_name(tonemap)
     _exposure(exposure)
-    if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not np.isfinite(eps) or eps <= 0:
+    if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not np.isfinite(eps) \
+            or eps <= 0:
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
     if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
         raise InputError(f"`k` must be a positive integer; got {k!r}.")

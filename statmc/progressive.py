@@ -501,7 +501,8 @@ def bind_denoiser(denoiser, stats: PixelStats, **options):
             # OIDN takes albedo in [0, 1] and normals in [-1, 1]; renderers' AOVs can
             # exceed them (emitters, interpolated normals), so clip rather than refuse.
             alb = None if stats.albedo is None else np.clip(stats.albedo, 0.0, 1.0)
-            nrm = None if (stats.normal is None or alb is None) else np.clip(stats.normal, -1.0, 1.0)
+            nrm = stats.normal
+            nrm = None if (nrm is None or alb is None) else np.clip(nrm, -1.0, 1.0)
             return _d.oidn(albedo=alb, normal=nrm, **options)
         if name == "gem":
             n = np.maximum(stats.n, 2)

@@ -34,7 +34,8 @@ def _chi2_var_pvalues(samples, var):
 def test_tonemap_derivative_matches_central_differences(name, exposure):
     x = np.concatenate([np.linspace(0.001, 0.5, 40), np.linspace(0.5, 20, 40)])
     h = 1e-6
-    fd = (da.tonemap(x + h, name, exposure=exposure) - da.tonemap(x - h, name, exposure=exposure)) / (2 * h)
+    fd = (da.tonemap(x + h, name, exposure=exposure)
+          - da.tonemap(x - h, name, exposure=exposure)) / (2 * h)
     an = da.tonemap_derivative(x, name, exposure=exposure)
     clamped = da.tonemap(x + h, name, exposure=exposure) >= 1.0
     assert np.allclose(an[~clamped], fd[~clamped], rtol=1e-5, atol=1e-8)
@@ -46,7 +47,8 @@ def test_tonemap_values():
     assert float(da.tonemap(np.array(1.0), "reinhard")) == 0.5
     y = da.tonemap(np.linspace(0, 100, 1001), "aces")
     assert y[0] == 0 and y[-1] == 1.0 and np.all(np.diff(y) >= 0)
-    assert float(da.tonemap(np.array(0.5), "aces", exposure=2.0)) == float(da.tonemap(np.array(1.0), "aces"))
+    assert (float(da.tonemap(np.array(0.5), "aces", exposure=2.0))
+            == float(da.tonemap(np.array(1.0), "aces")))
 
 
 # =========================================================================== variance of mixes
@@ -133,7 +135,8 @@ def test_progressive_output_uses_the_mix_variance_and_error():
     var_y = kernel_variance(f.kernels(stt.mean.shape), stt.mean_var)
     assert np.allclose(info["output"], z)
     assert np.allclose(info["numerator"],
-                       da.mix_variance(p["alpha_gated"], stt.mean_var, var_y, cov_xy=p["divergence"]))
+                       da.mix_variance(p["alpha_gated"], stt.mean_var, var_y,
+                                       cov_xy=p["divergence"]))
     _, info2 = da.denoising_aware_density(stt, f, output="progressive", method="exact", rng=5,
                                           covariance=False, extra_output=True)
     assert np.allclose(info2["numerator"], da.mix_variance(p["alpha_gated"], stt.mean_var, var_y))
@@ -163,8 +166,8 @@ def test_counts_hit_the_budget_exactly_and_are_reproducible():
         c = da.denoising_aware_map(stt, "gaussian", budget, rng=1)
         assert c.dtype == np.int64 and c.shape == stt.n.shape and int(c.sum()) == budget
         assert c.min() >= 0
-    a = da.denoising_aware_map(stt, "gaussian", 5000, rng=np.random.default_rng(8), variant="mc-sure")
-    b = da.denoising_aware_map(stt, "gaussian", 5000, rng=np.random.default_rng(8), variant="mc-sure")
+    a, b = (da.denoising_aware_map(stt, "gaussian", 5000, rng=np.random.default_rng(8),
+                                   variant="mc-sure") for _ in range(2))
     assert np.array_equal(a, b)
 
 

@@ -52,7 +52,8 @@ def test_eq9_minimises_eq8_linear_denoiser_exact_moments():
     assert ((alpha > 0.05) & (alpha < 0.95)).sum() > 20     # interior optima are tested
     idx = rng.choice(alpha.size, 150, replace=False)
     for i, j, c in zip(*np.unravel_index(idx, shape)):
-        a_num = _bounded_min(lambda a: float(pg.mix_error(a, s2[i, j, c], mse_y[i, j, c], D[i, j, c])))
+        a_num = _bounded_min(
+            lambda a: float(pg.mix_error(a, s2[i, j, c], mse_y[i, j, c], D[i, j, c])))
         assert abs(alpha[i, j, c] - a_num) < 1e-6
     # Eq. 10: β = 1 − α wherever α is interior (the unclipped identity)
     inner = (alpha > 0) & (alpha < 1)
@@ -100,7 +101,8 @@ def test_eq8_concave_branch_picks_the_better_end():
     alpha = pg.mixing_weights(s2, s2, s2, sure, D, **RAW)
     grid = np.linspace(0, 1, 1001)
     for i in range(3):
-        best = grid[np.argmin([pg.mix_error(a, s2[0, i, 0], sure[0, i, 0], D[0, i, 0]) for a in grid])]
+        losses = [pg.mix_error(a, s2[0, i, 0], sure[0, i, 0], D[0, i, 0]) for a in grid]
+        best = grid[np.argmin(losses)]
         assert alpha[0, i, 0] == best
 
 
@@ -261,7 +263,8 @@ def test_gate_matches_literal_equations_12_to_18():
     alpha = rng.random(shape)
     got, info = pg.confidence_gate(x, y, var, alpha, window=5, sigma_s=1.5, channels="separate",
                                    extra_output=True)
-    ref, ts = _literal_gate(x[..., 0], y[..., 0], var[..., 0], alpha[..., 0], 5, 1.5, 2.0, 4.2, 1e-6)
+    ref, ts = _literal_gate(x[..., 0], y[..., 0], var[..., 0], alpha[..., 0], 5, 1.5,
+                            2.0, 4.2, 1e-6)
     assert np.allclose(info["t"][..., 0], ts, rtol=1e-9)
     assert np.allclose(got[..., 0], ref, rtol=1e-9, atol=1e-15)
 
