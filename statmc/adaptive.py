@@ -38,10 +38,16 @@ def _expected_error_sampler(stats: PixelStats, budget: int, rng, **options) -> n
     return expected_error_sampler(stats, budget, rng, **options)
 
 
+def _denoising_aware_sampler(stats: PixelStats, budget: int, rng, **options) -> np.ndarray:
+    from .da_sampling import sampler
+    return sampler(stats, budget, rng, **options)
+
+
 SAMPLERS: dict[str, Callable] = {
     "uniform": _uniform_sampler,
     "gem": _gem_sampler,
     "expected-error": _expected_error_sampler,
+    "denoising-aware": _denoising_aware_sampler,
 }
 
 
@@ -85,7 +91,9 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     spp : float
         Average samples per pixel over all passes; the total is ``round(spp × H × W)``.
     sampler : str or callable
-        ``"uniform"``, ``"gem"`` or any ``sampler(stats, budget, rng) -> counts``.
+        ``"uniform"``, ``"gem"`` (Rousselle 2011), ``"expected-error"`` (Salehi 2022
+        Lemma A.1 with a fixed Gaussian), ``"denoising-aware"`` (Firmino 2023; option
+        ``denoiser="oidn"|"gem"|"gaussian"``) or any ``sampler(stats, budget, rng) -> counts``.
     initial_spp : int
         Samples per pixel of the first, uniform pass (4 in Rousselle 2011 §6).
     iterations : int

@@ -138,10 +138,12 @@ def cmd_render(args) -> int:
     inputs = [p for p in (args.sample_map, args.reference) if p]
     t0 = time.perf_counter()
     stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
-                                seed=args.seed, progress=not args.quiet, gamma=args.gamma)
+                                seed=args.seed, progress=not args.quiet, gamma=args.gamma,
+                                denoiser=args.denoiser)
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
-    image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma)
+    image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
+                                    denoiser=args.denoiser, seed=args.seed)
     seconds_rec = time.perf_counter() - t0
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
@@ -201,14 +203,9 @@ def cmd_reconstruct(args) -> int:
 
 def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0):
     """A denoiser bound to ``stats``' features (OIDN) or variance (GEM)."""
-    from . import denoisers
-    if name == "oidn":
-        return denoisers.oidn(albedo=stats.albedo, normal=stats.normal if stats.albedo is not None else None)
-    if name == "gem":
-        return denoisers.gem(stats.mean_var.astype(np.float32), gamma=gamma, n=stats.n)
-    if name == "gaussian":
-        return denoisers.gaussian(sigma)
-    raise InputError(f"unknown denoiser {name!r}; expected oidn, gem or gaussian.")
+    from .progressive import bind_denoiser
+    opts = {"gamma": gamma} if name == "gem" else {"sigma": sigma} if name == "gaussian" else {}
+    return bind_denoiser(name, stats, **opts)
 
 
 def cmd_denoise(args) -> int:
@@ -233,6 +230,20 @@ def cmd_denoise(args) -> int:
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
     write_exr(args.out, result, protect=[args.input])
     write_png_preview(os.path.splitext(args.out)[0] + ".png", out, protect=[args.input])
+    if not args.quiet:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_progressive(args) -> int:
+    from .exr import read_exr, write_exr, write_png_preview
+    from .pipeline import reconstruct_stats
+    stats = read_exr(args.input, spp=args.spp)
+    image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
+                                    seed=args.seed)
+    write_exr(args.out, image, protect=[args.input],
+              extra={f"progressive.{k}": v for k, v in maps.items()})
+    write_png_preview(os.path.splitext(args.out)[0] + ".png", image, protect=[args.input])
     if not args.quiet:
         print(f"wrote {args.out}")
     return 0
@@ -336,11 +347,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
     r.add_argument("--reference", help="reference EXR: metrics go into report.json")
-    r.add_argument("--sampler", choices=["uniform", "gem", "expected-error"], default="uniform",
+    r.add_argument("--sampler", choices=["uniform", "gem", "expected-error", "denoising-aware"],
+                   default="uniform",
                    help="uniform counts, or adaptive sampling (4 spp, then 8 iterations): GEM "
-                        "(Rousselle 2011) or minimum expected error of a fixed Gaussian denoiser "
-                        "(Salehi 2022 Lemma A.1)")
-    r.add_argument("--reconstruct", choices=["none", "gem", "gaussian"], default="none",
+                        "(Rousselle 2011), minimum expected error of a fixed Gaussian denoiser "
+                        "(Salehi 2022 Lemma A.1), or denoising-aware (Firmino 2023) for --denoiser")
+    r.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
+                   help="denoiser of --sampler denoising-aware and --reconstruct progressive")
+    r.add_argument("--reconstruct", choices=["none", "gem", "gaussian", "oidn", "progressive"],
+                   default="none",
                    help="reconstruction written beside the raw render")
     r.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
     r.add_argument("-q", "--quiet", action="store_true")
@@ -388,6 +403,17 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_denoise)
+
+    pg = sub.add_parser("progressive", help="progressive denoising (Firmino 2022): the render mixed "
+                                            "with a denoiser's output by a Student-t gated α")
+    pg.add_argument("input", help="statistics EXR (R,G,B, Variance.*, SampleCount or --spp)")
+    pg.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn")
+    pg.add_argument("--out", required=True)
+    pg.add_argument("--spp", type=int)
+    pg.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
+    pg.add_argument("--seed", type=int, default=0, help="seed of MC-SURE's random probes")
+    pg.add_argument("-q", "--quiet", action="store_true")
+    pg.set_defaults(func=cmd_progressive)
 
     c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 Eq. 8)")
     c.add_argument("y", help="statistics EXR of the independent render")

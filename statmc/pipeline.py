@@ -10,16 +10,18 @@ from .stats import PixelStats
 
 __all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
 
-RECONSTRUCTIONS = ("none", "gem", "gaussian")
+RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive")
 
 
 def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2,
-                      sigma: float = 1.0):
+                      sigma: float = 1.0, denoiser: str = "oidn", seed: int = 0):
     """Reconstruct an image from pixel statistics.
 
+    ``method``: ``"none"`` (the pixel means), ``"gem"`` (Rousselle 2011), ``"gaussian"``
+    (σ = ``sigma``), ``"oidn"``, or ``"progressive"`` (Firmino 2022 with ``denoiser``).
     Returns ``(image (H, W, C) float32, maps)`` where ``maps`` holds per-pixel diagnostics
     (for GEM: ``"scale"``, the selected scale index, and ``"sigma"``, its Gaussian σ with
-    0 for the pixel filter).
+    0 for the pixel filter; for progressive: ``"alpha"``, the gated mixing weight).
     """
     if method == "none":
         return stats.mean.astype(np.float32), {}
@@ -30,15 +32,24 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         scales = np.asarray(info["scales"])
         sigma = np.asarray(info["sigmas"], np.float32)[scales]
         return img, {"scale": scales.astype(np.float32), "sigma": sigma}
-    if method == "gaussian":
-        from .denoisers import gaussian
-        return gaussian(sigma)(stats.mean.astype(np.float32)), {}
+    if method in ("gaussian", "oidn"):
+        from .progressive import bind_denoiser
+        f = bind_denoiser(method, stats, **({"sigma": sigma} if method == "gaussian" else {}))
+        return np.asarray(f(stats.mean.astype(np.float32)), np.float32), {}
+    if method == "progressive":
+        # Firmino 2022: x + α'(y − x) with the classical α and the Student-t gate.
+        from .progressive import bind_denoiser, progressive_denoise
+        opts = {"gamma": gamma} if denoiser == "gem" else {"sigma": sigma} if denoiser == "gaussian" else {}
+        img, info = progressive_denoise(stats, bind_denoiser(denoiser, stats, **opts), rng=seed,
+                                        extra_output=True)
+        alpha = np.asarray(info["alpha_gated"], np.float32)  # (H, W, C): report its channel mean
+        return img.astype(np.float32), {"alpha": alpha.mean(axis=-1)}
     raise InputError(f"unknown reconstruction {method!r}; expected one of {RECONSTRUCTIONS}.")
 
 
 def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None, seed: int = 0,
                         progress: bool = False, gamma: float = 0.2, initial_spp: int = 4,
-                        iterations: int = 8) -> PixelStats:
+                        iterations: int = 8, denoiser: str = "oidn") -> PixelStats:
     """One render: fixed ``counts`` (uniform or a user map) or an adaptive ``sampler``."""
     if sampler == "uniform":
         if counts is None:
@@ -48,6 +59,8 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
         raise InputError(f"a sample map fixes the counts; it cannot be combined with --sampler {sampler}.")
     from .adaptive import adaptive_render
     opts = {"gamma": gamma} if sampler == "gem" else {}
+    if sampler == "denoising-aware":
+        opts = {"denoiser": denoiser}
     res = adaptive_render(renderer, spp, sampler=sampler, initial_spp=initial_spp,
                           iterations=iterations, seed=seed, progress=progress, **opts)
     res.stats.meta.update(seconds_sampler=res.seconds_sampler, seconds_render=res.seconds_render,

@@ -202,3 +202,24 @@ def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
     assert code == 2 and "same size" in err and not (tmp_path / "x.exr").exists()
     code, _, err = run_cli("combine", toy_render, z, "--weights", "uniform", "--out", z)
     assert code == 2 and "overwrite" in err
+
+
+def test_progressive_command_and_denoising_aware_render(tmp_path, toy_render, toy_ref):
+    from statmc.exr import read_channels, read_exr, read_image
+    from statmc.metrics import mse
+    out = tmp_path / "p.exr"
+    code, _, err = run_cli("progressive", toy_render, "--denoiser", "oidn", "--out", out, "-q")
+    assert code == 0, err
+    ref = read_image(toy_ref)
+    assert mse(read_image(out), ref) < mse(read_exr(toy_render).mean, ref)
+    alpha = read_channels(out)["progressive.alpha"]
+    assert alpha.min() >= 0 and alpha.max() <= 1
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--sampler",
+                           "denoising-aware", "--denoiser", "gaussian", "--reconstruct", "progressive",
+                           "--out", tmp_path / "da", "--reference", toy_ref, "-q")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "da" / "report.json").read_text())
+    assert rep["total_samples"] == 8 * 24 * 16 and rep["spp_max"] > 8
+    assert rep["metrics_reconstruction"]["mse"] < rep["metrics"]["mse"]
+    code, _, err = run_cli("progressive", tmp_path / "nothing.exr", "--out", tmp_path / "q.exr")
+    assert code == 2 and "nothing.exr" in err and not (tmp_path / "q.exr").exists()
