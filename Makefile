@@ -7,7 +7,7 @@ export PYTHONUNBUFFERED := 1
 # numba caches compiled kernels beside the sources; keep them out of the tree.
 export NUMBA_CACHE_DIR := $(CURDIR)/.cache/numba
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench bench-quality clean
 
 setup: $(STAMP)
 
@@ -24,9 +24,19 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
-# Speed targets, each measured against a peer in the same run (see bench/*.py).
+# Speed targets, each measured against a peer in the same run (a few minutes).
+SPEED_BENCHES := bench_render bench_gem bench_analytic bench_sure bench_combine
 bench: $(STAMP)
-	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+	@set -e; for b in $(SPEED_BENCHES); do echo "== bench/$$b.py"; $(PY) bench/$$b.py; done
+	@echo "== bench/bench_progressive.py --only speed"; $(PY) bench/bench_progressive.py --only speed
+
+# Quality at equal budget against cached high-spp references (long on a fresh machine:
+# the references are rendered once into out/cache/).
+bench-quality: $(STAMP)
+	$(PY) bench/bench_quality_gem.py
+	$(PY) bench/bench_quality_expected_error.py
+	$(PY) bench/bench_progressive.py --only convergence
+	$(PY) bench/bench_progressive.py --only sampling
 
 clean:
 	rm -rf $(VENV) .cache out build *.egg-info
