@@ -19,10 +19,10 @@ compare them.
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 
-import numba
 import numpy as np
+
+from ._threads import serial_below
 from numba import njit, prange
 
 GROUP = 3  # channels handled per pass of the convolution kernels
@@ -31,18 +31,9 @@ GROUP = 3  # channels handled per pass of the convolution kernels
 SERIAL_WORK = 1 << 18
 
 
-@contextmanager
 def _threads_for(work):
-    """Run small problems on the calling thread only (restores the thread count after)."""
-    if work >= SERIAL_WORK:
-        yield
-        return
-    before = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
+    """Run small problems on the calling thread only (see :func:`statmc._threads.serial_below`)."""
+    return serial_below(work, SERIAL_WORK)
 
 
 # =========================================================================== NumPy reference

@@ -33,10 +33,10 @@ loop (measured on 1920x68 rows, one thread: 0.19 s -> 0.106 s of CPU time):
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 
-import numba
 import numpy as np
+
+from ._threads import serial_below
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
@@ -48,18 +48,9 @@ SERIAL_WORK = 1 << 22
 GROUP = 3  # channels per kernel pass (kept in scalar registers)
 
 
-@contextmanager
 def _threads_for(work):
-    """Run small problems on the calling thread only (restores the thread count after)."""
-    if work >= SERIAL_WORK:
-        yield
-        return
-    before = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
+    """Run small problems on the calling thread only (see :func:`statmc._threads.serial_below`)."""
+    return serial_below(work, SERIAL_WORK)
 
 
 @intrinsic

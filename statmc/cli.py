@@ -110,6 +110,16 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
+def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None:
+    """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
+    beside it, never onto one of ``inputs``."""
+    from .exr import write_exr, write_png_preview
+    write_exr(path, data, protect=inputs, extra=extra)
+    write_png_preview(os.path.splitext(path)[0] + ".png", image, protect=inputs)
+    if not quiet:
+        print(f"wrote {path}")
+
+
 # ---------------------------------------------------------------------------- commands
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
@@ -189,15 +199,12 @@ def cmd_render(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .exr import read_exr, write_exr, write_png_preview
+    from .exr import read_exr
     from .pipeline import reconstruct_stats
     stats = read_exr(args.input, spp=args.spp)
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma)
-    write_exr(args.out, image, protect=[args.input],
-              extra={f"{args.method}.{k}": v for k, v in maps.items()})
-    write_png_preview(os.path.splitext(args.out)[0] + ".png", image, protect=[args.input])
-    if not args.quiet:
-        print(f"wrote {args.out}")
+    _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
+                  extra={f"{args.method}.{k}": v for k, v in maps.items()})
     return 0
 
 
@@ -209,7 +216,7 @@ def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0):
 
 
 def cmd_denoise(args) -> int:
-    from .exr import read_exr, write_exr, write_png_preview
+    from .exr import read_exr
     from .stats import PixelStats
     stats = read_exr(args.input, spp=args.spp)
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma)
@@ -228,30 +235,24 @@ def cmd_denoise(args) -> int:
         n = stats.n.astype(np.float64)[..., None]
         result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
-    write_exr(args.out, result, protect=[args.input])
-    write_png_preview(os.path.splitext(args.out)[0] + ".png", out, protect=[args.input])
-    if not args.quiet:
-        print(f"wrote {args.out}")
+    _write_result(args.out, result, out, inputs=[args.input], quiet=args.quiet)
     return 0
 
 
 def cmd_progressive(args) -> int:
-    from .exr import read_exr, write_exr, write_png_preview
+    from .exr import read_exr
     from .pipeline import reconstruct_stats
     stats = read_exr(args.input, spp=args.spp)
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed)
-    write_exr(args.out, image, protect=[args.input],
-              extra={f"progressive.{k}": v for k, v in maps.items()})
-    write_png_preview(os.path.splitext(args.out)[0] + ".png", image, protect=[args.input])
-    if not args.quiet:
-        print(f"wrote {args.out}")
+    _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
+                  extra={f"progressive.{k}": v for k, v in maps.items()})
     return 0
 
 
 def cmd_combine(args) -> int:
     from . import combine as cb
-    from .exr import read_exr, read_image, write_exr, write_png_preview
+    from .exr import read_exr, read_image
     y_stats = read_exr(args.y, spp=args.spp)
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
@@ -273,10 +274,7 @@ def cmd_combine(args) -> int:
         weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32),
                                          z_stats.mean_var.astype(np.float32), args.size)
     out = cb.combine(y, z, weights)
-    write_exr(args.out, out, protect=[args.y, args.z])
-    write_png_preview(os.path.splitext(args.out)[0] + ".png", out, protect=[args.y, args.z])
-    if not args.quiet:
-        print(f"wrote {args.out}")
+    _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet)
     return 0
 
 

@@ -532,7 +532,6 @@ class MitsubaRenderer:
     def _render_features(self, seed: int, spp: int):
         """Albedo and shading normal, ``spp`` samples per pixel, averaged (box filter)."""
         mi, dr = self._mi, self._dr
-        shape = (self.height, self.width, 3)
         if not self._jit:
             img = np.asarray(mi.render(self._scene, integrator=self._aov_integrator, spp=spp,
                                        seed=_chunk_seed(seed, _SALT_FEATURES, 0)), np.float32)

@@ -16,7 +16,6 @@ from statmc import denoisers as D
 from statmc import sure as S
 from statmc.analytic import apply_kernels
 from statmc.errors import InputError
-from statmc.stats import PixelStats
 from statmc.toy import ToyRenderer
 
 ALPHA = 1e-3
