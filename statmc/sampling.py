@@ -50,16 +50,16 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     rng = np.random.default_rng(rng)
     rest = budget - base_total
     total = d.sum()
-    target = (np.full(d.shape, rest / d.size) if total <= 0 else d * (rest / total)).ravel()
+    # d / total first: rest / total overflows for subnormal totals
+    target = (np.full(d.shape, rest / d.size) if total <= 0 else (d / total) * rest).ravel()
     base = np.floor(target)
     frac = target - base
     r = rest - int(base.sum())
-    extra = np.zeros(d.size, np.int64)
+    counts = base.astype(np.int64) + int(min_count)
     if r > 0:
         cum = np.cumsum(frac)
         cum *= r / cum[-1]  # guard against rounding drift: exactly r points fit
         points = rng.uniform() + np.arange(r)
         hit = np.searchsorted(cum, points, side="right")
-        np.add.at(extra, np.minimum(hit, d.size - 1), 1)
-    counts = base.astype(np.int64) + extra + int(min_count)
+        counts += np.bincount(np.minimum(hit, d.size - 1), minlength=d.size)
     return counts.reshape(d.shape)

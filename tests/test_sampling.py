@@ -58,3 +58,9 @@ def test_bad_density(d, match):
 def test_negative_budget():
     with pytest.raises(InputError, match="budget"):
         counts_from_density(np.ones((2, 2)), -1)
+
+
+def test_subnormal_density_does_not_overflow():
+    # regression: rest / total overflowed to inf for a subnormal total (found by hypothesis)
+    c = counts_from_density(np.array([[2.22507386e-313, 0.0]]), 1, rng=0)
+    assert c.tolist() == [[1, 0]]
