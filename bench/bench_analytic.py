@@ -20,13 +20,7 @@ from statmc.analytic import (apply_kernels, expected_kernel_loss, optimal_sample
                              optimal_sample_map)
 
 
-def best_of(fn, repeat):
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
+from _timing import best_of  # noqa: E402
 
 
 def bench_speed(h=1080, w=1920, c=3, k=7):

@@ -46,13 +46,7 @@ def _load():
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
-def _timed(fn, repeat=3):
-    best = (float("inf"), 0.0)
-    for _ in range(repeat):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
-    return best
+from _timing import best_wall_cpu as _timed  # noqa: E402
 
 
 # =========================================================================== 1. speed

@@ -19,7 +19,6 @@ Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_sure.py``
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 
@@ -28,13 +27,7 @@ from statmc import sure as S
 from statmc.toy import ToyRenderer
 
 
-def best_of(fn, repeat):
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
+from _timing import best_of  # noqa: E402
 
 
 def quadrant(size=64):

@@ -1,0 +1,25 @@
+"""Timing helpers shared by the benchmark scripts (run as ``python bench/NAME.py``)."""
+
+import time
+
+
+def best_of(fn, repeat):
+    """Shortest wall time of ``repeat`` calls, and the last call's result."""
+    times = []
+    out = None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def best_wall_cpu(fn, repeat=3):
+    """``(wall, cpu)`` seconds of the fastest of ``repeat`` calls (CPU time shows how many
+    cores a run really had on a shared machine)."""
+    best = (float("inf"), 0.0)
+    for _ in range(repeat):
+        c0, t0 = time.process_time(), time.perf_counter()
+        fn()
+        best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
+    return best
