@@ -3,7 +3,10 @@
 An initial uniform pass, then ``iterations`` passes whose per-pixel counts a *sampler*
 chooses from the statistics so far, merged exactly into one :class:`PixelStats`.  The
 budget of ``spp × H × W`` samples is met exactly (Rousselle et al. 2011, §6: 4 initial
-samples per pixel, then 8 iterations of ``M(n − 4)/8`` samples each).
+samples per pixel, then 8 iterations of ``M(n − 4)/8`` samples each).  The alternative
+``schedule="doubling"`` doubles the total budget at every pass instead, ``B_t = B_0 2^t``
+(Salehi et al. 2022, §5.2: ``B_t = 2^(t+3)`` spp from an initial 8), so that one run
+yields the whole error-against-budget curve.
 
 A sampler is a callable ``sampler(stats, budget, rng) -> counts`` returning an ``(H, W)``
 integer map that sums to ``budget``.  Named samplers live in :data:`SAMPLERS`.
@@ -20,7 +23,7 @@ import numpy as np
 from .errors import InputError
 from .stats import PixelStats
 
-__all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler"]
+__all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler", "pass_budgets"]
 
 
 def _uniform_sampler(stats: PixelStats, budget: int, rng) -> np.ndarray:
@@ -80,9 +83,42 @@ class AdaptiveResult:
         return self.stats.n
 
 
+SCHEDULES = ("even", "doubling")
+
+
+def pass_budgets(total: int, first: int, *, schedule: str = "even",
+                 iterations: int | None = None) -> list[int]:
+    """Sample totals of the adaptive passes after an initial pass of ``first`` samples.
+
+    ``"even"``: ``total − first`` split over ``iterations`` passes (8 by default; sizes
+    differ by at most one sample; Rousselle et al. 2011, §6).  ``"doubling"``: each pass
+    brings the cumulative budget to twice its value, ``B_t = first · 2^t`` (Salehi et al.
+    2022, §5.2), the last pass capped at ``total``; ``iterations``, if given, must equal
+    the number of such passes.
+    """
+    if schedule not in SCHEDULES:
+        raise InputError(f"`schedule` must be one of {SCHEDULES}; got {schedule!r}.")
+    rest = total - first
+    if schedule == "even":
+        it = 8 if iterations is None else iterations
+        return [rest // it + (1 if k < rest % it else 0) for k in range(it)] if it else []
+    if first <= 0:
+        raise InputError(f"the doubling schedule needs an initial pass of > 0 samples; got {first}.")
+    out, done = [], first
+    while done < total:
+        step = min(done, total - done)
+        out.append(step)
+        done += step
+    if iterations is not None and iterations != len(out):
+        raise InputError(f"`iterations`={iterations} does not match the doubling schedule, "
+                         f"which needs {len(out)} passes from {first} to {total} samples; "
+                         "leave `iterations` unset.")
+    return out
+
+
 def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4,
-                    iterations: int = 8, seed: int = 0, progress: bool = False,
-                    callback=None, **sampler_options) -> AdaptiveResult:
+                    iterations: int | None = None, schedule: str = "even", seed: int = 0,
+                    progress: bool = False, callback=None, **sampler_options) -> AdaptiveResult:
     """Render with an average of ``spp`` samples per pixel, placed adaptively.
 
     Parameters
@@ -96,8 +132,12 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
         ``denoiser="oidn"|"gem"|"gaussian"``) or any ``sampler(stats, budget, rng) -> counts``.
     initial_spp : int
         Samples per pixel of the first, uniform pass (4 in Rousselle 2011 §6).
-    iterations : int
-        Adaptive passes after it (8 in Rousselle 2011 §6); their budget is split evenly.
+    iterations : int, optional
+        Adaptive passes after it (8 in Rousselle 2011 §6, the default for ``"even"``).
+    schedule : {"even", "doubling"}
+        ``"even"`` splits the budget after the initial pass evenly over ``iterations``
+        passes; ``"doubling"`` doubles the cumulative budget at every pass (Salehi 2022
+        §5.2), the last pass capped at ``spp`` — see :func:`pass_budgets`.
     callback : callable, optional
         Called as ``callback(k, stats, counts)`` after every pass.
 
@@ -107,8 +147,17 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     """
     h, w = renderer.height, renderer.width
     total = int(round(spp * h * w))
-    if initial_spp < 0 or iterations < 0:
+    if initial_spp < 0 or (iterations is not None and iterations < 0):
         raise InputError(f"`initial_spp` and `iterations` must be >= 0; got {initial_spp}, {iterations}.")
+    if schedule not in SCHEDULES:
+        raise InputError(f"`schedule` must be one of {SCHEDULES}; got {schedule!r}.")
+    given = iterations
+    if iterations is None:
+        iterations = 8
+    if schedule == "doubling" and iterations:  # a flag here; the schedule sets the count
+        iterations = 1 if total != initial_spp * h * w else 0
+        if not iterations and given:
+            pass_budgets(total, total, schedule=schedule, iterations=given)  # raises: 0 passes
     if iterations and initial_spp * h * w > total:
         raise InputError(f"`spp`={spp} is below the initial pass of {initial_spp} spp; "
                          "lower `initial_spp` or give more samples.")
@@ -118,8 +167,9 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     pick = get_sampler(sampler, **sampler_options)
     rng = np.random.default_rng(seed)
     rest = total - first * h * w
-    budgets = [rest // iterations + (1 if k < rest % iterations else 0)
-               for k in range(iterations)] if iterations else []
+    budgets = pass_budgets(total, first * h * w, schedule=schedule,
+                           iterations=given if schedule == "doubling" else iterations) \
+        if iterations else []
     t_render = t_sampler = 0.0
     counts = np.full((h, w), first, np.int64)
     if not iterations and rest:  # uniform remainder spread unbiasedly

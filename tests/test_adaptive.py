@@ -76,3 +76,32 @@ def test_pictures_are_written_atomically(tmp_path):
         write_map_png(tmp_path / "bad.png", np.full((2, 2), np.nan))
     assert not (tmp_path / "bad.png").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".statmc-")]
+
+
+def test_doubling_schedule_doubles_the_budget(toy):
+    """Salehi 2022 §5.2: B_t = 8·2^t spp; the callback sees every cumulative budget."""
+    hw = toy.height * toy.width
+    seen = []
+    res = adaptive_render(toy, 64, sampler="gem", initial_spp=8, schedule="doubling", seed=2,
+                          callback=lambda k, st, c: seen.append(int(st.n.sum()) // hw))
+    assert seen == [8, 16, 32, 64] and len(res.counts) == 4
+    np.testing.assert_array_equal(sum(res.counts), res.stats.n)
+    assert res.counts[-1].sum() == 32 * hw and res.stats.n.min() >= 8
+    # a budget that is no power-of-two multiple: the last pass is capped
+    res = adaptive_render(toy, 20, sampler="uniform", initial_spp=8, schedule="doubling")
+    assert [int(c.sum()) // hw for c in res.counts] == [8, 8, 4] and res.stats.n.sum() == 20 * hw
+    # the uniform sampler on doubling passes is the uniform render
+    assert np.all(res.stats.n == 20)
+    # even schedule unchanged
+    assert [len(adaptive_render(toy, 8, sampler="uniform", schedule="even").counts)] == [9]
+
+
+def test_doubling_schedule_errors(toy):
+    with pytest.raises(InputError, match="schedule"):
+        adaptive_render(toy, 16, sampler="gem", schedule="triple")
+    with pytest.raises(InputError, match="doubling schedule, which needs 2 passes"):
+        adaptive_render(toy, 32, sampler="gem", initial_spp=8, schedule="doubling", iterations=3)
+    with pytest.raises(InputError, match="initial pass"):
+        adaptive_render(toy, 4, sampler="gem", initial_spp=8, schedule="doubling")
+    with pytest.raises(InputError, match="needs 0 passes"):
+        adaptive_render(toy, 8, sampler="gem", initial_spp=8, schedule="doubling", iterations=2)
