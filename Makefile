@@ -37,6 +37,7 @@ bench-quality: $(STAMP)
 	$(PY) bench/bench_quality_expected_error.py
 	$(PY) bench/bench_progressive.py --only convergence
 	$(PY) bench/bench_progressive.py --only sampling
+	$(PY) bench/bench_quality_table.py
 
 clean:
 	rm -rf $(VENV) .cache out build *.egg-info
