@@ -91,7 +91,7 @@ def combiner_name():
     for name in COMBINER_NAMES:
         if name in known:
             return name
-    return None
+    return next((name for name in known if "comb" in name), None)
 
 
 def reconstruction(method, combiner):
