@@ -187,11 +187,23 @@ def sep_filter(x, C, v, Cv, w, sy, sx, out_x, out_v):  # pragma: no cover - comp
         y0 = b * _ROW_BLOCK
         y1 = min(H, y0 + _ROW_BLOCK)
         acc = np.empty(_STRIP, x.dtype)
-        T = np.zeros((y1 - y0, Lx + 2 * r * C), x.dtype)
+        T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
         _block(x, C, w, sy, sxx, y0, y1, out_x, T, acc)
         if do_var:
-            Tv = np.zeros((y1 - y0, Lv + 2 * r * Cv), x.dtype)
+            Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
             _block(v, Cv, w2, sy2, sxv, y0, y1, out_v, Tv, acc)
+
+
+@njit(nogil=True, cache=True)
+def _padded_rows(n, L, pad, dtype):  # pragma: no cover - compiled
+    """(n, L + 2 pad) work rows whose pads are 0; the middle is left for the caller to
+    fill (zeroing the whole buffer per block cost as much as a small filter)."""
+    T = np.empty((n, L + 2 * pad), dtype)
+    for i in range(n):
+        for j in range(pad):
+            T[i, j] = 0
+            T[i, L + pad + j] = 0
+    return T
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -400,13 +412,16 @@ def split_by_scale(amount, scales, parts):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def estimate_mse_debiased(vals, vars_, dvar, C, frac, scales, out):  # pragma: no cover
+def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, out):  # pragma: no cover
     """Estimated MSE of the selected scale with noise-corrected bias terms.
 
     ``Var[s] + max(0, Σ_{k<s} frac_k ((v_{k+1} − v_k)² − Var(v_{k+1} − v_k)))``: each
     squared difference of §5 of Rousselle et al. 2011 has expectation
     ``bias-difference² + Var(difference)``; subtracting the known variance leaves an
-    unbiased estimate of the bias part, clamped at 0 after accumulation.
+    unbiased estimate of the bias part, clamped at 0 after accumulation.  The variance of
+    the difference is formed here from the bank variances and the pair covariances
+    ``cov`` (K−1, H, L): ``max(Var_k + Var_{k+1} − 2 Cov_k, 0)`` (as
+    :func:`difference_variance`), only for the pairs a pixel needs.
     """
     K, H, Lx = vals.shape
     W = Lx // C
@@ -420,5 +435,276 @@ def estimate_mse_debiased(vals, vars_, dvar, C, frac, scales, out):  # pragma: n
                 acc = 0.0
                 for k in range(s):
                     d = vals[k + 1, y, j] - vals[k, y, j]
-                    acc += frac[k] * (d * d - dvar[k, y, j])
+                    dv = max(vars_[k, y, j] + vars_[k + 1, y, j] - 2 * cov[k, y, j], 0.0)
+                    acc += frac[k] * (d * d - dv)
                 o[j] = vars_[s, y, j] + max(acc, 0.0)
+
+
+# ---------------------------------------------------------------------------------------
+# Sampler kernels (gem.sampling_map).  No fastmath where results must equal the NumPy
+# reference bit for bit (greedy allocation, integer rounding, variance prior).
+# ---------------------------------------------------------------------------------------
+
+@njit(parallel=True, cache=True, nogil=True)
+def prior_scale(v, nb, C, s2):  # pragma: no cover - compiled
+    """``s2 = v · n`` (sample variance from the variance of the mean) on (H, W*C) rows."""
+    H, L = v.shape
+    W = L // C
+    for y in prange(H):
+        vr = v[y]
+        nr = nb[y]
+        o = s2[y]
+        for i in range(W):
+            a = nr[i]
+            for c in range(C):
+                o[i * C + c] = vr[i * C + c] * a
+    return s2
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def prior_shrink(s2, pooled, nb, C, k, one, out):  # pragma: no cover - compiled
+    """``out = ((n − 1) s2 + k pooled) / ((n − 1 + k) n)`` on (H, W*C) rows.
+
+    The posterior-mean sample variance under a pooled scaled-inverse-χ² prior, divided by
+    ``n`` (see ``gem._variance_prior``); ``k`` and ``one`` carry the array dtype.
+    """
+    H, L = s2.shape
+    W = L // C
+    for y in prange(H):
+        sr = s2[y]
+        pr = pooled[y]
+        nr = nb[y]
+        o = out[y]
+        for i in range(W):
+            a = nr[i]
+            nm1 = a - one
+            den = (nm1 + k) * a
+            for c in range(C):
+                j = i * C + c
+                o[j] = (nm1 * sr[j] + k * pr[j]) / den
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def scale_rows(v, C, fy, fx, out):  # pragma: no cover - compiled
+    """``out[y, x, c] = v[y, x, c] · fy[y] · fx[x]`` on (H, W*C) rows."""
+    H, L = v.shape
+    W = L // C
+    for y in prange(H):
+        vr = v[y]
+        o = out[y]
+        a = fy[y]
+        for i in range(W):
+            b = fx[i]
+            for c in range(C):
+                o[i * C + c] = (vr[i * C + c] * a) * b
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def difference_variance(vars_, cov, out):  # pragma: no cover - compiled
+    """``out[k] = max(vars_[k] + vars_[k+1] − 2 cov[k], 0)`` on (K, H, L) stacks."""
+    Km1, H, L = cov.shape
+    for y in prange(H):
+        for k in range(Km1):
+            a = vars_[k, y]
+            b = vars_[k + 1, y]
+            cv = cov[k, y]
+            o = out[k, y]
+            for j in range(L):
+                o[j] = max(a[j] + b[j] - 2 * cv[j], 0.0)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def spread_parts(amount, scales, fy, fx, density, parts):  # pragma: no cover - compiled
+    """Split ``amount`` by selected scale and pre-scale it for the spreading filters.
+
+    ``density = amount`` where scale 0 (the pixel filter) is selected, else 0;
+    ``parts[s − 1] = (amount · fy[s − 1, y]) · fx[s − 1, x]`` where scale ``s >= 1`` is
+    selected, else 0 (``fy``, ``fx`` the border renormalisation factors of scale ``s``:
+    the spread is the adjoint of the renormalised filter).  Returns the amount per scale.
+    """
+    Km1, H, W = parts.shape
+    tot = np.zeros((H, Km1 + 1))
+    for y in prange(H):
+        for k in range(Km1):
+            row = parts[k, y]
+            for i in range(W):
+                row[i] = 0.0
+        a = amount[y]
+        s = scales[y]
+        d = density[y]
+        for i in range(W):
+            si = s[i]
+            ai = a[i]
+            tot[y, si] += ai
+            if si == 0:
+                d[i] = ai
+            else:
+                d[i] = 0.0
+                parts[si - 1, y, i] = (ai * fy[si - 1, y]) * fx[si - 1, i]
+    return tot.sum(axis=0)
+
+
+_DIGIT = 16                      # radix selection: bits per level
+_TOP = np.uint64(64 - _DIGIT)    # shift of the first (most significant) digit
+
+
+@njit(cache=True, nogil=True)
+def _rank_key(keys, hist, q):  # pragma: no cover - compiled
+    """Key at 0-based rank ``q`` in descending order, and the number of keys above it.
+
+    Radix selection, 16 bits per level from the top: ``hist`` (the counts of the keys'
+    first digit, filled by the caller during its own pass) finds the bucket holding rank
+    ``q``; only that bucket's keys go on to the next digit.  The keys are the bit
+    patterns of non-negative float64 values, whose order as unsigned integers is their
+    order as numbers.
+    """
+    nb = 1 << _DIGIT
+    mask = np.uint64(nb - 1)
+    cand = keys
+    above = 0
+    for level in range(4):
+        sh = np.uint64(64 - _DIGIT * (level + 1))
+        if level > 0:
+            hist[:] = 0
+            for i in range(cand.size):
+                hist[(cand[i] >> sh) & mask] += 1
+        b = nb - 1
+        acc = 0
+        while acc + hist[b] <= q:
+            acc += hist[b]
+            b -= 1
+        q -= acc
+        above += acc
+        nxt = np.empty(hist[b], np.uint64)
+        j = 0
+        bb = np.uint64(b)
+        for i in range(cand.size):
+            if (cand[i] >> sh) & mask == bb:
+                nxt[j] = cand[i]
+                j += 1
+        cand = nxt
+        if cand.size <= 64:
+            break
+    srt = np.sort(cand)[::-1]
+    key = srt[q]
+    j = 0
+    while srt[j] > key:
+        j += 1
+    return key, above + j
+
+
+@njit(cache=True, nogil=True)
+def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hist):  # pragma: no cover
+    """Greedy allocation of ``budget`` samples in ``rounds`` rounds (§5 of Rousselle 2011).
+
+    Fast version of ``gem._allocate_rounds`` (the NumPy reference) on flat float64
+    arrays.  Each round hands out its share: ``full = m // size`` batches to everyone
+    when the share exceeds one batch per pixel, then one ``batch`` to each of the ``m``
+    pixels of largest gain ``rel·batch/(n + batch)`` and the remainder to the next one;
+    equal gains are ranked by pixel index (lower first).  If no pixel can gain, the
+    share is spread uniformly.  After a round, a pixel that received ``a`` samples has
+    ``rel ← rel·n/(n + a)``, ``n ← n + a``.  ``amount`` (out) gets the total per pixel.
+
+    ``r``, ``nn``, ``g`` (size,) float64 and ``hist`` (2**16,) int64 are work space.
+    One pass per round assigns the samples, updates the gains and counts the first
+    radix digit of the new gains for the next round's selection (:func:`_rank_key`).
+    """
+    size = rel.size
+    fb = float(batch)
+    keys = g.view(np.uint64)
+    hist[:] = 0
+    npos = 0
+    for i in range(size):
+        r[i] = rel[i]
+        nn[i] = n[i]
+        amount[i] = 0.0
+        x = r[i] * fb / (nn[i] + fb)
+        if x > 0.0:
+            npos += 1
+        else:
+            x = 0.0                     # -0.0 -> 0.0: keys order like the values
+        g[i] = x
+        hist[keys[i] >> _TOP] += 1
+    tkey = np.empty(1, np.uint64)
+    tval = tkey.view(np.float64)
+    for it in range(rounds):
+        part = budget // rounds + (1 if it < budget % rounds else 0)
+        if part == 0:
+            continue
+        t = np.inf                      # nobody above: only the base amount
+        need = 0
+        rem = 0
+        if npos == 0:                   # nothing to gain anywhere: uniform
+            base = part / size
+        else:
+            m = part // batch
+            rem = part - m * batch
+            full = m // size
+            m -= full * size
+            base = float(full * batch)
+            if m > 0 or rem > 0:
+                q = m if rem > 0 else m - 1            # last rank that gets samples
+                tkey[0], above = _rank_key(keys, hist, q)
+                t = tval[0]
+                need = q + 1 - above                   # ties at t taken, by index
+        taken = 0
+        hist[:] = 0
+        npos = 0
+        for i in range(size):
+            gi = g[i]
+            ai = base
+            if gi > t:
+                ai += fb
+            elif gi == t and taken < need:
+                taken += 1
+                ai += float(rem) if (rem > 0 and taken == need) else fb
+            if ai != 0.0:
+                amount[i] += ai
+                r[i] *= nn[i] / (nn[i] + ai)
+                nn[i] += ai
+                x = r[i] * fb / (nn[i] + fb)
+                gi = x if x > 0.0 else 0.0
+                g[i] = gi
+            if gi > 0.0:
+                npos += 1
+            hist[keys[i] >> _TOP] += 1
+
+
+@njit(cache=True, nogil=True)
+def round_targets(d, total, rest, min_count, counts, cum):  # pragma: no cover - compiled
+    """First pass of systematic rounding (``statmc.sampling.counts_from_density``).
+
+    Targets ``t = (d/total)·rest`` (``rest/size`` each if ``total <= 0``); ``counts =
+    floor(t) + min_count``, ``cum`` the running sum of the fractional parts.  Returns the
+    number of samples still to place, ``rest − Σ floor(t)``.
+    """
+    size = d.size
+    acc = 0.0
+    placed = 0
+    uni = rest / size
+    for i in range(size):
+        t = uni if total <= 0 else (d[i] / total) * rest
+        b = np.floor(t)
+        acc += t - b
+        cum[i] = acc
+        placed += np.int64(b)
+        counts[i] = np.int64(b) + min_count
+    return rest - placed
+
+
+@njit(cache=True, nogil=True)
+def place_points(cum, r, u, counts):  # pragma: no cover - compiled
+    """Second pass: ``r`` points ``u, u + 1, …`` on the cumulative fractional parts
+    scaled to total ``r``; pixel ``i`` gets the points in ``[cum_{i−1}, cum_i)`` (the
+    last pixel any beyond the end, from rounding)."""
+    size = cum.size
+    s = r / cum[size - 1]
+    j = 0
+    p = u
+    for i in range(size):
+        c = cum[i] * s
+        while j < r and p < c:
+            counts[i] += 1
+            j += 1
+            p = u + j
+    counts[size - 1] += r - j

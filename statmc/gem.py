@@ -301,17 +301,14 @@ def _estimate_mse_reference(values, variances, r2, scales):
 
 
 def _product_taps(sa, sb, truncate):
-    """1-D taps ``g_a(k)·g_b(k)`` on a common centred support (odd length)."""
+    """1-D taps ``g_a(k)·g_b(k)``, ``σ_a < σ_b``, on the support of the narrower kernel
+    (outside it the product is 0)."""
     ga, gb = gaussian_kernel_1d(sa, truncate=truncate), gaussian_kernel_1d(sb, truncate=truncate)
-    r = max(len(ga), len(gb)) // 2
-    out = np.zeros(2 * r + 1)
-    out[r - len(ga) // 2:r + len(ga) // 2 + 1] += ga
-    prod = np.zeros(2 * r + 1)
-    prod[r - len(gb) // 2:r + len(gb) // 2 + 1] = gb
-    return out * prod, ga, gb
+    r = min(len(ga), len(gb)) // 2
+    return ga[len(ga) // 2 - r:len(ga) // 2 + r + 1] * gb[len(gb) // 2 - r:len(gb) // 2 + r + 1], ga, gb
 
 
-def _pair_covariance_rows(vr, cv, sa, sb, truncate):
+def _pair_covariance_rows(vr, cv, sa, sb, truncate, out=None):
     """``Cov(f_a, f_b)(p) = Σ_q w_a(p, q) w_b(p, q) mean_var(q)`` on (H, W·C) rows.
 
     The product of two border-renormalised separable Gaussians is separable, with taps
@@ -320,28 +317,35 @@ def _pair_covariance_rows(vr, cv, sa, sb, truncate):
     h, L = vr.shape
     wd = L // cv
     dt = vr.dtype
+    if out is None:
+        out = np.empty_like(vr)
     if sa == 0.0:  # pixel filter: w_a(p, q) = [p = q], so Cov = w_b(p, p) mean_var(p)
         gb = gaussian_kernel_1d(sb, truncate=truncate)
         g0 = gb[len(gb) // 2]
-        fy = g0 * border_scale(h, gb)
-        fx = np.repeat(g0 * border_scale(wd, gb), cv)
-        return (vr * fy[:, None].astype(dt)) * fx[None, :].astype(dt)
+        _k.scale_rows(vr, cv, (g0 * border_scale(h, gb)).astype(dt),
+                      (g0 * border_scale(wd, gb)).astype(dt), out)
+        return out
     taps, ga, gb = _product_taps(sa, sb, truncate)
     sy = border_scale(h, ga) * border_scale(h, gb)
     sx = border_scale(wd, ga) * border_scale(wd, gb)
-    out = np.empty_like(vr)
     _k.sep_filter(vr, cv, np.empty((h, 0), dt), 1, taps.astype(dt), sy.astype(dt),
                   sx.astype(dt), out, np.empty((h, 0), dt))
     return out
 
 
+def _pair_covariances(vr, cv, sig, truncate):
+    """(K−1, H, L) covariances of consecutive bank scales, :func:`_pair_covariance_rows`."""
+    cov = np.empty((len(sig) - 1,) + vr.shape, vr.dtype)
+    for k in range(len(sig) - 1):
+        _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate, out=cov[k])
+    return cov
+
+
 def _difference_variance_rows(vr, cv, bank_vars, sig, truncate):
     """``Var(v_{k+1} − v_k) = Var_{k+1} + Var_k − 2 Cov_k``, clamped at 0, (K−1, H, L)."""
-    out = np.empty((len(sig) - 1,) + vr.shape, vr.dtype)
-    for k in range(len(sig) - 1):
-        cov = _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate)
-        np.maximum(bank_vars[k] + bank_vars[k + 1] - 2 * cov, 0, out=out[k])
-    return out
+    cov = _pair_covariances(vr, cv, sig, truncate)
+    _k.difference_variance(bank_vars, cov, cov)     # in place: row k read before written
+    return cov
 
 
 def difference_variance(mean_var, sigmas=ADAPTIVE_SIGMAS, *,
@@ -371,12 +375,12 @@ def difference_variance(mean_var, sigmas=ADAPTIVE_SIGMAS, *,
     check_nonnegative("mean_var", v)
     sig = _check_sigmas(sigmas)
     vr, cv = _rows(v)
-    bank = []
-    for s in sig:
+    bank = np.empty((len(sig),) + vr.shape, vr.dtype)
+    for k, s in enumerate(sig):
         if s == 0.0:
-            bank.append(vr)
+            bank[k] = vr
         else:
-            bank.append(_run(vr, cv, vr, cv, s, truncate)[1])
+            _run(vr, cv, vr, cv, s, truncate, out_v=bank[k])
     out = _difference_variance_rows(vr, cv, bank, sig, truncate)
     return out.reshape((len(sig) - 1,) + v.shape)
 
@@ -402,7 +406,20 @@ def _variance_prior(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
     sample variance and ``s̄²`` its Gaussian-pooled neighbourhood average: the posterior
     mean of σ² under a scaled-inverse-χ² prior of ``k`` pseudo-degrees of freedom centred
     on the neighbourhood (conjugate for Gaussian samples).  Returns ``s̃² / n``.
+    Two elementwise kernels around one filter pass; NumPy reference
+    :func:`_variance_prior_reference`.
     """
+    dt = v.dtype.type
+    nb = np.ascontiguousarray(nn, dtype=v.dtype)
+    x, c = _rows(v)
+    s2 = _k.prior_scale(x, nb, c, np.empty_like(x))
+    pooled = _run(s2, c, None, 0, sigma, truncate)[0]
+    _k.prior_shrink(s2, pooled, nb, c, dt(weight), dt(1), s2)   # in place, elementwise
+    return s2.reshape(v.shape)
+
+
+def _variance_prior_reference(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
+    """NumPy reference of :func:`_variance_prior`."""
     nb = nn.reshape(nn.shape + (1,) * (v.ndim - 2)).astype(v.dtype)
     s2 = v * nb
     x, c = _rows(s2)
@@ -462,8 +479,8 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     if keep_bank:
         est = np.empty((h, w * c), dt)
         if debias:
-            dvar = _difference_variance_rows(vr, cv, vars_, sig, truncate)
-            _k.estimate_mse_debiased(vals, vars_, dvar, c, fr, scales, est)
+            cov = _pair_covariances(vr, cv, sig, truncate)
+            _k.estimate_mse_debiased(vals, vars_, cov, c, fr, scales, est)
         else:
             _k.estimate_mse(vals, vars_, c, fr, scales, est)
         shape = (nsc,) + m.shape
@@ -578,7 +595,14 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
 
 
 def _allocate(gain, budget, batch):
-    """Samples per pixel before spreading: the best pixels get ``batch`` each (§5)."""
+    """Samples per pixel before spreading: the best pixels get ``batch`` each (§5).
+
+    NumPy reference of one round of :func:`statmc._filter_kernels.allocate_rounds`.
+    ``budget // batch`` batches go to the pixels of largest gain (everyone gets
+    ``budget // (batch·size)`` batches first if there are more batches than pixels) and
+    the remainder ``budget % batch`` to the next pixel in that order.  Equal gains are
+    ordered by pixel index (lower first), so the result is deterministic.
+    """
     g = gain.ravel()
     size = g.size
     amount = np.zeros(size)
@@ -591,11 +615,16 @@ def _allocate(gain, budget, batch):
     rounds, m = divmod(m, size)
     amount += rounds * batch
     if m or rem:
-        kth = min(m, size - 1)
-        order = np.argpartition(-g, kth)
-        amount[order[:m]] += batch
+        q = m if rem else m - 1                        # last rank that gets samples
+        t = np.partition(g, size - 1 - q)[size - 1 - q]   # value at rank q (descending)
+        above = np.flatnonzero(g > t)
+        ties = np.flatnonzero(g == t)[:q + 1 - above.size]
+        amount[above] += batch
         if rem:
-            amount[order[kth]] += rem
+            amount[ties[:-1]] += batch
+            amount[ties[-1]] += rem
+        else:
+            amount[ties] += batch
     return amount.reshape(gain.shape)
 
 
@@ -606,6 +635,7 @@ def _allocate_rounds(rel, n, budget, batch, rounds):
     received ``a`` samples then has ``rel ← rel·n/(n + a)`` and ``n ← n + a`` (§5 of [1]:
     relative MSE is inversely proportional to the samples), so its next gain is
     ``rel·batch/(n + batch)`` at its new count.  ``rounds = 1`` is the paper's single step.
+    NumPy reference of :func:`_allocate_rounds_fast`.
     """
     if rounds == 1:
         return _allocate(rel * batch / (n + batch), budget, batch)
@@ -619,6 +649,52 @@ def _allocate_rounds(rel, n, budget, batch, rounds):
         r *= nn / (nn + a)
         nn += a
     return amount
+
+
+def _allocate_rounds_fast(rel, n, budget, batch, rounds):
+    """:func:`_allocate_rounds` in one compiled kernel (radix selection per round)."""
+    amount = np.empty(rel.shape)
+    work = np.empty((3, rel.size))                    # r, n, gain (NumPy: huge pages)
+    _k.allocate_rounds(np.ascontiguousarray(rel, np.float64).ravel(),
+                       np.ascontiguousarray(n, np.float64).ravel(), int(budget), int(batch),
+                       int(rounds), amount.reshape(-1), work[0], work[1], work[2],
+                       np.empty(1 << _k._DIGIT, np.int64))
+    return amount
+
+
+def _spread(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
+    """Spread each pixel's amount over the support of its selected filter (§5 of [1]).
+
+    ``density(q) = Σ_p w_{s(p)}(p, q) amount(p)``: per scale, the adjoint of the
+    border-renormalised filter (:func:`statmc.filters.gaussian_spread`) of the amounts of
+    the pixels that selected it.  ``sig[0]`` must be 0 (the pixel filter).
+    """
+    h, w = amount.shape
+    fy = np.ones((len(sig) - 1, h))
+    fx = np.ones((len(sig) - 1, w))
+    for s, sigma in enumerate(sig[1:]):
+        wk = gaussian_kernel_1d(sigma, truncate=truncate)
+        fy[s], fx[s] = border_scale(h, wk), border_scale(w, wk)
+    density = np.empty((h, w))
+    parts = np.empty((len(sig) - 1, h, w))
+    per_scale = _k.spread_parts(amount, scales, fy, fx, density, parts)
+    out = np.empty((h, w))
+    for s, sigma in enumerate(sig[1:]):
+        if per_scale[s + 1] > 0:
+            density += _run(parts[s], 1, None, 0, sigma, truncate, normalize=False, out_x=out)[0]
+    return density
+
+
+def _spread_reference(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
+    """NumPy reference of :func:`_spread` (dense weight matrices)."""
+    h, w = amount.shape
+    density = np.where(scales == 0, amount, 0.0)
+    for s, sigma in enumerate(sig):
+        if s == 0:
+            continue
+        a = np.where(scales == s, amount, 0.0)
+        density += _weight_matrix(h, sigma, truncate).T @ a @ _weight_matrix(w, sigma, truncate)
+    return density
 
 
 def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA,
@@ -724,8 +800,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     batch = int(batch)
     sig = list(ADAPTIVE_SIGMAS)
     if var_prior > 0:
-        v = _variance_prior(v, nn, var_prior, var_prior_sigma)
-        vsum = np.ascontiguousarray(v.sum(axis=2) if v.ndim == 3 else v)
+        v = _variance_prior(v, nn, var_prior, var_prior_sigma)   # (vsum unused below)
     sel = _core(m, v, vsum, nn, gamma, sig, False, True, DEFAULT_TRUNCATE, keep_bank=True,
                 debias=debias)
     c = 1 if m.ndim == 2 else m.shape[2]
@@ -733,18 +808,9 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     gain = np.empty((h, w))
     _k.relative_gain(sel["image"].reshape(h, w * c), sel["est_mse"].reshape(h, w * c), c,
                      eps, nn, float(batch), rel, gain)
-    amount = _allocate_rounds(rel, nn, budget, batch, rounds)
+    amount = _allocate_rounds_fast(rel, nn, budget, batch, rounds)
     scales = sel["scales"]
-    parts = np.empty((len(sig), h, w))
-    _k.split_by_scale(amount, scales, parts)
-    density = parts[0].copy() if sig[0] == 0.0 else np.zeros((h, w))
-    for s, sigma in enumerate(sig):
-        if sigma == 0.0 or not parts[s].any():
-            continue
-        wk = gaussian_kernel_1d(sigma)
-        parts[s] *= border_scale(h, wk)[:, None]   # spread = adjoint of the renormalised
-        parts[s] *= border_scale(w, wk)[None, :]   # filter (gaussian_spread), fused here
-        density += _run(parts[s], 1, None, 0, sigma, DEFAULT_TRUNCATE, normalize=False)[0]
+    density = _spread(amount, scales, sig)
     counts = counts_from_density(np.maximum(density, 0.0), budget, rng=rng)
     if extra_output:
         return counts, {"density": density, "gain": gain, "rel_mse": rel, "scales": scales,

@@ -47,8 +47,25 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
         raise InputError(f"`budget` and `min_count` must be >= 0; got {budget} and {min_count}.")
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
-    rng = np.random.default_rng(rng)
-    rest = budget - base_total
+    return _systematic_round(d, budget - base_total, int(min_count), np.random.default_rng(rng))
+
+
+def _systematic_round(d, rest, min_count, rng):
+    """Checked inputs -> counts: two compiled sweeps (``_filter_kernels.round_targets``,
+    ``place_points``); NumPy reference :func:`_systematic_round_reference`."""
+    from ._filter_kernels import place_points, round_targets
+    flat = np.ascontiguousarray(d).ravel()
+    counts = np.empty(flat.size, np.int64)
+    cum = np.empty(flat.size)
+    # d.sum() in NumPy (pairwise), exactly as in the reference
+    r = int(round_targets(flat, float(flat.sum()), int(rest), int(min_count), counts, cum))
+    if r > 0:
+        place_points(cum, r, float(rng.uniform()), counts)
+    return counts.reshape(d.shape)
+
+
+def _systematic_round_reference(d, rest, min_count, rng):
+    """NumPy reference of :func:`_systematic_round`."""
     total = d.sum()
     # d / total first: rest / total overflows for subnormal totals
     target = (np.full(d.shape, rest / d.size) if total <= 0 else (d / total) * rest).ravel()

@@ -482,3 +482,77 @@ def test_many_small_rounds_approach_the_optimal_allocation():
     many = loss(gem._allocate_rounds(rel, n, budget, 1, 64))
     assert best <= many < one
     assert many < 1.02 * best
+
+
+# --------------------------------------------- sampler kernels vs NumPy (docs/gem.md §7)
+def test_allocate_breaks_ties_by_pixel_index():
+    gain = np.array([[0.5, 0.2, 0.5], [0.2, 0.5, 0.1]])
+    # three pixels tie at 0.5: two batches go to the first two of them in index order
+    np.testing.assert_array_equal(gem._allocate(gain, 8, 4), [[4, 0, 4], [0, 0, 0]])
+    # a remainder goes to the next pixel in (gain, index) order
+    np.testing.assert_array_equal(gem._allocate(gain, 13, 4), [[4, 0, 4], [0, 4, 0]]
+                                  + np.array([[0, 1, 0], [0, 0, 0]]))
+    np.testing.assert_array_equal(gem._allocate_rounds_fast(gain, np.full((2, 3), 4.0), 13, 4, 1),
+                                  gem._allocate(gain * 4 / 8, 13, 4))
+
+
+@pytest.mark.parametrize("rounds", [1, 2, 3, 4, 7])
+def test_greedy_rounds_kernel_equals_numpy_reference(rounds):
+    """The compiled greedy allocation equals `_allocate_rounds` exactly: continuous
+    gains, heavy ties (quantised gains), zero gains, more batches than pixels,
+    remainders, a zero budget, and the uniform fallback."""
+    rng = np.random.default_rng(30 + rounds)
+    for trial in range(12):
+        h, w = rng.integers(1, 40, 2)
+        if trial % 3 == 0:
+            rel = rng.lognormal(-2, 2, (h, w))
+        elif trial % 3 == 1:
+            rel = rng.integers(0, 4, (h, w)) * 0.25        # ties and zeros
+        else:
+            rel = np.where(rng.random((h, w)) < 0.5, 0.0, rng.uniform(size=(h, w)))
+        if trial == 11:
+            rel[:] = 0.0                                    # nothing to gain: uniform
+        n = rng.integers(2, 20, (h, w)).astype(float)
+        budget = int(rng.choice([0, 1, 7, h * w, 3 * h * w + 5, 40 * h * w + 3]))
+        batch = int(rng.integers(1, 9))
+        ref = gem._allocate_rounds(rel, n, budget, batch, rounds)
+        got = gem._allocate_rounds_fast(rel, n, budget, batch, rounds)
+        np.testing.assert_array_equal(got, ref, err_msg=f"trial {trial} budget {budget} batch {batch}")
+        assert got.sum() == pytest.approx(budget)
+
+
+def test_rank_key_selects_the_descending_order_statistic():
+    from statmc import _filter_kernels as K
+    rng = np.random.default_rng(36)
+    for g in (rng.lognormal(0, 3, 5000), np.repeat(rng.uniform(size=50), 100),
+              np.r_[np.zeros(300), rng.uniform(size=10)], np.full(1000, 0.25)):
+        keys = np.ascontiguousarray(g).view(np.uint64)
+        desc = np.sort(g)[::-1]
+        for q in (0, 1, g.size // 3, g.size - 1):
+            hist = np.bincount((keys >> np.uint64(48)).astype(np.int64), minlength=1 << 16)
+            key, above = K._rank_key(keys, hist, q)
+            t = np.array([key], np.uint64).view(np.float64)[0]
+            assert t == desc[q] and above == np.sum(g > t)
+
+
+def test_spread_kernel_equals_dense_reference():
+    rng = np.random.default_rng(37)
+    for h, w in ((23, 31), (5, 60), (1, 9)):
+        amount = np.where(rng.random((h, w)) < 0.3, rng.integers(1, 9, (h, w)), 0).astype(float)
+        scales = rng.integers(0, len(F.ADAPTIVE_SIGMAS), (h, w))
+        got = gem._spread(amount, scales, list(F.ADAPTIVE_SIGMAS))
+        ref = gem._spread_reference(amount, scales, list(F.ADAPTIVE_SIGMAS))
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+        assert got.sum() == pytest.approx(amount.sum(), rel=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_variance_prior_kernel_equals_numpy_reference(dtype):
+    rng = np.random.default_rng(38)
+    for shape in ((14, 17, 3), (9, 12)):
+        v = rng.uniform(0, 1, shape).astype(dtype)
+        nn = rng.integers(2, 30, shape[:2]).astype(float)
+        got = gem._variance_prior(v, nn, 2.0, 1.0)
+        ref = gem._variance_prior_reference(v, nn, 2.0, 1.0)
+        assert got.dtype == dtype and got.shape == v.shape
+        np.testing.assert_array_equal(got, ref)     # same float operations, same order

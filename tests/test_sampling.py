@@ -64,3 +64,26 @@ def test_subnormal_density_does_not_overflow():
     # regression: rest / total overflowed to inf for a subnormal total (found by hypothesis)
     c = counts_from_density(np.array([[2.22507386e-313, 0.0]]), 1, rng=0)
     assert c.tolist() == [[1, 0]]
+
+
+@settings(max_examples=60, deadline=None)
+@given(d=arrays(np.float64, st.tuples(st.integers(1, 12), st.integers(1, 12)),
+                elements=st.floats(0, 1e6, allow_nan=False)),
+       budget=st.integers(0, 5000), min_count=st.integers(0, 3), seed=st.integers(0, 2**31))
+def test_compiled_rounding_equals_numpy_reference(d, budget, min_count, seed):
+    from statmc.sampling import _systematic_round, _systematic_round_reference
+    rest = budget + min_count * d.size              # min_count always fits
+    got = _systematic_round(d, rest - min_count * d.size, min_count, np.random.default_rng(seed))
+    ref = _systematic_round_reference(d, rest - min_count * d.size, min_count,
+                                      np.random.default_rng(seed))
+    np.testing.assert_array_equal(got, ref)
+
+
+def test_compiled_rounding_equals_reference_on_a_large_map():
+    from statmc.sampling import _systematic_round, _systematic_round_reference
+    rng = np.random.default_rng(5)
+    d = rng.lognormal(0, 2, (300, 400)) * (rng.random((300, 400)) < 0.7)
+    for budget in (1, 12345, 7 * d.size + 3):
+        np.testing.assert_array_equal(_systematic_round(d, budget, 0, np.random.default_rng(1)),
+                                      _systematic_round_reference(d, budget, 0,
+                                                                  np.random.default_rng(1)))
