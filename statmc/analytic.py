@@ -45,7 +45,7 @@ __all__ = [
     "apply_kernels",
     "kernel_bias_variance", "expected_kernel_loss", "optimal_sample_map",
     "optimal_sample_counts", "pooled_sample_variance", "expected_error_sampler",
-    "POOL_SIGMA",
+    "POOL_SIGMA", "WEIGHT_SIGMA", "scale_kernels", "gem_kernels", "PilotKernelSampler",
 ]
 
 #: Values accepted by ``sample_future(dist=...)``.
@@ -373,6 +373,114 @@ def apply_kernels(kernels, image):
     _ak.apply_numba(K, np.ascontiguousarray(stack, dtype=np.float64), out)
     out = {2: out[0, ..., 0], 3: out[0], 4: out}[img.ndim]
     return out.astype(out_dtype, copy=False)
+
+
+def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
+    """Per-pixel kernels of a per-pixel choice among border-renormalised Gaussians.
+
+    Parameters
+    ----------
+    scales : (H, W) int ndarray
+        Index into ``sigmas`` of the filter each pixel uses (the ``scales`` entry of
+        ``statmc.gem.reconstruct(..., extra_output=True)``'s dict).
+    sigmas : sequence of float
+        Standard deviations (pixels) of the bank; 0 is the pixel filter (the ``sigmas``
+        entry of the same dict, e.g. :data:`statmc.filters.ADAPTIVE_SIGMAS`).
+    truncate : float, optional
+        Cut-off in standard deviations (default :data:`statmc.filters.DEFAULT_TRUNCATE`,
+        the one GEM uses).
+    dtype : float32 or float64
+        Of the result; float32 halves the memory.
+
+    Returns
+    -------
+    kernels : (H, W, k, k) ndarray
+        ``K[y, x] = g_s ⊗ g_s / (N_y(y) N_x(x))`` with ``s = scales[y, x]``, the
+        separable taps of :func:`statmc.filters.gaussian_kernel_1d` and the border
+        renormalisation of :func:`statmc.filters.gaussian_filter` (taps outside the image
+        are 0), zero-padded to the largest *selected* scale's size ``k``.  So
+        ``apply_kernels(K, x)`` is the bank's filtered value at each pixel's scale —
+        GEM's reconstruction (Rousselle et al. 2011, §4 and §6) for the selection given.
+        Memory ``H·W·k²`` entries: ``k = 49`` for σ = 8 (the adaptive bank), 97 for
+        σ = 16 (the final bank).
+
+    Notes
+    -----
+    Held fixed, the selection makes GEM a linear kernel denoiser to which Lemma A.1 of
+    [1]_ applies exactly; re-selected from the noisy data it reacts to the new samples
+    and does not.
+
+    Examples
+    --------
+    >>> k = scale_kernels(np.array([[0, 1], [1, 0]]), (0.0, 1.0))
+    >>> k.shape, bool(np.allclose(k.sum(axis=(2, 3)), 1.0))
+    ((2, 2, 7, 7), True)
+    """
+    from .filters import DEFAULT_TRUNCATE, border_scale, gaussian_kernel_1d
+    sc = np.asarray(scales)
+    if sc.ndim != 2 or not np.issubdtype(sc.dtype, np.integer):
+        raise InputError(f"`scales` must be an (H, W) integer map of scale indices; got "
+                         f"shape {sc.shape}, dtype {sc.dtype}.")
+    try:
+        sig = [float(v) for v in np.asarray(sigmas, dtype=np.float64).ravel()]
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`sigmas` must be a sequence of standard deviations >= 0; got {sigmas!r}.") from exc
+    if not sig or any(not np.isfinite(v) or v < 0 for v in sig):
+        raise InputError(f"`sigmas` must be a non-empty sequence of finite numbers >= 0; got {sigmas!r}.")
+    if sc.size and (sc.min() < 0 or sc.max() >= len(sig)):
+        raise InputError(f"`scales` must lie in [0, {len(sig) - 1}] (indices into `sigmas`); "
+                         f"got [{sc.min()}, {sc.max()}].")
+    if np.dtype(dtype) not in (np.float32, np.float64):
+        raise InputError(f"`dtype` must be float32 or float64; got {dtype!r}.")
+    t = DEFAULT_TRUNCATE if truncate is None else truncate
+    h, w = sc.shape
+    used = np.unique(sc)
+    taps = {int(i): gaussian_kernel_1d(sig[int(i)], truncate=t) for i in used}
+    k = max((g.size for g in taps.values()), default=1)
+    r = k // 2
+    out = np.zeros((h, w, k, k), dtype)
+    for i, g in taps.items():
+        ys, xs = np.nonzero(sc == i)
+        rs = g.size // 2
+        off = np.arange(-rs, rs + 1)
+        ky = g[None, :] * ((ys[:, None] + off >= 0) & (ys[:, None] + off < h))
+        kx = g[None, :] * ((xs[:, None] + off >= 0) & (xs[:, None] + off < w))
+        ky *= border_scale(h, g)[ys][:, None]
+        kx *= border_scale(w, g)[xs][:, None]
+        out[ys, xs, r - rs:r + rs + 1, r - rs:r + rs + 1] = ky[:, :, None] * kx[:, None, :]
+    return out
+
+
+def gem_kernels(mean, mean_var, *, n=None, gamma=None, final=False, dtype=np.float32):
+    """Kernels of GEM's per-pixel scale selection on ``mean`` (Rousselle et al. 2011).
+
+    Runs ``statmc.gem.reconstruct(mean, mean_var, gamma=gamma, final=final, n=n,
+    extra_output=True)`` and turns its ``scales`` and ``sigmas`` into per-pixel kernels
+    with :func:`scale_kernels`.  ``apply_kernels(kernels, mean)`` equals GEM's image.
+
+    Parameters
+    ----------
+    mean, mean_var : (H, W, C) ndarray
+        Pixel estimates and their **variance of the mean** (e.g. of a pilot render).
+    n : (H, W) ndarray, optional
+        Samples per pixel (>= 2), GEM's low-count correction.
+    gamma : float, optional
+        GEM's error-rate parameter (default ``statmc.gem.DEFAULT_GAMMA``).
+    final : bool
+        GEM's final-reconstruction bank (σ up to 16: ``k = 97``, ``H·W·97²`` entries) or,
+        by default, the adaptive bank (σ = 0, 1, 2, 4, 8: ``k <= 49``).
+    dtype : float32 or float64
+
+    Returns
+    -------
+    kernels : (H, W, k, k) ndarray
+        Fixed from then on: see :class:`PilotKernelSampler` for the use that keeps
+        Lemma A.1 of [1]_ exact.
+    """
+    from . import gem as _gem
+    g = _gem.DEFAULT_GAMMA if gamma is None else gamma
+    _, info = _gem.reconstruct(mean, mean_var, gamma=g, final=final, n=n, extra_output=True)
+    return scale_kernels(info["scales"], info["sigmas"], dtype=dtype)
 
 
 def kernel_bias_variance(kernels, x_t, s_bar, s, x_g, var_g, *, mean_var_t=None):
@@ -780,10 +888,50 @@ def _reference_estimate(kernels, mean, mean_var):
     return np.sqrt(np.maximum(d * d - vd, 0.0))
 
 
+def _smooth_reference_estimate(mean, mean_var, sigma):
+    """:func:`_reference_estimate` for a border-renormalised Gaussian of ``sigma`` px.
+
+    ``D = G_σ x_t`` by :func:`statmc.filters.gaussian_filter`; ``Var[D]_p = Σ_q G_pq²
+    mean_var_q`` with the separable squared taps ``g²`` and the squared border factors
+    (the same weights as ``gaussian(σ).kernels``, without the ``(H, W, k, k)`` array).
+    """
+    from scipy.ndimage import correlate1d
+
+    from .filters import border_scale, gaussian_filter, gaussian_kernel_1d
+    try:
+        sig = float(sigma)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`weight_sigma` must be None or a number >= 0; got {sigma!r}.") from exc
+    if not np.isfinite(sig) or sig < 0:
+        raise InputError(f"`weight_sigma` must be None or a finite number >= 0; got {sigma!r}.")
+    m = np.asarray(mean, np.float64)
+    mv = np.asarray(mean_var, np.float64)
+    if sig == 0:
+        d, vd = m, mv
+    else:
+        g = gaussian_kernel_1d(sig)
+        d = gaussian_filter(m, sig)
+        vd = correlate1d(correlate1d(mv, g * g, axis=0, mode="constant"), g * g, axis=1,
+                         mode="constant")
+        sy, sx = border_scale(m.shape[0], g) ** 2, border_scale(m.shape[1], g) ** 2
+        shape = (-1, 1) + (1,) * (m.ndim - 2)
+        vd = vd * sy.reshape(shape) * sx.reshape((1, -1) + (1,) * (m.ndim - 2))
+    return np.sqrt(np.maximum(d * d - vd, 0.0))
+
+
+#: Default ``weight_sigma`` of :func:`expected_error_sampler`: the relMSE weights
+#: ``1/(x̂² + ε)`` take ``x̂`` from a σ = 2 px Gaussian of the current render rather than
+#: from the denoiser's own kernels.  Chosen on the toy scenes (docs/analytic.md); with
+#: GEM's kernels, whose pixel filter makes ``x̂`` the pixel's own 4-spp value, weights
+#: from the kernels made the adaptive render 1.4-4x *worse* than uniform.
+WEIGHT_SIGMA = 2.0
+
 _OBJECTIVES = ("unconditional", "conditional")
 
 
 def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
+                           kernels=None, mix: float = 0.0,
+                           weight_sigma=WEIGHT_SIGMA,
                            loss: str = "mrse", objective: str = "unconditional",
                            pool_sigma: float = POOL_SIGMA, prior_dof=None,
                            eps: float = RELMSE_EPS) -> np.ndarray:
@@ -802,7 +950,21 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     rng : numpy Generator or int, optional
         For the unbiased rounding of the real-valued map.
     sigma : float
-        The denoiser: ``statmc.denoisers.gaussian(sigma)``.
+        The denoiser when ``kernels`` is None: ``statmc.denoisers.gaussian(sigma)``.
+    kernels : (H, W, k, k) ndarray, "gem" or an object with ``.kernels(shape)``, optional
+        The denoiser's kernels for the next pass: an array (e.g. :func:`gem_kernels` of a
+        pilot render, or kernels exported by a network), a linear denoiser such as
+        ``statmc.denoisers.gaussian(2.0)``, or ``"gem"`` — GEM's selection
+        (:func:`gem_kernels`) on ``stats`` *of this call*.  Lemma A.1 needs kernels that
+        do not react to the samples being placed: over one pass any of these qualifies,
+        but the final denoiser equals the optimised one only if the kernels are held
+        fixed over all passes — use :class:`PilotKernelSampler` for that.
+    mix : float
+        Defensive mixture ``λ`` in [0, 1]: the real-valued map is
+        ``(1 − λ) s_opt + λ · budget/(H W)`` before rounding, so every pixel keeps at
+        least the share ``λ`` of a uniform pass whatever the estimates say (a bound of
+        ``1/(1 − λ)`` on how much worse than uniform the variance term can get for a
+        pixel the optimiser starved).  Default 0 (docs/analytic.md measures 0.25, 0.5).
     loss : {"mrse", "mse"}
     objective : {"unconditional", "conditional"}
         ``"unconditional"`` (default) averages the loss over the current render too
@@ -831,19 +993,153 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     variance).  Measured against uniform sampling on toy and Mitsuba scenes in
     ``bench/bench_quality_expected_error.py``.
     """
-    from .denoisers import gaussian
     if not isinstance(objective, str) or objective not in _OBJECTIVES:
         raise InputError(f"`objective` must be one of {_OBJECTIVES}; got {objective!r}.")
-    kernels = gaussian(sigma).kernels(stats.mean.shape)
+    lam = _check_mix(mix)
+    kernels = _resolve_kernels(kernels, sigma, stats)
     var_est = pooled_sample_variance(stats.sample_var, stats.n, sigma=pool_sigma,
                                      prior_dof=prior_dof)
     n = np.asarray(stats.n, np.float64)
     n_c = n[..., None] if var_est.ndim == 3 else n
+    b = _whole_budget(budget)
     if objective == "conditional":
-        return optimal_sample_counts(kernels, stats.mean, n, stats.mean, var_est, budget,
-                                     loss=loss, eps=eps, rng=rng)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean_var = np.where(n_c > 0, var_est / np.where(n_c > 0, n_c, 1.0), 0.0)
-    x_ref = _reference_estimate(kernels, stats.mean, mean_var)
-    return optimal_sample_counts(kernels, stats.mean, n, x_ref, var_est, budget, loss=loss,
-                                 eps=eps, mean_var_t=mean_var, rng=rng)
+        smap = optimal_sample_map(kernels, stats.mean, n, stats.mean, var_est, b,
+                                  loss=loss, eps=eps)
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean_var = np.where(n_c > 0, var_est / np.where(n_c > 0, n_c, 1.0), 0.0)
+        if weight_sigma is None:
+            x_ref = _reference_estimate(kernels, stats.mean, mean_var)
+        else:
+            x_ref = _smooth_reference_estimate(stats.mean, mean_var, weight_sigma)
+        smap = _unconditional_map(kernels, n, x_ref, var_est, b, loss, eps)
+    if lam > 0:
+        smap = (1.0 - lam) * smap + lam * (b / smap.size)
+    return counts_from_density(smap, int(b), rng=rng)
+
+
+def _unconditional_map(kernels, n, x_ref, var_est, budget, loss, eps):
+    """Exact minimiser of the unconditional objective: the water-filling map.
+
+    With ``mean_var_t = var/n`` the objective is ``const + Σ_q a_q/(n_q + s_q)``,
+    ``a_q = Σ_c var_qc ((K²)ᵀ w)_qc / (HWC)``, minimised by ``n + s ∝ sqrt(a)`` clipped at
+    ``s >= 0`` — what :func:`optimal_sample_map` starts from; its gradient steps only
+    polish rounding (``test_expected_error_sampler_water_filling_equals_solver``).
+    """
+    loss, eps = _check_loss(loss, eps)
+    xg = x_ref if x_ref.ndim == 3 else x_ref[..., None]
+    vg = var_est if var_est.ndim == 3 else var_est[..., None]
+    K = _check_kernels(kernels, xg.shape[:2])
+    wgt = 1.0 / (xg * xg + eps) if loss == "mrse" else np.ones_like(xg)
+    a = _ak.column_weights_numba(K, np.ascontiguousarray(wgt / xg.size),
+                                 np.ascontiguousarray(vg, dtype=np.float64))
+    uniform = np.full(n.shape, budget / n.size)
+    if budget == 0:
+        return uniform
+    wf = _water_fill(a, n, budget, None)
+    return uniform if wf is None else wf
+
+
+def _check_mix(mix):
+    try:
+        lam = float(mix)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`mix` must be a number in [0, 1]; got {mix!r}.") from exc
+    if not 0.0 <= lam <= 1.0:
+        raise InputError(f"`mix` must be a number in [0, 1] (weight of uniform sampling); got {mix!r}.")
+    return lam
+
+
+def _whole_budget(budget):
+    try:
+        b = float(budget)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`budget` must be a whole number of samples; got {budget!r}.") from exc
+    if not np.isfinite(b) or b != np.floor(b) or b < 0:
+        raise InputError(f"`budget` must be a whole number of samples >= 0; got {budget!r}.")
+    return b
+
+
+def _resolve_kernels(kernels, sigma, stats):
+    """The ``(H, W, k, k)`` kernels named by ``expected_error_sampler(kernels=...)``."""
+    shape = stats.mean.shape
+    if kernels is None:
+        from .denoisers import gaussian
+        return gaussian(sigma).kernels(shape)
+    if isinstance(kernels, str):
+        if kernels != "gem":
+            raise InputError(f"`kernels` must be an (H, W, k, k) array, a linear denoiser "
+                             f"with .kernels(shape), or 'gem'; got {kernels!r}.")
+        return gem_kernels(stats.mean, stats.mean_var, n=stats.n)
+    if hasattr(kernels, "kernels") and callable(kernels.kernels):
+        return kernels.kernels(shape)
+    return _check_kernels(kernels, shape[:2])
+
+
+class PilotKernelSampler:
+    """``expected-error`` sampler for kernels chosen once, from the pilot, then held fixed.
+
+    A sampler for :func:`statmc.adaptive.adaptive_render`.  On its first call (the
+    statistics of the first, uniform pass) it fixes the denoiser's kernels; every call
+    then places samples by :func:`expected_error_sampler` for those kernels, and
+    :attr:`kernels` is the denoiser to apply to the final render
+    (``apply_kernels(sampler.kernels, result.stats.mean)``).  Because the kernels never
+    see the samples being placed, Lemma A.1 of [1]_ holds for the final denoised image —
+    which is not true of GEM re-selected on the final render.
+
+    Parameters
+    ----------
+    kernels : "gem", (H, W, k, k) ndarray, or a callable ``stats -> (H, W, k, k)``
+        ``"gem"`` (default): :func:`gem_kernels` of the pilot (``gem_options`` passed on).
+    gem_options : dict, optional
+        ``gamma``, ``final``, ``dtype`` for :func:`gem_kernels`.
+    **options
+        Passed to :func:`expected_error_sampler` (``mix``, ``loss``, ``objective``, ...).
+
+    Notes
+    -----
+    One instance per render: it keeps the first render's kernels.  ``reset()`` forgets
+    them.
+
+    Examples
+    --------
+    >>> from statmc.adaptive import adaptive_render
+    >>> from statmc.toy import ToyRenderer
+    >>> s = PilotKernelSampler("gem")
+    >>> res = adaptive_render(ToyRenderer("mixed", width=16, height=16), 8, sampler=s)
+    >>> s.kernels.shape[:2], int(res.stats.n.sum())
+    ((16, 16), 2048)
+    """
+
+    def __init__(self, kernels="gem", *, gem_options=None, **options):
+        if isinstance(kernels, str) and kernels != "gem":
+            raise InputError(f"`kernels` must be 'gem', an (H, W, k, k) array or a callable "
+                             f"stats -> kernels; got {kernels!r}.")
+        self.source = kernels
+        self.gem_options = dict(gem_options or {})
+        self.options = options
+        self.kernels = None
+
+    def reset(self):
+        """Forget the kernels (the next call selects them again)."""
+        self.kernels = None
+
+    def select(self, stats):
+        """Fix the kernels from ``stats`` (done automatically on the first call)."""
+        if isinstance(self.source, str):
+            K = gem_kernels(stats.mean, stats.mean_var, n=stats.n, **self.gem_options)
+        elif callable(self.source):
+            K = self.source(stats)
+        else:
+            K = self.source
+        self.kernels = _check_kernels(K, stats.mean.shape[:2])
+        return self.kernels
+
+    def __call__(self, stats, budget, rng=None):
+        if self.kernels is None:
+            self.select(stats)
+        return expected_error_sampler(stats, budget, rng, kernels=self.kernels, **self.options)
+
+    def __repr__(self):
+        src = self.source if isinstance(self.source, str) else type(self.source).__name__
+        return f"PilotKernelSampler({src!r}, options={self.options})"

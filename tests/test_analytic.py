@@ -711,3 +711,128 @@ def test_expected_error_sampler_options():
         assert c.shape == (6, 7) and c.sum() == 50 and c.min() >= 0
     with pytest.raises(InputError, match="objective"):
         an.expected_error_sampler(st, 50, objective="posterior")
+
+
+def test_expected_error_sampler_water_filling_equals_solver():
+    """The sampler's unconditional shortcut (water-filling) is the solver's optimum."""
+    from statmc.denoisers import gaussian
+    from statmc.stats import PixelStats
+    rng = np.random.default_rng(5)
+    st = PixelStats.from_samples(rng.gamma(0.7, 0.5, (6, 12, 14, 3)))
+    K = gaussian(1.0).kernels(st.mean.shape)
+    var_est = an.pooled_sample_variance(st.sample_var, st.n)
+    n = st.n.astype(float)
+    mv = var_est / n[..., None]
+    x_ref = an._reference_estimate(K, st.mean, mv)
+    for b in (0.0, 40.0, 900.0):
+        wf = an._unconditional_map(K, n, x_ref, var_est, b, "mrse", 0.01)
+        sol = an.optimal_sample_map(K, st.mean, n, x_ref, var_est, b, loss="mrse",
+                                    mean_var_t=mv)
+        f = [expected_kernel_loss(K, st.mean, n, m, x_ref, var_est, loss="mrse", mean_var_t=mv)
+             for m in (wf, sol)]
+        assert abs(wf.sum() - b) < 1e-9 * max(b, 1) and wf.min() >= 0
+        assert f[0] <= f[1] * (1 + 1e-9), (b, f)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.5])
+def test_smooth_reference_estimate_equals_kernel_version(sigma):
+    """The separable σ-Gaussian relMSE reference equals the dense-kernel one."""
+    from statmc.denoisers import gaussian, identity
+    rng = np.random.default_rng(11)
+    m = rng.gamma(1.0, 0.5, (9, 17, 3))
+    mv = rng.gamma(1.0, 0.01, (9, 17, 3))
+    K = identity().kernels(m.shape) if sigma == 0 else gaussian(sigma).kernels(m.shape)
+    np.testing.assert_allclose(an._smooth_reference_estimate(m, mv, sigma),
+                               an._reference_estimate(K, m, mv), rtol=1e-10, atol=1e-12)
+    with pytest.raises(InputError, match="weight_sigma"):
+        an._smooth_reference_estimate(m, mv, -1.0)
+
+
+@pytest.mark.parametrize("final", [False, True])
+def test_gem_kernels_reproduce_gem_reconstruction(final):
+    """apply_kernels(gem_kernels(x)) is GEM's own image: the selection as a kernel denoiser."""
+    from statmc import gem
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[0:40, 0:48] / 40.0
+    truth = np.stack([0.2 + xx, 0.5 + 0.3 * (yy > 0.5), 0.3 + 0 * xx], axis=-1)
+    noisy = (truth + rng.normal(0, 0.08, truth.shape)).astype(np.float32)
+    mv = np.full_like(noisy, 0.08 ** 2)
+    img, info = gem.reconstruct(noisy, mv, final=final, extra_output=True)
+    K = an.gem_kernels(noisy, mv, final=final)
+    assert K.dtype == np.float32 and K.shape[:2] == (40, 48)
+    assert len(np.unique(info["scales"])) > 1   # a real mixture of scales
+    np.testing.assert_allclose(apply_kernels(K, noisy), img, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(K.sum(axis=(2, 3)), 1.0, atol=1e-6)
+
+
+def test_scale_kernels_single_scale_equals_gaussian_kernels():
+    from statmc.denoisers import gaussian
+    sc = np.full((7, 9), 1)
+    K = an.scale_kernels(sc, (0.0, 1.5), dtype=np.float64)
+    np.testing.assert_allclose(K, gaussian(1.5).kernels((7, 9, 3)), atol=1e-15)
+    K0 = an.scale_kernels(np.zeros((3, 4), int), (0.0, 2.0))
+    assert K0.shape == (3, 4, 1, 1) and np.all(K0 == 1)
+    for bad, match in [(np.full((3, 4), 2), r"\[0, 1\]"), (np.zeros((3, 4)), "integer"),
+                       (np.zeros((3, 4, 1), int), "integer")]:
+        with pytest.raises(InputError, match=match):
+            an.scale_kernels(bad, (0.0, 1.0))
+    with pytest.raises(InputError, match="sigmas"):
+        an.scale_kernels(np.zeros((3, 4), int), (-1.0,))
+
+
+def test_pilot_kernel_sampler_holds_kernels_fixed_and_mix():
+    from statmc.adaptive import adaptive_render
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("mixed", width=16, height=16)
+    seen = []
+    s = an.PilotKernelSampler("gem", mix=0.25)
+    res = adaptive_render(r, 8, sampler=s, seed=1,
+                          callback=lambda k, st, c: seen.append(None if s.kernels is None
+                                                                else s.kernels.copy()))
+    assert seen[0] is None and all(np.array_equal(seen[1], k) for k in seen[1:])
+    assert int(res.stats.n.sum()) == 8 * 256
+    # the pilot (first pass) is the one the kernels were selected from
+    pilot = adaptive_render(r, 4, sampler="uniform", iterations=0, seed=1).stats
+    np.testing.assert_array_equal(s.kernels, an.gem_kernels(pilot.mean, pilot.mean_var, n=pilot.n))
+    # mix = 1 is uniform sampling: every pixel gets floor or ceil of budget / pixels
+    c = an.expected_error_sampler(pilot, 1000, rng=0, mix=1.0)
+    assert c.sum() == 1000 and set(np.unique(c)) <= {3, 4}
+    for bad in (-0.1, 1.5, "x"):
+        with pytest.raises(InputError, match="mix"):
+            an.expected_error_sampler(pilot, 10, mix=bad)
+    with pytest.raises(InputError, match="kernels"):
+        an.expected_error_sampler(pilot, 10, kernels="oidn")
+    with pytest.raises(InputError, match="kernels"):
+        an.expected_error_sampler(pilot, 10, kernels=np.ones((3, 3, 1, 1)))
+    with pytest.raises(InputError, match="budget"):
+        an.expected_error_sampler(pilot, 10.5)
+    K = an.expected_error_sampler(pilot, 100, kernels="gem")   # re-selected per call
+    assert K.sum() == 100
+
+
+def test_expected_error_with_pilot_gem_kernels_beats_uniform_on_toy_mixed():
+    """GEM's selection on the 4-spp pilot, held fixed, is the denoiser of both samplers
+    (same seed, same pilot, same kernels); adaptive loop to 16 spp on toy ``mixed`` 32²,
+    6 paired seeds: one-sided paired t-tests on log(relMSE ratio), measured and closed
+    form.  Measured here with 8 seeds: ratio 0.54 (p ~ 1e-8), closed form 0.54 (p ~ 1e-10);
+    bench at 64²: 0.47."""
+    from statmc.adaptive import adaptive_render
+    from statmc.metrics import relmse
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("mixed", width=32, height=32)
+    x_g, var_g = np.asarray(r.true_mean(), float), np.asarray(r.true_var(), float)
+    d_meas, d_cf = [], []
+    for seed in range(100, 106):
+        s = an.PilotKernelSampler("gem")
+        ee = adaptive_render(r, 16, sampler=s, seed=seed).stats
+        un = adaptive_render(r, 16, sampler="uniform", seed=seed).stats
+        K = s.kernels
+        meas = [relmse(apply_kernels(K, st.mean), x_g) for st in (ee, un)]
+        cf = [expected_kernel_loss(K, x_g, st.n.astype(float), 0, x_g, var_g, loss="mrse",
+                                   mean_var_t=var_g / st.n[..., None]) for st in (ee, un)]
+        d_meas.append(np.log(meas[0] / meas[1]))
+        d_cf.append(np.log(cf[0] / cf[1]))
+    p_meas = sps.ttest_1samp(d_meas, 0.0, alternative="less").pvalue
+    p_cf = sps.ttest_1samp(d_cf, 0.0, alternative="less").pvalue
+    assert p_meas < ALPHA and p_cf < ALPHA, (np.exp(np.mean(d_meas)), p_meas,
+                                             np.exp(np.mean(d_cf)), p_cf)
