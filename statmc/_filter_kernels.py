@@ -130,8 +130,9 @@ def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
 
 
 @njit(fastmath=True, nogil=True, cache=True)
-def _block(src, C, w, sy, sxr, y0, y1, out, T, acc):  # pragma: no cover - compiled
-    """Both passes for output rows y0..y1; ``T`` holds the vertically filtered rows."""
+def _block(src, C, w, sy, sxr, y0, y1, out, T, acc, add):  # pragma: no cover - compiled
+    """Both passes for output rows y0..y1; ``T`` holds the vertically filtered rows.
+    With ``add`` the result is added to ``out`` instead of written."""
     H, L = src.shape
     r = w.shape[0] // 2
     pad = r * C
@@ -148,8 +149,12 @@ def _block(src, C, w, sy, sxr, y0, y1, out, T, acc):  # pragma: no cover - compi
             _hpass(trow, acc, w, C, j0, j1)
             o = orow[j0:j1]
             f = sxr[j0:j1]
-            for j in range(j1 - j0):
-                o[j] = acc[j] * (s * f[j])
+            if add:
+                for j in range(j1 - j0):
+                    o[j] += acc[j] * (s * f[j])
+            else:
+                for j in range(j1 - j0):
+                    o[j] = acc[j] * (s * f[j])
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -188,10 +193,25 @@ def sep_filter(x, C, v, Cv, w, sy, sx, out_x, out_v):  # pragma: no cover - comp
         y1 = min(H, y0 + _ROW_BLOCK)
         acc = np.empty(_STRIP, x.dtype)
         T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
-        _block(x, C, w, sy, sxx, y0, y1, out_x, T, acc)
+        _block(x, C, w, sy, sxx, y0, y1, out_x, T, acc, False)
         if do_var:
             Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
-            _block(v, Cv, w2, sy2, sxv, y0, y1, out_v, Tv, acc)
+            _block(v, Cv, w2, sy2, sxv, y0, y1, out_v, Tv, acc, False)
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def sep_filter_add(x, w, sy, sx, out):  # pragma: no cover - compiled
+    """``out += Σ_q (sy w)(sx w) x_q`` for one-channel (H, W) ``x`` (see
+    :func:`sep_filter`): accumulates several filtered maps without a temporary."""
+    H, L = x.shape
+    r = w.shape[0] // 2
+    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
+    for b in prange(nblk):
+        y0 = b * _ROW_BLOCK
+        y1 = min(H, y0 + _ROW_BLOCK)
+        acc = np.empty(_STRIP, x.dtype)
+        T = _padded_rows(y1 - y0, L, r, x.dtype)
+        _block(x, 1, w, sy, sx, y0, y1, out, T, acc, True)
 
 
 @njit(nogil=True, cache=True)
@@ -412,32 +432,92 @@ def split_by_scale(amount, scales, parts):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, out):  # pragma: no cover
+def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # pragma: no cover
     """Estimated MSE of the selected scale with noise-corrected bias terms.
 
     ``Var[s] + max(0, Σ_{k<s} frac_k ((v_{k+1} − v_k)² − Var(v_{k+1} − v_k)))``: each
     squared difference of §5 of Rousselle et al. 2011 has expectation
     ``bias-difference² + Var(difference)``; subtracting the known variance leaves an
     unbiased estimate of the bias part, clamped at 0 after accumulation.  The variance of
-    the difference is formed here from the bank variances and the pair covariances
-    ``cov`` (K−1, H, L): ``max(Var_k + Var_{k+1} − 2 Cov_k, 0)`` (as
-    :func:`difference_variance`), only for the pairs a pixel needs.
+    the difference is formed here, ``max(Var_k + Var_{k+1} − 2 Cov_k, 0)`` (as
+    :func:`difference_variance`), from the bank variances and the pair covariances
+    ``cov``.  If ``fy0`` is non-empty, scale 0 is the pixel filter and its covariance with
+    scale 1 is ``(Var_0 · fy0[y]) · fx0[x]`` (``cov`` then starts at pair 1).
+
+    Works on whole rows, pair by pair, adding each pair's term where ``k < s`` (a
+    branch-free select that vectorises), in float64.
     """
     K, H, Lx = vals.shape
     W = Lx // C
+    off = 1 if fy0.shape[0] > 0 else 0
+    fxl = np.empty(Lx if off else 0, vals.dtype)
+    if off:
+        for i in range(W):
+            for c in range(C):
+                fxl[i * C + c] = fx0[i]
     for y in prange(H):
         s_row = scales[y]
+        sl = np.empty(Lx, np.int64)
+        for i in range(W):
+            for c in range(C):
+                sl[i * C + c] = s_row[i]
+        acc = np.zeros(Lx)
+        for k in range(K - 1):
+            a = vals[k, y]
+            b = vals[k + 1, y]
+            va = vars_[k, y]
+            vb = vars_[k + 1, y]
+            fk = frac[k]
+            if k < off:
+                g = fy0[y]
+                for j in range(Lx):
+                    d = b[j] - a[j]
+                    dv = max(va[j] + vb[j] - 2 * ((va[j] * g) * fxl[j]), 0.0)
+                    acc[j] += fk * (d * d - dv) if k < sl[j] else 0.0
+            else:
+                cv = cov[k - off, y]
+                for j in range(Lx):
+                    d = b[j] - a[j]
+                    dv = max(va[j] + vb[j] - 2 * cv[j], 0.0)
+                    acc[j] += fk * (d * d - dv) if k < sl[j] else 0.0
+        o = out[y]
+        for j in range(Lx):
+            o[j] = vars_[sl[j], y, j] + max(acc[j], 0.0)
+
+
+@njit(cache=True, nogil=True)  # no fastmath: it would assume away NaN
+def _scan_count_row(nr, o, tally):  # pragma: no cover - compiled
+    for i in range(nr.shape[0]):
+        a = np.float64(nr[i])
+        o[i] = a
+        if (a - a) != 0.0:              # inf - inf and nan are nan
+            tally[0] += 1
+        elif np.floor(a) != a:
+            tally[1] += 1
+        if a < 2.0:
+            tally[2] += 1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def scan_counts(n, out):  # pragma: no cover - compiled
+    """``out = float64(n)``; returns the numbers of non-finite, non-integer and < 2
+    entries (the sample-count checks of ``gem._check_inputs``) in one pass."""
+    H = n.shape[0]
+    tally = np.zeros((H, 3), np.int64)
+    for y in prange(H):
+        _scan_count_row(n[y], out[y], tally[y])
+    return tally[:, 0].sum(), tally[:, 1].sum(), tally[:, 2].sum()
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def weight_map(n, z, out):  # pragma: no cover - compiled
+    """``out = z·(1 − 1/n)``: the selector weight ``ρ·z(γ)`` of §4.3 of Rousselle 2011."""
+    H, W = n.shape
+    for y in prange(H):
+        nr = n[y]
         o = out[y]
         for i in range(W):
-            s = s_row[i]
-            for c in range(C):
-                j = i * C + c
-                acc = 0.0
-                for k in range(s):
-                    d = vals[k + 1, y, j] - vals[k, y, j]
-                    dv = max(vars_[k, y, j] + vars_[k + 1, y, j] - 2 * cov[k, y, j], 0.0)
-                    acc += frac[k] * (d * d - dv)
-                o[j] = vars_[s, y, j] + max(acc, 0.0)
+            o[i] = z * (1.0 - 1.0 / nr[i])
 
 
 # ---------------------------------------------------------------------------------------

@@ -157,11 +157,13 @@ def _check_inputs(mean, mean_var, n=None):
             raise InputError(f"`n` must be an (H, W) count map of shape {m.shape[:2]}; got {nn.shape}.")
         if nn.dtype == bool or not np.issubdtype(nn.dtype, np.number) or np.iscomplexobj(nn):
             raise InputError(f"`n` must hold sample counts (integers); got dtype {nn.dtype}.")
-        nn = nn.astype(np.float64)
-        check_finite("n", nn)
-        if np.any(nn != np.round(nn)):
+        counts = nn
+        nn = np.empty(nn.shape)
+        bad, frac, low = _k.scan_counts(counts, nn)     # converts and counts in one pass
+        if bad:
+            check_finite("n", nn)
+        if frac:
             raise InputError("`n` must hold whole sample counts; got non-integer values.")
-        low = int((nn < 2).sum())
         if low:
             raise InputError(f"`n` must be >= 2 in every pixel (a variance needs two samples; "
                              f"render at least 2 spp first); got {low} pixels with fewer "
@@ -182,7 +184,9 @@ def _weight_map(n, gamma, shape, dtype):
     z = error_rate_weight(gamma)
     if n is None:
         return np.full(shape, z, dtype)
-    return (z * (1.0 - 1.0 / n)).astype(dtype)
+    out = np.empty(shape, dtype)
+    _k.weight_map(n, z, out)
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -479,8 +483,17 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     if keep_bank:
         est = np.empty((h, w * c), dt)
         if debias:
-            cov = _pair_covariances(vr, cv, sig, truncate)
-            _k.estimate_mse_debiased(vals, vars_, cov, c, fr, scales, est)
+            p0 = sig[0] == 0.0      # pixel-filter pair: its covariance is formed inline
+            cov = np.empty((nsc - 1 - p0,) + vr.shape, dt)
+            for k in range(p0, nsc - 1):
+                _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate, out=cov[k - p0])
+            if p0:
+                g1 = gaussian_kernel_1d(sig[1], truncate=truncate)
+                fy0 = (g1[len(g1) // 2] * border_scale(h, g1)).astype(dt)
+                fx0 = (g1[len(g1) // 2] * border_scale(w, g1)).astype(dt)
+            else:
+                fy0 = fx0 = np.empty(0, dt)
+            _k.estimate_mse_debiased(vals, vars_, cov, c, fr, scales, fy0, fx0, est)
         else:
             _k.estimate_mse(vals, vars_, c, fr, scales, est)
         shape = (nsc,) + m.shape
@@ -678,10 +691,11 @@ def _spread(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
     density = np.empty((h, w))
     parts = np.empty((len(sig) - 1, h, w))
     per_scale = _k.spread_parts(amount, scales, fy, fx, density, parts)
-    out = np.empty((h, w))
+    ones_h, ones_w = np.ones(h), np.ones(w)
     for s, sigma in enumerate(sig[1:]):
-        if per_scale[s + 1] > 0:
-            density += _run(parts[s], 1, None, 0, sigma, truncate, normalize=False, out_x=out)[0]
+        if per_scale[s + 1] > 0:   # density += unnormalised filter of the pre-scaled part
+            _k.sep_filter_add(parts[s], gaussian_kernel_1d(sigma, truncate=truncate),
+                              ones_h, ones_w, density)
     return density
 
 
@@ -774,7 +788,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     >>> int(counts.sum()), counts.dtype
     (1000, dtype('int64'))
     """
-    from .sampling import counts_from_density
+    from .sampling import _systematic_round
     if n is None:
         raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
@@ -811,7 +825,9 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     amount = _allocate_rounds_fast(rel, nn, budget, batch, rounds)
     scales = sel["scales"]
     density = _spread(amount, scales, sig)
-    counts = counts_from_density(np.maximum(density, 0.0), budget, rng=rng)
+    # density is finite and >= 0 by construction (non-negative weights and amounts):
+    # straight to the rounding of counts_from_density, without its input checks
+    counts = _systematic_round(density, budget, 0, np.random.default_rng(rng))
     if extra_output:
         return counts, {"density": density, "gain": gain, "rel_mse": rel, "scales": scales,
                         "est_mse": sel["est_mse"], "amount": amount, "batch": batch,

@@ -556,3 +556,46 @@ def test_variance_prior_kernel_equals_numpy_reference(dtype):
         ref = gem._variance_prior_reference(v, nn, 2.0, 1.0)
         assert got.dtype == dtype and got.shape == v.shape
         np.testing.assert_array_equal(got, ref)     # same float operations, same order
+
+
+@pytest.mark.parametrize("sigmas", [F.ADAPTIVE_SIGMAS, (1.0, 2.0, 4.0)])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_debiased_mse_kernel_equals_numpy_reference(sigmas, dtype):
+    """The fused kernel (pair covariances, pixel pair formed inline) equals the NumPy
+    formula with `difference_variance`, for banks with and without the pixel filter."""
+    rng = np.random.default_rng(39)
+    truth = np.where(np.arange(27)[None, :, None] < 13, 0.3, 0.8) * np.ones((19, 27, 3))
+    m, mv = _noisy(truth, 4, 0.3, rng)
+    m, mv = m.astype(dtype), mv.astype(dtype)
+    n = np.full((19, 27), 4.0)
+    sig = list(sigmas)
+    _, _, vsum, _ = gem._check_inputs(m, mv, n)
+    out = gem._core(m, mv, vsum, n, 0.2, sig, False, True, F.DEFAULT_TRUNCATE,
+                    keep_bank=True, debias=True)
+    vals = out["values"].astype(np.float64)
+    frac = gem.bias_factor(out["r2"][:-1], out["r2"][1:])
+    inc = frac[:, None, None, None] * ((vals[1:] - vals[:-1]) ** 2
+                                       - gem.difference_variance(mv.astype(np.float64), sig))
+    cum = np.concatenate([np.zeros_like(inc[:1]), np.cumsum(inc, 0)])
+    s = out["scales"][None, :, :, None]
+    ref = (np.take_along_axis(out["variances"].astype(np.float64), s, 0)
+           + np.maximum(np.take_along_axis(cum, s, 0), 0))[0]
+    assert out["est_mse"].dtype == dtype
+    tol = dict(rtol=1e-9, atol=1e-14) if dtype == np.float64 else dict(rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(out["est_mse"], ref, **tol)
+
+
+def test_count_scan_and_weight_map_kernels_equal_numpy():
+    from statmc import _filter_kernels as K
+    rng = np.random.default_rng(40)
+    n = rng.integers(0, 9, (13, 17)).astype(float)
+    n[0, :3] = [np.nan, np.inf, 2.5]
+    out = np.empty(n.shape)
+    bad, frac, low = K.scan_counts(n, out)
+    np.testing.assert_array_equal(out, n)
+    assert (bad, frac, low) == (2, 1, int((n < 2).sum()))
+    counts = rng.integers(2, 50, (13, 17))
+    for dt in (np.float32, np.float64):
+        got = gem._weight_map(counts.astype(float), 0.2, counts.shape, dt)
+        ref = (gem.error_rate_weight(0.2) * (1.0 - 1.0 / counts)).astype(dt)
+        np.testing.assert_array_equal(got, ref)
