@@ -172,6 +172,8 @@ def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
 
 
 def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
+    """``u`` and ``v`` set the working precision (``v`` is cast to ``u``'s dtype); ``alpha``
+    keeps its own dtype, which is that of the gated output."""
     h, w, c = u.shape
     dt = u.dtype
     u2 = np.ascontiguousarray(u).reshape(h, w * c)
@@ -186,9 +188,12 @@ def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
     if alpha is None:
         args = (False, empty, False, 0.0, 0.0, 0.0, False, empty, empty)
     else:
-        a2 = np.ascontiguousarray(alpha, dtype=dt).reshape(h, w * c)
+        a2 = np.ascontiguousarray(alpha)
+        if a2.dtype not in (np.float32, np.float64):
+            a2 = a2.astype(np.float64)
+        a2 = a2.reshape(h, w * c)
         t = np.empty_like(u2) if keep else empty
-        out = np.empty_like(u2)
+        out = np.empty_like(a2)
         args = (True, a2, bool(finish["shared"]), float(finish["a"]), float(finish["c"]),
                 float(finish["eps"]), bool(finish["logistic"]), t, out)
     _gate_bands(u2, v2, gd, g2d, r, c, dt.type(norm), dt.type(norm * norm), _BAND, keep,
@@ -202,8 +207,10 @@ def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _prepare(x, y, v, al, u, bad, vsum):  # pragma: no cover - compiled
-    """Per row: u = α(y − x); counts of non-finite x, y, v, α and of negative v; Σ v."""
+def _prepare(x, y, v, al, u, vw, cast, big, bad, vsum):  # pragma: no cover - compiled
+    """Per row: u = α(y − x) in the inputs' precision, stored in ``u``'s dtype; with
+    ``cast`` also ``vw = v`` in ``vw``'s dtype.  Counts of non-finite x, y, v, α, of
+    negative v and of |u| or v above ``big`` (values the working dtype cannot hold); Σ v."""
     h, n = x.shape
     for i in prange(h):
         b0 = 0
@@ -211,6 +218,7 @@ def _prepare(x, y, v, al, u, bad, vsum):  # pragma: no cover - compiled
         b2 = 0
         b3 = 0
         b4 = 0
+        b5 = 0
         s = 0.0
         for j in range(n):
             xv = x[i, j]
@@ -223,26 +231,49 @@ def _prepare(x, y, v, al, u, bad, vsum):  # pragma: no cover - compiled
             b3 += vv < 0
             b4 += not np.isfinite(av)
             s += vv
-            u[i, j] = av * (yv - xv)
+            uv = av * (yv - xv)
+            b5 += (abs(uv) > big) or (vv > big)
+            u[i, j] = uv
+            if cast:
+                vw[i, j] = vv
         bad[i, 0] = b0
         bad[i, 1] = b1
         bad[i, 2] = b2
         bad[i, 3] = b3
         bad[i, 4] = b4
+        bad[i, 5] = b5
         vsum[i] = s
 
 
-def prepare(x, y, v, alpha):
-    """``(u, bad, Σv)``: ``u = α(y − x)`` ``(H, W, C)``; ``bad`` = counts of non-finite ``x``,
-    ``y``, ``v``, negative ``v`` and non-finite ``α``; the sum of ``v`` (float64)."""
+#: Largest magnitude of ``u`` or ``v`` worked in float32: sums of Eq. 13 carry the weight
+#: κ² ≤ norm² = 1/(2π σ_s²) ≈ 1.6e5 at the floor σ_s = 1e-3 over up to a few hundred
+#: taps, so 1e30 leaves them far below float32's maximum 3.4e38.
+SINGLE_MAX = 1e30
+
+
+def prepare(x, y, v, alpha, work=None):
+    """``(u, v_work, bad, Σv)`` for the gate.
+
+    ``u = α(y − x)`` ``(H, W, C)`` is formed in the inputs' dtype and stored in ``work``
+    (default: the inputs' dtype); ``v_work`` is ``v`` in ``work`` (``v`` itself when the
+    dtypes agree).  ``bad`` counts non-finite ``x``, ``y``, ``v``, negative ``v``,
+    non-finite ``α`` and (float32 work from float64 input) ``|u|`` or ``v`` above
+    :data:`SINGLE_MAX`; ``Σv`` is float64.
+    """
     h, w, c = x.shape
     dt = x.dtype
+    work = dt if work is None else np.dtype(work)
     as2 = lambda a: np.ascontiguousarray(a, dtype=dt).reshape(h, w * c)   # noqa: E731
-    u = np.empty((h, w * c), dt)
-    bad = np.zeros((h, 5), np.int64)
+    v2 = as2(v)
+    u = np.empty((h, w * c), work)
+    cast = work != dt
+    vw = np.empty((h, w * c), work) if cast else np.empty((h, 0), work)
+    big = SINGLE_MAX if (cast and work == np.float32) else np.inf
+    bad = np.zeros((h, 6), np.int64)
     vsum = np.zeros(h, np.float64)
-    _prepare(as2(x), as2(y), as2(v), as2(alpha), u, bad, vsum)
-    return u.reshape(h, w, c), bad.sum(axis=0), float(vsum.sum())
+    _prepare(as2(x), as2(y), v2, as2(alpha), u, vw, cast, big, bad, vsum)
+    v_out = vw if cast else v2
+    return u.reshape(h, w, c), v_out.reshape(h, w, c), bad.sum(axis=0), float(vsum.sum())
 
 
 def gate_sums(u, v, r, sigma_s):

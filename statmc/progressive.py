@@ -32,7 +32,7 @@ from .stats import PixelStats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
            "bind_denoiser", "auto_sigma_s", "DEFAULT_SMOOTH", "DEFAULT_RELATIVE_EPS",
-           "DEFAULT_SHRINK", "DEFAULT_WINDOW", "DEFAULT_C",
+           "DEFAULT_SHRINK", "DEFAULT_WINDOW", "DEFAULT_C", "DEFAULT_CHANNELS",
            "DEFAULT_A", "DEFAULT_EPS_T"]
 
 #: Standard deviation (pixels) of the Gaussian that smooths σ², SURE and the divergence
@@ -50,6 +50,9 @@ DEFAULT_WINDOW = 11
 #: Shift c and strength a of the gate, Eq. 18: c = 4.2, a = 2 (§4.2 of [1]).
 DEFAULT_C = 4.2
 DEFAULT_A = 2.0
+#: One t-statistic per channel in the gate: the shared sum of Eq. 13 over channels treats
+#: correlated colour noise as independent and fires on noise (see :func:`confidence_gate`).
+DEFAULT_CHANNELS = "separate"
 #: ε of Eq. 17: 1e-6, the value of the authors' code (the paper gives none).
 DEFAULT_EPS_T = 1e-6
 #: σ_s = min(√(mean Var[x]), 1)·100 (§4.2 of [1]; the authors' code takes the image mean
@@ -154,7 +157,8 @@ def mix_error(alpha, mean_var, sure_y, divergence):
 
 def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAULT_SMOOTH,
                    relative_eps=DEFAULT_RELATIVE_EPS, shrink: float = DEFAULT_SHRINK,
-                   per_channel: bool = False, n=None, extra_output: bool = False):
+                   per_channel: bool = False, channel_noise: str = "correlated", n=None,
+                   extra_output: bool = False):
     """The mixing parameter ``α`` of Eq. 9 (``1 − β``, Eq. 10) of [1]_ from smoothed estimates.
 
     Parameters
@@ -189,6 +193,13 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     per_channel : bool
         ``False`` (default): one ``α`` per pixel from the sums over channels (the pixel's
         total error); ``True``: one per channel.
+    channel_noise : {"correlated", "independent"}
+        How the normal noise model of ``shrink`` treats the channels of a pixel when it
+        sums them (``per_channel=False``; see Notes).  ``"correlated"`` (default): the
+        Cauchy–Schwarz bound, exact when the channels' noise is perfectly correlated
+        (white light, grey materials: the rule in renders); with a covariance
+        ``mean_var`` its off-diagonal terms are used instead.  ``"independent"``: channels
+        as independent (understates ``se`` up to √C on correlated colour noise).
     n : (H, W) ndarray, optional
         Samples per pixel, for the noise of ``σ̂²`` in the standard error of ``shrink``.
     extra_output : bool
@@ -239,7 +250,15 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
       when ``y − x ~ N(b, σ²)`` (the noise of ``y − x`` taken as that of ``x``, which a
       smoothing denoiser leaves almost intact) plus that of the sample variance of ``n``
       normal samples (that term only with ``n``); the Monte Carlo noise of ``D`` is
-      ignored.  It falls like ``1/√n`` wherever ``y`` is biased, so the factor tends to
+      ignored.  Summed over channels, ``Var[Σ_c e_c] = Σ_cc' w_c w_c' (2(1 + 1/(n − 1))
+      C_cc'² + 4 b_c b_c' C_cc')`` for a channel covariance ``C`` of the noise of ``x``
+      (``Cov[X², Y²] = 2 Cov[X, Y]²`` and ``4 b_c b_c' Cov[X, Y]`` for normal ``X, Y``
+      with means ``b``); with ``|b̂|`` for ``b`` and, without ``C``, ``C_cc' = σ_c σ_c'``
+      (perfect correlation, the upper bound by Cauchy–Schwarz for ``|b̂|``):
+      ``2(1 + 1/(n − 1)) (Σ_c w_c σ̂_c²)² + 4 (Σ_c w_c |b̂_c| σ̂_c)²``.  Summing the
+      channel variances as if independent understated ``se`` by up to √3 on colour
+      noise and let noise through at 4 spp (``toy:mixed``: 1.12× OIDN's relMSE against
+      1.00× with the bound, mean of three renders; ``docs/progressive.md``).  It falls like ``1/√n`` wherever ``y`` is biased, so the factor tends to
       1, but heavy-tailed pixels inflate ``σ̂⁴`` far more than they move ``e``: on the
       Cornell box it overstated ``se`` 2–6×.
 
@@ -259,6 +278,14 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     shape = xx.shape
     yy = _like("y", y, shape)
     s2 = _variance(mean_var, shape)
+    cov = None
+    if np.ndim(mean_var) == 4:
+        cov = as_float_array("mean_var", mean_var, dtype=np.float64)
+        check_finite("mean_var", cov)
+    if channel_noise not in ("correlated", "independent"):
+        raise InputError(f"`channel_noise` must be 'correlated' or 'independent'; got "
+                         f"{channel_noise!r}.")
+    cn = channel_noise
     sy = _like("sure_y", sure_y, shape)
     d = _like("divergence", divergence, shape)
     sm = _number("smooth", smooth, lo=0.0)
@@ -290,13 +317,21 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     bias_z = se_model = se_spread = np.full_like(b, np.nan)
     if z > 0:
         b2 = np.clip(_smooth((yy - xx) ** 2 - s2, sm), 0.0, None)   # local bias² of y
-        vq = 4.0 * b2 * s2 + 2.0 * s2 * s2
-        if n is not None:
-            vq = vq + 2.0 * s2 * s2 / np.maximum(nn - 1.0, 1.0)[..., None]
-        if relative_eps is not None:
-            vq = vq * (w * w)
-        if not per_channel:
-            vq = vq.sum(axis=2, keepdims=True)
+        # 2σ⁴ (1 + 1/(n − 1)): (y − x)² and the sample variance; the latter only with n
+        f2 = 2.0 if n is None else 2.0 + 2.0 / np.maximum(nn - 1.0, 1.0)[..., None]
+        ww = np.ones_like(s2) if relative_eps is None else w
+        if per_channel or cn == "independent":
+            vq = (ww * ww) * (4.0 * b2 * s2 + f2 * s2 * s2)
+            if not per_channel:
+                vq = vq.sum(axis=2, keepdims=True)
+        elif cov is not None:      # Σ_cc' w_c w_c' (2(1 + 1/(n−1)) C_cc'² + 4 |b_c||b_c'| C_cc')
+            wb = ww * np.sqrt(b2)
+            vq = f2 * np.einsum("hwc,hwd,hwcd->hw", ww, ww, cov * cov)[..., None]
+            vq = vq + 4.0 * np.einsum("hwc,hwd,hwcd->hw", wb, wb, cov)[..., None]
+        else:                      # perfectly correlated channels: the Cauchy–Schwarz bound
+            sd = np.sqrt(s2)
+            vq = f2 * (ww * s2).sum(axis=2, keepdims=True) ** 2 \
+                + 4.0 * (ww * np.sqrt(b2) * sd).sum(axis=2, keepdims=True) ** 2
         e = terms[1]
         spread = np.clip(_smooth(e * e, sm) - b * b, 0.0, None) * _smooth_k2(np.ones_like(e), sm)
         se_model = np.sqrt(_smooth_k2(vq, sm))
@@ -357,7 +392,9 @@ def _auto_sigma_s_from_mean(m):
 
 def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigma_s="auto",
                     c: float = DEFAULT_C, a: float = DEFAULT_A, eps: float = DEFAULT_EPS_T,
-                    channels: str = "shared", cdf: str = "normal", extra_output: bool = False):
+                    channels: str = DEFAULT_CHANNELS, cdf: str = "normal",
+                    precision: str = "single",
+                    extra_output: bool = False):
     """Scale ``α`` down where the mix departs significantly from the render, Eq. 12–18 of [1]_.
 
     Parameters
@@ -378,12 +415,22 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         Shift and strength of Eq. 18 (4.2 and 2 in [1]_).
     eps : float
         ``ε`` of Eq. 17.
-    channels : {"shared", "separate"}
-        ``"shared"`` (default, as in the authors' code): one t-statistic per pixel from the
-        sums of Eq. 12–14 over channels; ``"separate"``: one per channel.
+    channels : {"separate", "shared"}
+        ``"separate"`` (default): one t-statistic per channel, each from its own Eq.
+        12–14; ``"shared"`` (the authors' code): one per pixel from the sums of Eq. 12–14
+        over channels.  The sum of Eq. 13 treats the channels as independent, so on
+        correlated colour noise the shared ``t`` has a standard deviation up to
+        ``√(1 + 2ρ)`` (≈ 1.7) under the null instead of 1, and the gate fires on noise
+        (``toy:mixed`` at 256 spp: 1.19× OIDN's relMSE shared, 0.83× separate).
     cdf : {"normal", "logistic"}
         ``S`` of Eq. 18: the standard normal CDF (default) or the logistic function, which
         [1]_ reports to work equally well.
+    precision : {"single", "double"}
+        Working precision of Eq. 12–17 (the output dtype follows ``x`` either way).
+        ``"single"`` (default): ``u = α(y − x)`` is formed in the input's precision, then
+        ``u`` and ``Var[x]`` are rounded once to float32 and the window sums run in
+        float32 (see Notes); values beyond ``1e30`` switch to double automatically.
+        ``"double"``: float64 throughout (float32 input is upcast).
     extra_output : bool
         Also return a dict with ``t`` (Eq. 17), ``scale`` (``1 − S[a(|t| − c)]``),
         ``sigma_s``, ``difference`` (``z̄ − x̄``) and ``variance`` (``Var[x̄]``, Eq. 13).
@@ -417,6 +464,19 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     Cost: ``O(window)`` per pixel and channel (separable sums and window argmax) in a
     numba kernel, :mod:`statmc._progressive_kernels`, which has a NumPy reference.
 
+    Precision.  The inputs are noisy estimates and ``t`` is a test statistic of unit
+    standard deviation under the null, so float32 suffices, and it halves the memory
+    traffic and doubles the SIMD width (float64 input: 2–3× faster).  With unit roundoff
+    ``u = 2⁻²⁴`` and ``m = 2(window + 1) + 4`` rounded operations per sum (the input
+    rounding, two separable passes of ``window`` products and sums, the ``M_p`` term),
+    each sum of Eq. 14 − 12 is off by at most ``γ_m (|u_M| + Σ_q κ_pq |u_q|)``,
+    ``γ_m = m u/(1 − m u)`` (≈ 1.7e-6 for 11×11), and Eq. 13 (positive terms) by
+    ``γ_m`` relative.  As ``|dS/ds| <= 1/√(2π)``, ``|Δα'| <= (a/√(2π)) α |Δt|`` with
+    ``|Δt| <= γ_m (Σ|·| + |t| √Var[x̄])/(√Var[x̄] + ε)`` (channel sums add ``C`` to ``m``):
+    a few 1e-6 at most, against a sampling spread of ``t`` of about 1.  Rounding is
+    monotone, so ``M_p`` can only change between variances equal to float32 precision
+    (ties go to the first, as in double).
+
     Examples
     --------
     >>> rng = np.random.default_rng(0)
@@ -435,17 +495,25 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         xx = xx.astype(np.float64)
     dt = xx.dtype
     shape = xx.shape
+    if precision not in ("single", "double"):
+        raise InputError(f"`precision` must be 'single' or 'double'; got {precision!r}.")
     yy = _like("y", y, shape, dtype=dt, check=False)
     v = _variance(mean_var, shape, dtype=dt, check=False)
     al = _like("alpha", alpha, shape, allow_2d=True, dtype=dt, check=False)
-    # One parallel pass: u = α(y − x), finiteness of every input, signs and sum of Var[x].
-    u, bad, v_sum = _pk.prepare(xx, yy, v, al)
+    work = np.float32 if precision == "single" else np.float64
+    if work != dt and dt == np.float32:          # float32 input, double precision asked
+        xx, yy, v = (q.astype(np.float64) for q in (xx, yy, v))
+    # One parallel pass: u = α(y − x) in the input's precision, stored in the working one;
+    # finiteness of every input, signs and sum of Var[x]; values float32 cannot hold.
+    u, vw, bad, v_sum = _pk.prepare(xx, yy, v, al, work)
     for name, arr, n_bad in (("x", xx, bad[0]), ("y", yy, bad[1]), ("mean_var", v, bad[2]),
                              ("alpha", al, bad[4])):
         if n_bad:
             check_finite(name, arr)
     if bad[3]:
         check_nonnegative("mean_var", v)
+    if bad[5]:                                   # beyond float32's safe range: work in double
+        u, vw, _, _ = _pk.prepare(xx, yy, v, al, np.float64)
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1 \
             or window % 2 == 0:
         raise InputError(f"`window` must be an odd positive integer; got {window!r}.")
@@ -463,13 +531,14 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     if cdf not in ("normal", "logistic"):
         raise InputError(f"`cdf` must be 'normal' or 'logistic'; got {cdf!r}.")
     with np.errstate(divide="ignore", invalid="ignore"):
-        num, var, t, out = _pk.gate(u, v, al, int(window) // 2, ss, shared=(channels == "shared"),
-                                    a=aa, c=cc, eps=ee, logistic=(cdf == "logistic"),
-                                    keep=bool(extra_output))
+        num, var, t, out = _pk.gate(u, vw, al, int(window) // 2, ss,
+                                    shared=(channels == "shared"), a=aa, c=cc, eps=ee,
+                                    logistic=(cdf == "logistic"), keep=bool(extra_output))
     if not extra_output:
         return out
     from scipy.special import expit, ndtr
 
+    num, var, t = (q.astype(dt, copy=False) for q in (num, var, t))
     s = aa * (np.abs(t) - cc)
     scale = 1.0 - (expit(s) if cdf == "logistic" else ndtr(s))
     info = {"t": t, "scale": scale.astype(dt), "sigma_s": ss, "difference": num, "variance": var}
@@ -522,7 +591,8 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
                         shrink: float = DEFAULT_SHRINK, per_channel: bool = False, k: int = 4,
                         eps: float = 1e-4, rng=None, gate: bool = True,
                         window: int = DEFAULT_WINDOW, sigma_s="auto", c: float = DEFAULT_C,
-                        a: float = DEFAULT_A, channels: str = "shared", cdf: str = "normal",
+                        a: float = DEFAULT_A, channels: str = DEFAULT_CHANNELS,
+                        cdf: str = "normal", channel_noise: str = "correlated",
                         extra_output: bool = False):
     """Progressively denoised image ``x + α'(y − x)`` (§4 of [1]_, classical α).
 
@@ -542,8 +612,9 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
         Overrides ``stats.mean_var`` for MC-SURE and the gate — e.g. a per-pixel channel
         covariance, which removes the bias of a diagonal one for denoisers that mix
         channels (``docs/error-estimates.md``).
-    smooth, relative_eps, shrink, per_channel
-        Of :func:`mixing_weights`.
+    smooth, relative_eps, shrink, per_channel, channel_noise
+        Of :func:`mixing_weights` (which gets ``mean_var`` as given, so a covariance
+        there also enters the standard error of ``shrink``).
     k, eps, rng
         Of :func:`statmc.sure.mc_sure` (``k + 1`` denoiser calls in all).
     gate : bool
@@ -582,8 +653,9 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
     y = info["denoised"]
     div = info["divergence"]
     if alpha is None:
-        al = mixing_weights(x, y, s2, sure_map, div, smooth=smooth, relative_eps=relative_eps,
-                            shrink=shrink, per_channel=per_channel, n=stats.n)
+        al = mixing_weights(x, y, mv, sure_map, div, smooth=smooth, relative_eps=relative_eps,
+                            shrink=shrink, per_channel=per_channel,
+                            channel_noise=channel_noise, n=stats.n)
     else:
         if callable(alpha):
             alpha = alpha({"x": x, "y": y, "mean_var": s2, "sure": sure_map, "divergence": div})
