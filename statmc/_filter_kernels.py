@@ -630,7 +630,8 @@ _TOP = np.uint64(64 - _DIGIT)    # shift of the first (most significant) digit
 
 @njit(cache=True, nogil=True)
 def _rank_key(keys, hist, q):  # pragma: no cover - compiled
-    """Key at 0-based rank ``q`` in descending order, and the number of keys above it.
+    """Key at 0-based rank ``q`` in descending order, the number of keys above it and
+    the number of keys equal to it.
 
     Radix selection, 16 bits per level from the top: ``hist`` (the counts of the keys'
     first digit, filled by the caller during its own pass) finds the bucket holding rank
@@ -670,11 +671,64 @@ def _rank_key(keys, hist, q):  # pragma: no cover - compiled
     j = 0
     while srt[j] > key:
         j += 1
-    return key, above + j
+    ties = 0
+    for i in range(srt.size):
+        if srt[i] == key:
+            ties += 1
+    return key, above + j, ties
 
 
 @njit(cache=True, nogil=True)
-def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hist):  # pragma: no cover
+def _gain(r, nn, fb):  # pragma: no cover - compiled
+    x = r * fb / (nn + fb)
+    return x if x > 0.0 else 0.0        # -0.0 -> 0.0: keys order like the values
+
+
+@njit(cache=True, nogil=True)
+def _start_chunk(rel, n, fb, amount, r, nn, g, keys, hist, i0, i1):  # pragma: no cover
+    hist[:] = 0
+    npos = 0
+    for i in range(i0, i1):
+        r[i] = rel[i]
+        nn[i] = n[i]
+        amount[i] = 0.0
+        x = _gain(r[i], nn[i], fb)
+        g[i] = x
+        npos += x > 0.0
+        hist[keys[i] >> _TOP] += 1
+    return npos
+
+
+@njit(cache=True, nogil=True)
+def _assign_chunk(base, t, need, cut, extra, fb, amount, r, nn, g, keys, hist, i0, i1):  # pragma: no cover
+    """One round on pixels i0..i1: ``base`` each, ``fb`` more above the threshold ``t``
+    and for the ties taken (all of them if ``cut < 0``, else those up to index ``cut``,
+    which gets ``extra``); update the gains and count their first digit into ``hist``."""
+    hist[:] = 0
+    npos = 0
+    for i in range(i0, i1):
+        gi = g[i]
+        ai = base
+        if gi > t:
+            ai += fb
+        elif gi == t and need > 0:
+            if cut < 0 or i == cut:
+                ai += extra
+            elif i < cut:
+                ai += fb
+        if ai != 0.0:
+            amount[i] += ai
+            r[i] *= nn[i] / (nn[i] + ai)
+            nn[i] += ai
+            gi = _gain(r[i], nn[i], fb)
+            g[i] = gi
+        npos += gi > 0.0
+        hist[keys[i] >> _TOP] += 1
+    return npos
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):  # pragma: no cover
     """Greedy allocation of ``budget`` samples in ``rounds`` rounds (§5 of Rousselle 2011).
 
     Fast version of ``gem._allocate_rounds`` (the NumPy reference) on flat float64
@@ -685,36 +739,30 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hist):  # p
     share is spread uniformly.  After a round, a pixel that received ``a`` samples has
     ``rel ← rel·n/(n + a)``, ``n ← n + a``.  ``amount`` (out) gets the total per pixel.
 
-    ``r``, ``nn``, ``g`` (size,) float64 and ``hist`` (2**16,) int64 are work space.
-    One pass per round assigns the samples, updates the gains and counts the first
-    radix digit of the new gains for the next round's selection (:func:`_rank_key`).
+    ``r``, ``nn``, ``g`` (size,) float64 and ``hists`` (P, 2**16) int64 are work space
+    (P parallel chunks).  One pass per round assigns the samples, updates the gains and
+    counts the first radix digit of the new gains for the next round's selection
+    (:func:`_rank_key`); only if several pixels tie at the threshold does a serial scan
+    find the last one taken.
     """
     size = rel.size
+    P = hists.shape[0]
+    step = (size + P - 1) // P
     fb = float(batch)
     keys = g.view(np.uint64)
-    hist[:] = 0
-    npos = 0
-    for i in range(size):
-        r[i] = rel[i]
-        nn[i] = n[i]
-        amount[i] = 0.0
-        x = r[i] * fb / (nn[i] + fb)
-        if x > 0.0:
-            npos += 1
-        else:
-            x = 0.0                     # -0.0 -> 0.0: keys order like the values
-        g[i] = x
-        hist[keys[i] >> _TOP] += 1
-    tkey = np.empty(1, np.uint64)
-    tval = tkey.view(np.float64)
+    npos_c = np.zeros(P, np.int64)
+    for p in prange(P):
+        npos_c[p] = _start_chunk(rel, n, fb, amount, r, nn, g, keys, hists[p],
+                                 min(size, p * step), min(size, (p + 1) * step))
     for it in range(rounds):
         part = budget // rounds + (1 if it < budget % rounds else 0)
         if part == 0:
             continue
         t = np.inf                      # nobody above: only the base amount
         need = 0
-        rem = 0
-        if npos == 0:                   # nothing to gain anywhere: uniform
+        cut = -1
+        extra = fb
+        if npos_c.sum() == 0:           # nothing to gain anywhere: uniform
             base = part / size
         else:
             m = part // batch
@@ -724,30 +772,24 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hist):  # p
             base = float(full * batch)
             if m > 0 or rem > 0:
                 q = m if rem > 0 else m - 1            # last rank that gets samples
-                tkey[0], above = _rank_key(keys, hist, q)
-                t = tval[0]
+                hist = hists.sum(axis=0)
+                tkey = np.empty(1, np.uint64)
+                tkey[0], above, ties = _rank_key(keys, hist, q)
+                t = tkey.view(np.float64)[0]
                 need = q + 1 - above                   # ties at t taken, by index
-        taken = 0
-        hist[:] = 0
-        npos = 0
-        for i in range(size):
-            gi = g[i]
-            ai = base
-            if gi > t:
-                ai += fb
-            elif gi == t and taken < need:
-                taken += 1
-                ai += float(rem) if (rem > 0 and taken == need) else fb
-            if ai != 0.0:
-                amount[i] += ai
-                r[i] *= nn[i] / (nn[i] + ai)
-                nn[i] += ai
-                x = r[i] * fb / (nn[i] + fb)
-                gi = x if x > 0.0 else 0.0
-                g[i] = gi
-            if gi > 0.0:
-                npos += 1
-            hist[keys[i] >> _TOP] += 1
+                if rem > 0:
+                    extra = float(rem)                 # for the last one taken
+                if ties > 1:
+                    k = 0
+                    for i in range(size):
+                        if g[i] == t:
+                            k += 1
+                            if k == need:
+                                cut = i
+                                break
+        for p in prange(P):
+            npos_c[p] = _assign_chunk(base, t, need, cut, extra, fb, amount, r, nn, g, keys,
+                                      hists[p], min(size, p * step), min(size, (p + 1) * step))
 
 
 @njit(cache=True, nogil=True)

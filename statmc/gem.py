@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from . import _filter_kernels as _k
@@ -671,7 +672,7 @@ def _allocate_rounds_fast(rel, n, budget, batch, rounds):
     _k.allocate_rounds(np.ascontiguousarray(rel, np.float64).ravel(),
                        np.ascontiguousarray(n, np.float64).ravel(), int(budget), int(batch),
                        int(rounds), amount.reshape(-1), work[0], work[1], work[2],
-                       np.empty(1 << _k._DIGIT, np.int64))
+                       np.empty((2 * numba.get_num_threads(), 1 << _k._DIGIT), np.int64))
     return amount
 
 

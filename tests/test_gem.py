@@ -501,6 +501,7 @@ def test_greedy_rounds_kernel_equals_numpy_reference(rounds):
     """The compiled greedy allocation equals `_allocate_rounds` exactly: continuous
     gains, heavy ties (quantised gains), zero gains, more batches than pixels,
     remainders, a zero budget, and the uniform fallback."""
+    from statmc import _filter_kernels as K
     rng = np.random.default_rng(30 + rounds)
     for trial in range(12):
         h, w = rng.integers(1, 40, 2)
@@ -519,6 +520,11 @@ def test_greedy_rounds_kernel_equals_numpy_reference(rounds):
         got = gem._allocate_rounds_fast(rel, n, budget, batch, rounds)
         np.testing.assert_array_equal(got, ref, err_msg=f"trial {trial} budget {budget} batch {batch}")
         assert got.sum() == pytest.approx(budget)
+        for chunks in (1, 3, 64):         # parallel chunks (also more than pixels)
+            out, work = np.empty(rel.size), np.empty((3, rel.size))
+            K.allocate_rounds(rel.ravel(), n.ravel(), budget, batch, rounds, out, *work,
+                              np.empty((chunks, 1 << K._DIGIT), np.int64))
+            np.testing.assert_array_equal(out.reshape(rel.shape), ref)
 
 
 def test_rank_key_selects_the_descending_order_statistic():
@@ -530,9 +536,9 @@ def test_rank_key_selects_the_descending_order_statistic():
         desc = np.sort(g)[::-1]
         for q in (0, 1, g.size // 3, g.size - 1):
             hist = np.bincount((keys >> np.uint64(48)).astype(np.int64), minlength=1 << 16)
-            key, above = K._rank_key(keys, hist, q)
+            key, above, ties = K._rank_key(keys, hist, q)
             t = np.array([key], np.uint64).view(np.float64)[0]
-            assert t == desc[q] and above == np.sum(g > t)
+            assert t == desc[q] and above == np.sum(g > t) and ties == np.sum(g == t)
 
 
 def test_spread_kernel_equals_dense_reference():
