@@ -191,8 +191,8 @@ def part1(scene, r, ref, spps, seeds, combiner):
         print(f"  {scene:15s} {spp:5d} spp  {time.perf_counter() - t_spp:6.1f} s  (render: {t};"
               f" reconstruct {timing.get('reconstruct', 0):.1f}s, metrics "
               f"{timing.get('metrics', 0):.1f}s)  relMSE box {got['uniform+box']:.3g} "
-              f"OIDN {got['uniform+OIDN']:.3g} prog {got['OIDN+progressive']:.3g} "
-              f"DA+OIDN {got['DA+OIDN']:.3g}", flush=True)
+              f"OIDN {got['uniform+OIDN']:.3g} comb {_fmt(got['OIDN+combiner'])} "
+              f"prog {got['OIDN+progressive']:.3g} DA+OIDN {got['DA+OIDN']:.3g}", flush=True)
     return rows
 
 
