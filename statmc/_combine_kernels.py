@@ -277,3 +277,294 @@ def combine_numba(w, ys, zs, out):
         with _threads_for(d.size * w.shape[3] ** 2):
             _combine_group(w, d, zs, c0, nc, out, bad)
     return bad
+
+
+# =========================================================================== statistical weights
+# Compiled :func:`statmc.combine.statistical_weights` ("coherent" and "diagonal"): the same
+# estimator as the NumPy path in ``combine.py`` (which stays the reference), computed per
+# pixel from O(1) stencil look-ups instead of image-sized temporaries per tap, and in bands
+# of rows so the per-tap squared-bias planes of ``z_bias="estimate"`` fit in memory at 1080p.
+#
+# Arrays: ``ys, zs`` (B, H, W, C) float64; ``var_y`` (By, H, W, C) with By in {1, B};
+# ``cov_z`` (Bz, H, W, m, m, C); ``cov_yz`` (Bx, H, W, m', m', C) (``has_yz`` False: a dummy);
+# ``zb`` (Bb, H, W, C) (bias mode 2 only).  Bias modes: 0 "estimate", 1 "zero", 2 array.
+# Methods: 0 "coherent", 1 "diagonal".  Output ``out`` (H, W, B, k, k) float32.
+
+BIAS_ESTIMATE, BIAS_ZERO, BIAS_ARRAY = 0, 1, 2
+METHOD_COHERENT, METHOD_DIAGONAL = 0, 1
+MAX_ACTIVE_SET_ITER = 20   # the NumPy path's ``max_iter``
+
+
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _st(S, b, y, x, vy, vx, c):  # pragma: no cover - compiled
+    """``S[b, y, x, R + vy, R + vx, c]`` or 0 when the offset is beyond the stencil radius
+    or the pixel is outside the image (the NumPy path's shifted planes are 0 there)."""
+    R = S.shape[3] // 2
+    if vy < -R or vy > R or vx < -R or vx > R:
+        return 0.0
+    if y < 0 or y >= S.shape[1] or x < 0 or x >= S.shape[2]:
+        return 0.0
+    return S[b if S.shape[0] > 1 else 0, y, x, R + vy, R + vx, c]
+
+
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _im(A, b, y, x, c):  # pragma: no cover - compiled
+    """``A[b, y, x, c]`` (shared over bins when ``A.shape[0] == 1``), 0 outside the image."""
+    if y < 0 or y >= A.shape[1] or x < 0 or x >= A.shape[2]:
+        return 0.0
+    return A[b if A.shape[0] > 1 else 0, y, x, c]
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _delta_var_at(var_y, cov_z, cov_yz, has_yz, b, y, x, oy, ox, c):  # pragma: no cover
+    """``Var(δ)`` of ``δ = (z_c − z_t) − (y_c − y_t)``, tap ``t = c + o`` (NumPy ``_delta_var``)."""
+    ty = y + oy
+    tx = x + ox
+    v = _im(var_y, b, y, x, c) + _im(var_y, b, ty, tx, c)
+    v += _st(cov_z, b, y, x, 0, 0, c) + _st(cov_z, b, ty, tx, 0, 0, c) \
+        - 2.0 * _st(cov_z, b, y, x, oy, ox, c)
+    if has_yz:
+        v += -2.0 * _st(cov_yz, b, y, x, 0, 0, c) + 2.0 * _st(cov_yz, b, y, x, oy, ox, c) \
+            + 2.0 * _st(cov_yz, b, ty, tx, -oy, -ox, c) - 2.0 * _st(cov_yz, b, ty, tx, 0, 0, c)
+    return v
+
+
+@njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  # pragma: no cover
+    """Squared-bias estimates ``s2[j, y − y0, x, c]`` for tap ``j`` and rows ``y0 .. y1 − 1``.
+
+    ``max(box_mean(mean_b((δ² − Var δ)·valid), valid), 0)`` over the ``(2 patch + 1)²``
+    box of centre pixels, counting only centres whose tap is inside the image (the
+    ``z_bias="estimate"`` of :func:`statmc.combine.statistical_weights`).  With ``loo``
+    the two centres whose ``δ`` contains ``y_c`` itself (``c`` and ``c − o``) are left out.
+    """
+    B, H, W, C = ys.shape
+    r = k // 2
+    q0 = max(0, y0 - patch)
+    q1 = min(H, y1 + patch)
+    nq = q1 - q0
+    for j in prange(k * k):
+        oy = j // k - r
+        ox = j % k - r
+        if oy == 0 and ox == 0:
+            s2[j] = 0.0
+            continue
+        q = np.zeros((nq, W, C))
+        val = np.zeros((nq, W))
+        for yy in range(q0, q1):
+            ty = yy + oy
+            if ty < 0 or ty >= H:
+                continue
+            for xx in range(max(0, -ox), min(W, W - ox)):
+                tx = xx + ox
+                val[yy - q0, xx] = 1.0
+                for c in range(C):
+                    acc = 0.0
+                    for b in range(B):
+                        d = (zs[b, yy, xx, c] - zs[b, ty, tx, c]) - (ys[b, yy, xx, c] - ys[b, ty, tx, c])
+                        acc += d * d - _delta_var_at(var_y, cov_z, cov_yz, has_yz, b, yy, xx,
+                                                     oy, ox, c)
+                    q[yy - q0, xx, c] = acc / B
+        # separable box sums over the window clipped to the image (zero padding)
+        hq = np.zeros((nq, W, C))
+        hv = np.zeros((nq, W))
+        for yy in range(nq):
+            for xx in range(W):
+                for u in range(max(0, xx - patch), min(W, xx + patch + 1)):
+                    hv[yy, xx] += val[yy, u]
+                    for c in range(C):
+                        hq[yy, xx, c] += q[yy, u, c]
+        for yy in range(y0, y1):
+            for xx in range(W):
+                den = 0.0
+                for u in range(max(q0, yy - patch), min(q1, yy + patch + 1)):
+                    den += hv[u - q0, xx]
+                # leave-centre-out: drop c (always in its box) and c − o (in the box when
+                # |o| <= patch), the two centres whose δ involves y_c
+                dl = 0.0
+                py = yy - oy
+                px = xx - ox
+                inb = loo and abs(oy) <= patch and abs(ox) <= patch and 0 <= py < H and 0 <= px < W
+                if loo:
+                    dl = val[yy - q0, xx] + (val[py - q0, px] if inb else 0.0)
+                for c in range(C):
+                    num = 0.0
+                    for u in range(max(q0, yy - patch), min(q1, yy + patch + 1)):
+                        num += hq[u - q0, xx, c]
+                    if loo:
+                        num -= q[yy - q0, xx, c] + (q[py - q0, px, c] if inb else 0.0)
+                    m = num / (den - dl) if den - dl > 0.0 else 0.0
+                    s2[j, yy - y0, xx, c] = m if m > 0.0 else 0.0
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _solve_small(G, rhs, sol):  # pragma: no cover - compiled
+    """``G sol = rhs`` for a small dense system (Gaussian elimination, partial pivoting)."""
+    n = G.shape[0]
+    for i in range(n):
+        p = i
+        for j in range(i + 1, n):
+            if abs(G[j, i]) > abs(G[p, i]):
+                p = j
+        if p != i:
+            for j in range(n):
+                G[i, j], G[p, j] = G[p, j], G[i, j]
+            rhs[i], rhs[p] = rhs[p], rhs[i]
+        for j in range(i + 1, n):
+            f = G[j, i] / G[i, i]
+            for l in range(i, n):
+                G[j, l] -= f * G[i, l]
+            rhs[j] -= f * rhs[i]
+    for i in range(n - 1, -1, -1):
+        s = rhs[i]
+        for j in range(i + 1, n):
+            s -= G[i, j] * sol[j]
+        sol[i] = s / G[i, i]
+
+
+@njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
+                  out):  # pragma: no cover - compiled
+    """Weights of rows ``y0 .. y1 − 1`` into ``out`` (see :func:`statistical_weights_numba`)."""
+    H = out.shape[0]
+    W = out.shape[1]
+    C = var_y.shape[3]
+    r = k // 2
+    kk = k * k
+    n = B * kk
+    for y in prange(y0, y1):
+        v = np.empty(n)
+        b2 = np.empty((n, C))
+        valid = np.zeros(n, np.bool_)
+        act = np.zeros(n, np.bool_)
+        a = np.zeros(n)
+        U = np.empty((n, C))
+        G = np.empty((C, C))
+        rhs = np.empty(C)
+        sol = np.empty(C)
+        for x in range(W):
+            top = 0.0
+            for b in range(B):
+                for j in range(kk):
+                    i = b * kk + j
+                    oy = j // k - r
+                    ox = j % k - r
+                    ty = y + oy
+                    tx = x + ox
+                    ok = 0 <= ty < H and 0 <= tx < W
+                    valid[i] = ok
+                    # Var(e_t), e_t = y_t + z_c − z_t, channel mean (NumPy ``_Moments.pair``)
+                    vm = 0.0
+                    bm = 0.0
+                    for c in range(C):
+                        q = _im(var_y, b, ty, tx, c)
+                        if oy != 0 or ox != 0:
+                            q += _st(cov_z, b, y, x, 0, 0, c) - 2.0 * _st(cov_z, b, y, x, oy, ox, c) \
+                                + _st(cov_z, b, ty, tx, 0, 0, c)
+                            if has_yz:
+                                q += 2.0 * _st(cov_yz, b, ty, tx, -oy, -ox, c) \
+                                    - 2.0 * _st(cov_yz, b, ty, tx, 0, 0, c)
+                        vm += q
+                        if bias_mode == 0:
+                            e2 = s2[j, y - y0, x, c]
+                        elif bias_mode == 1 or (oy == 0 and ox == 0):
+                            e2 = 0.0
+                        else:
+                            e = _im(zb, b, y, x, c) - _im(zb, b, ty, tx, c)
+                            e2 = e * e
+                        b2[i, c] = e2
+                        bm += e2
+                    v[i] = vm / C
+                    if ok:
+                        t = v[i] + bm / C
+                        if t > top:
+                            top = t
+            floor = max(1e-12 * top, 1e-300)
+            vmin = np.inf
+            for i in range(n):
+                if valid[i]:
+                    if v[i] < floor:
+                        v[i] = floor
+                    if v[i] < vmin:
+                        vmin = v[i]
+            if method == 1:
+                # diagonal: inverse-MSE weights, scaled by the smallest MSE
+                mmin = np.inf
+                for i in range(n):
+                    a[i] = 0.0
+                    if valid[i]:
+                        s = 0.0
+                        for c in range(C):
+                            s += b2[i, c]
+                        a[i] = v[i] + s / C
+                        if a[i] < mmin:
+                            mmin = a[i]
+                for i in range(n):
+                    a[i] = mmin / a[i] if valid[i] else 0.0
+                    act[i] = valid[i]
+            else:
+                # coherent: min aᵀ(D + U Uᵀ)a, Σa = 1, a ≥ 0 (Woodbury + active set)
+                for i in range(n):
+                    act[i] = valid[i]
+                    for c in range(C):
+                        U[i, c] = np.sqrt(b2[i, c] / (C * vmin))
+                for it in range(MAX_ACTIVE_SET_ITER):
+                    for c in range(C):
+                        rhs[c] = 0.0
+                        for d in range(C):
+                            G[c, d] = 1.0 if c == d else 0.0
+                    for i in range(n):
+                        if act[i]:
+                            di = vmin / v[i]
+                            for c in range(C):
+                                rhs[c] += U[i, c] * di
+                                for d in range(C):
+                                    G[c, d] += U[i, c] * di * U[i, d]
+                    _solve_small(G, rhs, sol)
+                    neg = False
+                    for i in range(n):
+                        if act[i]:
+                            s = 0.0
+                            for c in range(C):
+                                s += U[i, c] * sol[c]
+                            a[i] = vmin / v[i] * (1.0 - s)
+                        else:
+                            a[i] = 0.0
+                    for i in range(n):
+                        if act[i] and a[i] < 0.0:
+                            act[i] = False
+                            neg = True
+                    if not neg:
+                        break
+            tot = 0.0
+            for i in range(n):
+                if act[i] and a[i] > 0.0:
+                    tot += a[i]
+            for b in range(B):
+                for j in range(kk):
+                    i = b * kk + j
+                    w = a[i] / tot if (act[i] and a[i] > 0.0) else 0.0
+                    out[y, x, b, j // k, j % k] = np.float32(w)
+
+
+def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, method, k, patch,
+                              out, *, loo=False, band_bytes=1 << 28):
+    """Compiled "coherent"/"diagonal" statistical weights into ``out`` ``(H, W, B, k, k)``.
+
+    Rows are processed in bands so that the squared-bias planes ``(k², rows, W, C)`` of
+    ``bias_mode`` 0 stay under ``band_bytes``.
+    """
+    B, H, W, C = ys.shape
+    has_yz = cov_yz is not None
+    if not has_yz:
+        cov_yz = np.zeros((1, 1, 1, 1, 1, C))
+    if zb is None:
+        zb = np.zeros((1, 1, 1, C))
+    rows = H if bias_mode != BIAS_ESTIMATE else max(1, min(H, band_bytes // (k * k * W * C * 8)))
+    s2 = np.zeros((k * k, rows, W, C) if bias_mode == BIAS_ESTIMATE else (1, 1, 1, C))
+    for y0 in range(0, H, rows):
+        y1 = min(H, y0 + rows)
+        if bias_mode == BIAS_ESTIMATE:
+            _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2)
+        _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1, out)
+    return out

@@ -53,6 +53,7 @@ __all__ = [
     "combine", "combine_multi", "combine_boosting",
     "uniform_weights", "gaussian_weights", "statistical_weights",
     "combine_bias_variance", "filter_covariance", "buffer_moments",
+    "denoiser_moments", "combine_denoised",
 ]
 
 _BIAS_MODES = ("estimate", "zero")
@@ -566,6 +567,23 @@ def _box_mean(a, valid, radius):
     return np.where(np.isfinite(out), out, 0.0)
 
 
+def _box_mean_loo(q1, q2, valid, radius, o):
+    """:func:`_box_mean` of ``q1`` and ``q2`` leaving out the centres ``c`` and ``c − o``
+    (the two whose ``δ`` for tap offset ``o`` contains ``y_c``)."""
+    from scipy.ndimage import uniform_filter
+
+    n = 2 * radius + 1
+    den = uniform_filter(valid, n, mode="constant") * (n * n) - valid
+    nums = [uniform_filter(q, (n, n, 1), mode="constant") * (n * n) - q for q in (q1, q2)]
+    if abs(o[0]) <= radius and abs(o[1]) <= radius:
+        back = _shift(valid, -o[0], -o[1])
+        den = den - back
+        nums = [a - _shift(q, -o[0], -o[1]) for a, q in zip(nums, (q1, q2))]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = [a / den[..., None] for a in nums]
+    return [np.where(np.isfinite(a) & (den[..., None] > 0.5), a, 0.0) for a in out]
+
+
 def _delta_var(mom, b, o):
     """``Var(δ)`` of ``δ = (z_c − z_t) − (y_c − y_t)`` for the tap at offset ``o``."""
     z = np.zeros((mom.H, mom.W, mom.C))
@@ -582,7 +600,7 @@ def _delta_var(mom, b, o):
     return v
 
 
-def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch):
+def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch, loo=False):
     """Per-tap bias ``E[e_t] − μ_c`` of the estimates, ``{offset: (B, H, W, C)}``, and
     the per-tap squared bias to use, ``{offset: (B, H, W, C)}``."""
     B, H, W, C = ys.shape
@@ -598,8 +616,13 @@ def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch):
             d = np.stack([(zs[b] - _shift(zs[b], *o)) - (ys[b] - _shift(ys[b], *o))
                           for b in range(B)])
             dv = np.stack([_delta_var(mom, b, o) for b in range(B)])
-            m = _box_mean((d * valid[..., None]).mean(axis=0), valid, patch)
-            s2 = _box_mean(((d * d - dv) * valid[..., None]).mean(axis=0), valid, patch)
+            q1 = (d * valid[..., None]).mean(axis=0)
+            q2 = ((d * d - dv) * valid[..., None]).mean(axis=0)
+            if loo:
+                m, s2 = _box_mean_loo(q1, q2, valid, patch, o)
+            else:
+                m = _box_mean(q1, valid, patch)
+                s2 = _box_mean(q2, valid, patch)
             mean[o] = np.broadcast_to(m, (B, H, W, C))
             sq[o] = np.broadcast_to(np.maximum(s2, 0.0), (B, H, W, C))
         else:
@@ -696,8 +719,34 @@ def _full_weights(mom, mean, k, B, H, W, ridge):
     return w.astype(np.float32)
 
 
+def _unbroadcast(a):
+    """A moment broadcast over bins as its stored ``(1, ...)`` block, contiguous float64."""
+    if a is None:
+        return None
+    if a.shape[0] > 1 and a.strides[0] == 0:
+        a = a[:1]
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo):
+    """The numba path of :func:`statistical_weights` ("coherent", "diagonal")."""
+    B, H, W, C = ys.shape
+    if zb is not None:
+        mode = _ck.BIAS_ARRAY
+    else:
+        mode = _ck.BIAS_ZERO if z_bias == "zero" else _ck.BIAS_ESTIMATE
+    out = np.empty((H, W, B, k, k), np.float32)
+    code = _ck.METHOD_COHERENT if method == "coherent" else _ck.METHOD_DIAGONAL
+    _ck.statistical_weights_numba(np.ascontiguousarray(ys), np.ascontiguousarray(zs),
+                                  _unbroadcast(mom.var_y), _unbroadcast(mom.cov_z),
+                                  _unbroadcast(mom.cov_yz), _unbroadcast(zb), mode, code, k,
+                                  patch, out, loo=loo)
+    return out
+
+
 def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="estimate",
-                        cov_yz=None, patch=2, ridge=1e-9):
+                        cov_yz=None, patch=2, leave_centre_out=False, ridge=1e-9,
+                        _reference=False):
     """Classical combination weights that minimise Eq. 10² + Eq. 11 of [1]_.
 
     The estimate Eq. 8/14 averages the per-tap estimates ``e_t = y_t + z_c − z_t``
@@ -790,7 +839,11 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
     else:
         zb = _image_moment("z_bias", z_bias, B, H, W, C)
     ys64, zs64 = ys.astype(np.float64), zs.astype(np.float64)
-    mean, sq = _bias_vectors(ys64, zs64, mom, zb, z_bias, k, int(patch))
+    loo = bool(leave_centre_out)
+    if method != "full" and not _reference:
+        return _statistical_weights_compiled(ys64, zs64, mom, zb, z_bias, method, k, int(patch),
+                                             loo)
+    mean, sq = _bias_vectors(ys64, zs64, mom, zb, z_bias, k, int(patch), loo)
     if method == "coherent":
         return _coherent_weights(mom, sq, k, B, H, W)
     if method == "diagonal":
@@ -911,3 +964,331 @@ def buffer_moments(ys, zs, *, size):
             cov_z[:, :, R + vy, R + vx] = (dz * sz).sum(axis=0) / (B - 1)
             cov_yz[:, :, R + vy, R + vx] = (dy * sz).sum(axis=0) / (B - 1)
     return var_y, cov_z, cov_yz
+
+
+# =========================================================================== black-box z
+#: Defaults of :func:`combine_denoised`, chosen on the toy ``mixed`` scene and the four
+#: built-in Mitsuba scenes at 4-1024 spp (``bench/bench_combine.py``, docs/combine.md).
+DEFAULT_PROBES = 8        # ±σ probe vectors: 8 extra denoiser calls
+DEFAULT_STENCIL = 5       # covariance stencil width m of the first-order moments
+DEFAULT_MOMENT_SMOOTH = 2  # box radius smoothing the probe moments (5x5)
+DEFAULT_SIZE = 15         # combination window (the paper's 15x15, §5)
+DEFAULT_MIX_SIGMA = 16.0  # Gaussian σ (pixels) pooling the SURE terms of the mix
+
+
+def _box(a, radius):
+    """Box mean over ``(2 radius + 1)²`` pixels (leading axes H, W), reflected borders."""
+    if radius <= 0:
+        return a
+    from scipy.ndimage import uniform_filter
+
+    n = 2 * radius + 1
+    return uniform_filter(a, (n, n) + (1,) * (a.ndim - 2), mode="reflect")
+
+
+def _probe_step(x, v, eps):
+    """Finite-difference step: ``eps`` relative to the image's RMS over the probe's RMS."""
+    sx = float(np.sqrt(np.mean(x * x)))
+    sv = float(np.sqrt(np.mean(v * v)))
+    if sx == 0.0 or sv == 0.0:
+        return None
+    return eps * sx / sv
+
+
+def _denoise(f, x):
+    out = np.asarray(f(np.ascontiguousarray(x, dtype=np.float32)))
+    if out.shape != x.shape:
+        raise InputError(f"`denoiser` must return an image of the input's shape {x.shape}; "
+                         f"got {out.shape}.")
+    out = out.astype(np.float64)
+    check_finite("denoiser output", out)
+    return out
+
+
+def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFAULT_PROBES,
+                     rng=None, eps=1e-3, extra_output=False):
+    """First-order covariance stencils of a black-box denoiser's output ``z = f(x)``.
+
+    The first-order model ``z(x + ε) ≈ z(x) + J ε`` with independent pixel noise
+    ``Cov(ε) = diag(σ²)`` gives ``cov(z_p, z_q) = (J Σ Jᵀ)_pq`` and
+    ``cov(y_p, z_q) = J_qp σ_p²``.  Both are estimated from ``K`` random probes ``v`` with
+    independent fair signs, ``v_p = ±σ_p`` (so ``E[v vᵀ] = Σ``), and finite-difference
+    Jacobian-vector products ``J v ≈ (f(x + h v) − f(x)) / h``:
+    ``E[(J v)_p (J v)_q] = (J Σ Jᵀ)_pq`` and ``E[v_p (J v)_q] = J_qp σ_p²``.  This extends
+    the variance estimate of Firmino et al. 2023 (§"Deep NN Variance Estimate",
+    ``Σ_j (∂f_i/∂x_j)² σ_j²`` from ``±σ`` vectors; :func:`statmc.sure.output_variance`)
+    to the covariances that Eq. 10/11 of Back et al. 2020 [1]_ need when ``z`` is
+    computed from ``y`` (the cross term ``cov_yz``, see :func:`combine_bias_variance`).
+
+    Parameters
+    ----------
+    denoiser : callable ``f(color) -> color``
+        E.g. :func:`statmc.denoisers.oidn` with its feature buffers bound.
+    x : (H, W, C) ndarray
+        The noisy image (``y``), where ``f`` is linearised.
+    mean_var : (H, W, C) ndarray
+        **Variance of the mean** of each pixel of ``x`` (``PixelStats.mean_var``).
+    size : int
+        Odd stencil width ``m`` (offsets up to ``m // 2``).
+    probes : int
+        ``K``, the number of probe vectors (``K + 1`` denoiser calls).
+    rng : numpy Generator or seed, optional
+    eps : float
+        Finite-difference step relative to the image's RMS (1e-3: the value
+        :data:`statmc.sure.DEFAULT_VARIANCE_EPS` uses for the same squared differences).
+    extra_output : bool
+        Also return the probes ``v`` and ``J v`` as ``(K, H, W, C)`` arrays.
+
+    Returns
+    -------
+    z : (H, W, C) float64 ndarray
+        ``f(x)``.
+    cov_z, cov_yz : (H, W, m, m, C) float64 ndarrays
+        Stencils in the convention of :func:`combine_bias_variance`:
+        ``cov_z[p, R + v] = cov(z_p, z_{p+v})``, ``cov_yz[p, R + v] = cov(x_p, z_{p+v})``
+        (``R = m // 2``), each the mean over the ``K`` probes (unbiased for the
+        first-order model; smooth them before use, ``K`` is small).
+    probes_v, probes_jv : (K, H, W, C) float64 ndarrays
+        Only with ``extra_output=True``.
+
+    Notes
+    -----
+    Exact (up to the finite difference) for linear denoisers; for OIDN the first-order
+    variance exceeds the empirical one by 16–20 % (``docs/error-estimates.md``).
+    """
+    xx = as_float_array("x", x, ndim=3, dtype=np.float64)
+    check_finite("x", xx)
+    mv = as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64)
+    check_finite("mean_var", mv)
+    check_nonnegative("mean_var", mv)
+    if mv.shape != xx.shape:
+        raise InputError(f"`mean_var` must have the shape of `x` {xx.shape} (the variance of the "
+                         f"mean of each pixel and channel); got {mv.shape}.")
+    m = _check_size(size)
+    if isinstance(probes, bool) or not isinstance(probes, (int, np.integer)) or probes < 1:
+        raise InputError(f"`probes` must be an integer >= 1; got {probes!r}.")
+    eps = float(eps)
+    if not np.isfinite(eps) or eps <= 0:
+        raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
+    if not callable(denoiser):
+        raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
+    gen = np.random.default_rng(rng)
+    H, W, C = xx.shape
+    R = m // 2
+    sig = np.sqrt(mv)
+    z = _denoise(denoiser, xx)
+    V = np.zeros((probes, H, W, C))
+    JV = np.zeros((probes, H, W, C))
+    cov_z = np.zeros((H, W, m, m, C))
+    cov_yz = np.zeros((H, W, m, m, C))
+    for i in range(int(probes)):
+        v = sig * (gen.integers(0, 2, xx.shape) * 2.0 - 1.0)
+        h = _probe_step(xx, v, eps)
+        if h is None:
+            continue                      # no noise (or a black image): zero moments
+        jv = (_denoise(denoiser, xx + h * v) - z) / h
+        V[i], JV[i] = v, jv
+        for vy in range(-R, R + 1):
+            for vx in range(-R, R + 1):
+                s = _shift(jv, vy, vx)
+                cov_z[:, :, R + vy, R + vx] += jv * s
+                cov_yz[:, :, R + vy, R + vx] += v * s
+    cov_z /= probes
+    cov_yz /= probes
+    if extra_output:
+        return z, cov_z, cov_yz, V, JV
+    return z, cov_z, cov_yz
+
+
+def _simplex_mix(G, b):
+    """Minimise ``λᵀGλ − 2bᵀλ`` over ``λ ≥ 0, Σλ ≤ 1`` per pixel (``G`` ``(..., J, J)``).
+
+    Enumerates the faces of the simplex (free and ``Σλ = 1`` on every subset of the
+    candidates, ``J <= 3``) and keeps the best feasible stationary point; ``λ = 0``
+    (objective 0) is always feasible.
+    """
+    from itertools import combinations
+
+    J = b.shape[-1]
+    best = np.zeros(b.shape)
+    best_q = np.zeros(b.shape[:-1])
+    for n in range(1, J + 1):
+        for S in combinations(range(J), n):
+            idx = np.array(S)
+            Gs = G[..., idx[:, None], idx[None, :]]
+            bs = b[..., idx]
+            # ridge relative to the diagonal: a candidate equal to another is singular
+            tr = np.einsum("...ii->...", Gs)[..., None, None] / n
+            Gs = Gs + np.eye(n) * (1e-9 * tr + 1e-300)
+            inv1 = np.linalg.solve(Gs, np.ones(bs.shape)[..., None])[..., 0]
+            free = np.linalg.solve(Gs, bs[..., None])[..., 0]
+            # on Σλ = 1: λ = free + ν inv1 with ν = (1 − Σfree) / Σinv1
+            with np.errstate(divide="ignore", invalid="ignore"):
+                nu = (1.0 - free.sum(-1)) / inv1.sum(-1)
+            tight = free + nu[..., None] * inv1
+            for lam_s in (free, tight):
+                ok = np.isfinite(lam_s).all(-1) & (lam_s >= 0).all(-1) & (lam_s.sum(-1) <= 1 + 1e-12)
+                lam = np.zeros(b.shape)
+                lam[..., idx] = np.where(ok[..., None], lam_s, 0.0)
+                q = np.einsum("...i,...ij,...j->...", lam, G, lam) - 2 * (lam * b).sum(-1)
+                better = ok & (q < best_q)
+                best = np.where(better[..., None], lam, best)
+                best_q = np.where(better, q, best_q)
+    return best
+
+
+def _mix_gain(y, z, beta, mean_var, w, V, JV):
+    """Per pixel and channel, an estimate of ``−E[(z_c − μ_c) ρ_c]``, ``ρ = β̂ − z``.
+
+    ``r_c ρ_c − a_c σ_c² + Σ_t a_t cov(y_c, z_t)`` with ``r = y − z``: Stein's lemma
+    ``E[ε_c ρ_c] = σ_c² E[∂ρ_c/∂y_c]`` for ``ρ = A(y − z)`` with weights ``A``
+    independent of ``y_c``, where ``σ_c² ∂ρ_c/∂y_c = a_c σ_c² − Σ_t a_t J_tc σ_c²`` and
+    ``J_tc σ_c² = cov(y_c, z_t) = E[v_c (J v)_t]`` from the probes ``V``, ``JV``.
+    Unbiased when ``z`` is linear in ``y`` (first order otherwise).
+    """
+    from .analytic import apply_kernels
+
+    k = w.shape[3]
+    wk = w[:, :, 0]
+    # the centre's share of W_c, the weight sum over the taps inside the image (Eq. 8)
+    a_c = (wk[:, :, k // 2, k // 2] / apply_kernels(wk, np.ones(y.shape[:2])))[..., None]
+    zero = np.zeros_like(y)
+    cross = np.zeros_like(y)
+    for i in range(V.shape[0]):
+        cross += V[i] * combine(JV[i], zero, w)        # A u = combine(u, 0, w)
+    cross /= max(V.shape[0], 1)
+    return (y - z) * (beta - z) - a_c * mean_var + cross
+
+
+def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT_PROBES,
+                     stencil=DEFAULT_STENCIL, smooth=DEFAULT_MOMENT_SMOOTH, patch=2,
+                     var=("smooth", "max"), mix="local", mix_sigma=DEFAULT_MIX_SIGMA, rng=None,
+                     extra_output=False):
+    """A black-box denoiser made better by the combination kernel (Back et al. 2020 [1]_).
+
+    ``y`` is the render (independent pixels), ``z = denoiser(y)`` the correlated image.
+    The classical pipeline, without a network:
+
+    1. **Moments** of ``z`` to first order from ``probes`` ``±σ`` probe vectors
+       (:func:`denoiser_moments`): ``cov(z_c, z_t)`` and ``cov(y_t, z_c)`` on a
+       ``stencil``-wide stencil, box-smoothed over ``(2 smooth + 1)²`` pixels.
+    2. **Weights** minimising Eq. 10² + Eq. 11 (:func:`statistical_weights`, "coherent",
+       with the cross term ``cov_yz`` because ``z`` is computed from ``y``, and the tap
+       biases estimated from the data leaving the centre out — see Notes), once per
+       entry of ``var``, the variance of ``y`` given to the weights: ``"smooth"``,
+       ``mean_var`` box-smoothed over 5x5 (robust where most samples are 0, e.g. dense
+       fireflies); ``"max"``, the larger of that and the per-pixel ``mean_var`` (holds
+       back isolated outliers, e.g. caustic fireflies); ``"raw"``, per pixel.
+    3. **Combination** Eq. 8 for each: ``β̂_j = z + A_j (y − z)`` (:func:`combine`).
+    4. **Mix** with ``z``: ``out = z + Σ_j λ_j ρ_j``, ``ρ_j = β̂_j − z``, with ``λ ≥ 0``,
+       ``Σ λ_j ≤ 1`` minimising the expected relMSE estimated by Stein's lemma (SURE,
+       Eq. 1 of Firmino et al. 2022 [2]_), as their optimal mixing α (Eq. 9 of [2]_) but
+       between ``z`` and the ``β̂_j``.  The expected squared error is, up to that of
+       ``z``, ``λᵀ G λ − 2 bᵀ λ`` with ``G_ij = E[ρ_i ρ_j]`` and
+       ``b_j = −E[(z − μ) ρ_j]``; with ``r = y − z`` and Stein's
+       ``E[ε_c ρ_c] = σ_c² E[∂ρ_c/∂y_c]``,
+       ``b_j = E[r_c ρ_{j,c} − a_c σ_c² + Σ_t a_t cov(y_c, z_t)]`` (``a`` the normalised
+       weights of pixel ``c``, ``a_c`` the centre's; the sum from the same probes,
+       ``E[v_c (A J v)_c]``).  ``G`` and ``b`` are pooled with relative weights
+       ``1 / (z² + 0.01)`` (relMSE, ε of Rousselle et al. 2011) over the channels and a
+       Gaussian neighbourhood of σ = ``mix_sigma`` pixels (``mix="local"``) or the
+       whole image (``mix="global"``).  ``mix=None`` returns the first ``β̂``.
+
+    Parameters
+    ----------
+    y : (H, W, C) ndarray
+        The render: pixel means.
+    mean_var : (H, W, C) ndarray
+        **Variance of the mean** of ``y`` (``PixelStats.mean_var``).
+    denoiser : callable ``f(color) -> color``
+        Black box (OIDN: :func:`statmc.progressive.bind_denoiser` ``("oidn", stats)``).
+    size : int
+        Odd combination window ``k`` (default 15, as the paper).
+    probes, stencil, smooth : int
+        Of the moments (step 1): ``probes + 1`` denoiser calls in all.
+    patch : int
+        Box radius of the tap-bias estimate (:func:`statistical_weights`).
+    var : str or sequence of str
+        Variance models for the weights (step 2), at most 3; one combination each.
+    mix : {"local", "global", None}
+    mix_sigma : float
+    rng : numpy Generator or seed, optional
+        Seeds the probe vectors.
+    extra_output : bool
+        Also return a dict with ``denoised`` (``z``), ``combined`` (the ``β̂_j``,
+        ``(J, H, W, C)``), ``mix`` (``λ``, ``(H, W, J)``, or ``(J,)`` for ``"global"``).
+
+    Returns
+    -------
+    out : (H, W, C) float64 ndarray
+
+    Notes
+    -----
+    *Why the plain statistical weights failed with OIDN* (toy ``mixed``, 4–64 spp:
+    relMSE 0.12–0.27 against OIDN's 0.003–0.011).  (i) Per-pixel sample variances are
+    0 in firefly regions wherever no sample hit, so those taps — whose ``y_t`` is 0 —
+    got nearly all the weight and the output went dark; the smoothed variance removes
+    that.  (ii) The data-driven tap biases keep the taps whose difference
+    ``(z_c − z_t) − (y_c − y_t)`` happens to be small, which selects neighbours whose
+    noise agrees with ``y_c``: ``β̂`` leans toward the noisy centre, and SURE (which
+    takes ``∂a/∂y_c = 0``) overestimated its benefit several-fold (mix 1.86 estimated,
+    −0.05 true, glossy-spheres 64 spp).  Leaving out the two centres whose ``δ`` holds
+    ``y_c`` (``leave_centre_out=True``) makes the weights of pixel ``c`` independent of
+    ``y_c``: ``β̂`` improves and the SURE mix becomes accurate (0.16 estimated, 0.16
+    true).  (iii) Eq. 8's weights sum to one, so ``β̂`` always adds a full average of
+    residuals ``y − z``; where ``z`` is better than any such average — low spp,
+    fireflies — only the mix can keep ``z``.
+    """
+    yy = as_float_array("y", y, ndim=3, dtype=np.float64)
+    check_finite("y", yy)
+    models = (var,) if isinstance(var, str) else tuple(var)
+    if not 1 <= len(models) <= 3 or any(m not in ("smooth", "raw", "max") for m in models):
+        raise InputError(f"`var` must be 'smooth', 'raw', 'max' or a sequence of 1 to 3 of "
+                         f"them; got {var!r}.")
+    if mix not in ("local", "global", None):
+        raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
+    k = _check_size(size)
+    for name, v in (("smooth", smooth), ("patch", patch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    ms = float(mix_sigma)
+    if not np.isfinite(ms) or ms <= 0:
+        raise InputError(f"`mix_sigma` must be a finite number > 0; got {mix_sigma!r}.")
+    z, cov_z, cov_yz, V, JV = denoiser_moments(denoiser, yy, mean_var, size=stencil,
+                                               probes=probes, rng=rng, extra_output=True)
+    mv = np.asarray(mean_var, np.float64)
+    cov_z = _box(cov_z, smooth)
+    cov_yz = _box(cov_yz, smooth)
+    sm = np.maximum(_box(mv, 2), 0.0)
+    var_w = {"smooth": sm, "raw": mv, "max": np.maximum(mv, sm)}
+    rel = 1.0 / (z * z + 0.01)
+    betas, nums = [], []
+    for model in models:
+        w = statistical_weights(yy, z, var_w[model], cov_z, k, cov_yz=cov_yz,
+                                patch=int(patch), leave_centre_out=True)
+        beta = combine(yy, z, w)
+        betas.append(beta)
+        if mix is None:
+            break
+        nums.append((_mix_gain(yy, z, beta, mv, w, V, JV) * rel).sum(axis=-1))
+        del w
+    lam = None
+    if mix is None:
+        out = betas[0]
+    else:
+        rho = np.stack([b - z for b in betas], axis=-1)                   # (H, W, C, J)
+        G = np.einsum("hwci,hwcj,hwc->hwij", rho, rho, rel)
+        b = np.stack(nums, axis=-1)
+        if mix == "global":
+            lam = _simplex_mix(G.sum(axis=(0, 1)), b.sum(axis=(0, 1)))
+            out = z + np.einsum("hwcj,j->hwc", rho, lam)
+        else:
+            from scipy.ndimage import gaussian_filter
+
+            Gs = gaussian_filter(G, (ms, ms, 0, 0), mode="reflect")
+            bs = gaussian_filter(b, (ms, ms, 0), mode="reflect")
+            lam = _simplex_mix(Gs, bs)
+            out = z + np.einsum("hwcj,hwj->hwc", rho, lam)
+    if extra_output:
+        return out, {"denoised": z, "combined": np.stack(betas), "mix": lam}
+    return out
