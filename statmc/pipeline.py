@@ -10,7 +10,7 @@ from .stats import PixelStats
 
 __all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
 
-RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive")
+RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combine", "combine")
 
 
 def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2,
@@ -18,10 +18,15 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
     """Reconstruct an image from pixel statistics.
 
     ``method``: ``"none"`` (the pixel means), ``"gem"`` (Rousselle 2011), ``"gaussian"``
-    (σ = ``sigma``), ``"oidn"``, or ``"progressive"`` (Firmino 2022 with ``denoiser``).
+    (σ = ``sigma``), ``"oidn"``, ``"progressive"`` (Firmino 2022 with ``denoiser``),
+    ``"oidn+combine"`` (OIDN improved by the combination kernel of Back 2020 with
+    classical statistical weights and a SURE mix, :func:`statmc.combine.combine_denoised`),
+    or ``"combine"`` (the same with ``denoiser``).
     Returns ``(image (H, W, C) float32, maps)`` where ``maps`` holds per-pixel diagnostics
     (for GEM: ``"scale"``, the selected scale index, and ``"sigma"``, its Gaussian σ with
-    0 for the pixel filter; for progressive: ``"alpha"``, the gated mixing weight).
+    0 for the pixel filter; for progressive: ``"alpha"``, the gated mixing weight; for the
+    combiner: ``"mix"``, the total weight Σλ given to the combined images, 0 = the
+    denoiser's output).
     """
     if method == "none":
         return stats.mean.astype(np.float32), {}
@@ -44,6 +49,16 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
                                         extra_output=True)
         alpha = np.asarray(info["alpha_gated"], np.float32)  # (H, W, C): report its channel mean
         return img.astype(np.float32), {"alpha": alpha.mean(axis=-1)}
+    if method in ("oidn+combine", "combine"):
+        # Back 2020 Eq. 8 with statistical weights (Eq. 10/11) and a SURE mix with z.
+        from .combine import combine_denoised
+        from .progressive import bind_denoiser
+        name = "oidn" if method == "oidn+combine" else denoiser
+        opts = {"gamma": gamma} if name == "gem" else {"sigma": sigma} if name == "gaussian" else {}
+        img, info = combine_denoised(stats.mean, stats.mean_var, bind_denoiser(name, stats, **opts),
+                                     rng=seed, extra_output=True)
+        lam = np.asarray(info["mix"], np.float32)
+        return img.astype(np.float32), {"mix": lam.sum(axis=-1)}
     raise InputError(f"unknown reconstruction {method!r}; expected one of {RECONSTRUCTIONS}.")
 
 
