@@ -14,7 +14,10 @@ What happens to a render when ``s`` more samples are added to a pixel that alrea
   relMSE (MRSE) after adding ``s`` samples, for any per-pixel kernel denoiser whose
   weights do not depend on the new samples (Lemma A.1, Theorem 1), with its gradient;
 * :func:`optimal_sample_map` / :func:`optimal_sample_counts` — a classical (non-neural)
-  sampler that minimises that expected loss under a budget (not in the paper).
+  sampler that minimises that expected loss under a budget (not in the paper);
+* :func:`expected_error_sampler` / :class:`PilotKernelSampler` — that sampler with
+  estimated statistics, for a fixed Gaussian or GEM's selection on a pilot render
+  (:func:`gem_kernels`, :func:`scale_kernels`), held fixed so Lemma A.1 applies.
 
 Kernel convention (also :func:`apply_kernels`): kernels are ``(H, W, k, k)`` with odd
 ``k`` and ``r = k // 2``; the denoised pixel is
@@ -938,8 +941,9 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     """One iteration of the ``expected-error`` adaptive sampler (a classical sampler).
 
     Integer counts minimising the closed-form expected loss (Lemma A.1 of [1]_) of a
-    fixed Gaussian denoiser of standard deviation ``sigma`` after adding ``budget``
-    samples, with the true statistics replaced by estimates from ``stats``.
+    fixed kernel denoiser (by default a Gaussian of standard deviation ``sigma``) after
+    adding ``budget`` samples, with the true statistics replaced by estimates from
+    ``stats``.
 
     Parameters
     ----------
@@ -976,6 +980,9 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
         (conditional on the current render, Eq. 6 and 19) with ``x_g`` estimated by the
         current mean; it then sees no current error and charges new samples for their
         noise, which made it worse than uniform sampling (docs/analytic.md).
+    weight_sigma : float or None
+        The relMSE weights ``1/(x̂² + eps)`` take ``x̂`` from a Gaussian of this many
+        pixels (default :data:`WEIGHT_SIGMA` = 2); ``None`` takes it from ``kernels``.
     pool_sigma, prior_dof
         Variance estimate: :func:`pooled_sample_variance` of ``stats.sample_var``.
     eps : float
@@ -988,10 +995,19 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     Notes
     -----
     Estimates: ``var_est`` = :func:`pooled_sample_variance`; the relMSE reference is
-    ``x̂ = sqrt(max((K x_t)² − Var[K x_t], 0))``, an unbiased estimate of ``(K x_g)²``
-    under the root (the noisy ``x_t²`` overstates dark pixels' brightness by their
-    variance).  Measured against uniform sampling on toy and Mitsuba scenes in
-    ``bench/bench_quality_expected_error.py``.
+    ``x̂ = sqrt(max((G x_t)² − Var[G x_t], 0))`` with ``G`` the σ = ``weight_sigma``
+    Gaussian (or ``K``), an unbiased estimate of ``(G x_g)²`` under the root (the noisy
+    ``x_t²`` overstates dark pixels' brightness by their variance).  A weight computed
+    from the render is correlated with its current error: too-dark pixels get more
+    samples and are corrected, too-bright ones are left, so the adaptive render is biased
+    upwards.  Wide kernels keep that bias while removing the noise; with GEM's kernels
+    (whose pixel filter makes ``K x_t`` the pixel's own value) weights from the kernels
+    made the result 1.4–4× worse than uniform, the σ = 2 Gaussian fixed it
+    (docs/analytic.md).
+
+    The unconditional optimum is the water-filling map, computed directly.  Measured
+    against uniform sampling on toy and Mitsuba scenes, with the Gaussian and with fixed
+    pilot-GEM kernels, in ``bench/bench_quality_expected_error.py``.
     """
     if not isinstance(objective, str) or objective not in _OBJECTIVES:
         raise InputError(f"`objective` must be one of {_OBJECTIVES}; got {objective!r}.")
