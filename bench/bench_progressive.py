@@ -3,10 +3,10 @@
 1. Speed.  The confidence gate (Eq. 12-18 of Firmino et al. 2022) on a 1920x1080x3 image
    against one OIDN call at the same size, measured in the same run.  Target: the gate at
    least 10x faster, for float32 and for float64 input (the gate works in float32 by default;
-   ``precision="double"`` is timed for reference).  The machine is shared: the load average and
-   the CPU time of each timed
-   call are printed beside the wall time.  Calls are interleaved over three rounds (best of
-   each), with a pause before each so that OIDN's spinning worker threads have gone idle.
+   ``precision="double"`` is timed for reference).  The machine is shared: the load average
+   and the CPU time of each timed call are printed beside the wall time.  Calls are
+   interleaved over three rounds (best of each), with a pause before each so that OIDN's
+   spinning worker threads have gone idle.
 
 2. Convergence and the peer.  relMSE of the raw render, OIDN (albedo + normal) and
    OIDN + progressive denoising at 4 ... 4096 spp on the toy scenes ``mixed`` and
