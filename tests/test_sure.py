@@ -312,23 +312,45 @@ def test_jvp_variance_matches_the_empirical_variance_at_small_noise():
 
 
 def test_fd_variance_of_oidn_approximates_its_empirical_variance(gauss_quadrant):
-    """For a nonlinear denoiser the first-order variance is an approximation.  Measured on
-    this scene it exceeds the empirical variance of OIDN's output over renders by 16-20 %
-    at 16 spp and about 17 % at 256 spp: OIDN's response flattens over the noise scale, so
-    its local Jacobian overstates the spread (a secant over steps of ±σ, i.e.
-    ``eps=1, relative=False``, matched the empirical variance to 1 %; bench/bench_sure.py).
-    This test pins that size (between −20 % and +40 %), not an exact identity."""
+    """For a nonlinear denoiser the first-order variance is an approximation.  On this
+    scene at 16 spp it exceeds the empirical variance of OIDN's output over renders by
+    about 20 %.  It is not a finite-difference error: a central difference at the same
+    small step gives the same value (1.203 against 1.205 forward), and the excess falls
+    steadily as the step grows (1.19 at 1e-2, 1.15 at 0.3σ).  OIDN's response is steeper
+    for perturbations much smaller than the noise than over the noise scale.  A forward
+    secant over steps of exactly ±σ (``eps=1, relative=False``) matches the empirical
+    variance (0.96-0.99 at 16 spp, 1.00 at 64 spp; the central ±σ secant, spanning 2σ,
+    gives 0.82).  Linearised at the true mean instead of the noisy input the first-order
+    value is 20x too large, so the point of linearisation matters far more than the
+    difference scheme.  This test pins both: the first-order excess (significant, below
+    +40 %) and the secant's agreement, by z-tests at the file's level with the standard
+    errors of both sides (estimates over renders; empirical variance by 5 batches)."""
     g = gauss_quadrant
     spp = 16
     f = D.oidn(g["albedo"], g["normal"])
-    outs, ests = [], []
+    outs, first, secant = [], [], []
     for i, (x, _) in enumerate(_renders(g, spp, range(40_000, 40_150))):
         outs.append(f(x.astype(np.float32)))
         if i < 30:
-            ests.append(S.output_variance(f, x, g["cov"] / spp, k=8, rng=i))
-    emp = np.array(outs, np.float64).var(axis=0, ddof=1)
-    ratio = np.mean(ests) / emp.mean()
-    assert 0.8 < ratio < 1.4, f"first-order / empirical variance = {ratio:.3f}"
+            first.append(S.output_variance(f, x, g["cov"] / spp, k=8, rng=i).mean())
+            secant.append(S.output_variance(f, x, g["cov"] / spp, k=8, rng=i, eps=1.0,
+                                            relative=False).mean())
+    outs = np.array(outs, np.float64)
+    emp = outs.var(axis=0, ddof=1).mean()
+    batches = [b.var(axis=0, ddof=1).mean() for b in np.split(outs, 5)]
+    se_emp = np.std(batches, ddof=1) / np.sqrt(5)
+    z_crit = sps.norm.isf(ALPHA / 2)
+
+    def ratio_z(est):
+        est = np.asarray(est)
+        r = est.mean() / emp
+        se = r * np.hypot(est.std(ddof=1) / np.sqrt(est.size) / est.mean(), se_emp / emp)
+        return r, (r - 1.0) / se
+
+    r1, z1 = ratio_z(first)
+    r2, z2 = ratio_z(secant)
+    assert z1 > z_crit and r1 < 1.4, f"first-order / empirical variance = {r1:.3f} (z = {z1:.2f})"
+    assert abs(z2) < z_crit, f"±σ secant / empirical variance = {r2:.3f} (z = {z2:.2f})"
 
 
 def test_output_variance_methods_and_errors():
