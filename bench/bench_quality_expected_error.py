@@ -29,8 +29,10 @@ references' first pass seed).  For each scene, spp and denoiser:
   the adaptive loop's data dependence (its expectation is the closed form).
 
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_quality_expected_error.py``
-(options: ``--toy``, ``--mitsuba``, ``--spp``, ``--seeds``, ``--denoisers``, ``--mix``).
-Writes the table to ``out/bench/quality_expected_error.md`` (``--out``/``--name``).
+(options: ``--toy``, ``--mitsuba``, ``--spp``, ``--seeds``, ``--denoisers``, ``--mix``,
+``--loss``, ``--weight-sigma``, ``--prior-dof``, ``--pool-sigma``; the sampler's defaults
+otherwise).  Writes the table to ``out/bench/quality_expected_error.md``
+(``--out``/``--name``); docs/analytic.md has the numbers.  About 15 min on 2 busy cores.
 """
 
 from __future__ import annotations

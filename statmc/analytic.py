@@ -427,9 +427,11 @@ def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
     try:
         sig = [float(v) for v in np.asarray(sigmas, dtype=np.float64).ravel()]
     except (TypeError, ValueError) as exc:
-        raise InputError(f"`sigmas` must be a sequence of standard deviations >= 0; got {sigmas!r}.") from exc
+        raise InputError(f"`sigmas` must be a sequence of standard deviations >= 0; "
+                         f"got {sigmas!r}.") from exc
     if not sig or any(not np.isfinite(v) or v < 0 for v in sig):
-        raise InputError(f"`sigmas` must be a non-empty sequence of finite numbers >= 0; got {sigmas!r}.")
+        raise InputError(f"`sigmas` must be a non-empty sequence of finite numbers >= 0; "
+                         f"got {sigmas!r}.")
     if sc.size and (sc.min() < 0 or sc.max() >= len(sig)):
         raise InputError(f"`scales` must lie in [0, {len(sig) - 1}] (indices into `sigmas`); "
                          f"got [{sc.min()}, {sc.max()}].")
@@ -1062,7 +1064,8 @@ def _check_mix(mix):
     except (TypeError, ValueError) as exc:
         raise InputError(f"`mix` must be a number in [0, 1]; got {mix!r}.") from exc
     if not 0.0 <= lam <= 1.0:
-        raise InputError(f"`mix` must be a number in [0, 1] (weight of uniform sampling); got {mix!r}.")
+        raise InputError(f"`mix` must be a number in [0, 1] (weight of uniform sampling); "
+                         f"got {mix!r}.")
     return lam
 
 
