@@ -58,6 +58,14 @@ def get_sampler(name_or_callable, **options) -> Callable:
     """A sampler by name (:data:`SAMPLERS`) or a callable, with ``options`` bound."""
     if callable(name_or_callable):
         fn = name_or_callable
+    elif name_or_callable == "expected-error" and isinstance(options.get("kernels"), str) \
+            and options["kernels"] == "gem":
+        # GEM kernels selected once from the pilot pass and then held fixed (Lemma A.1 of
+        # Salehi 2022 needs kernels that do not see the new samples): a fresh, stateful
+        # sampler per call, i.e. per render.
+        from .analytic import PilotKernelSampler
+        rest = {k: v for k, v in options.items() if k != "kernels"}
+        return PilotKernelSampler("gem", **rest)
     else:
         try:
             fn = SAMPLERS[name_or_callable]

@@ -153,7 +153,7 @@ def cmd_render(args) -> int:
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
-                                    denoiser=args.denoiser, seed=args.seed)
+                                    denoiser=args.denoiser or "oidn", seed=args.seed)
     seconds_rec = time.perf_counter() - t0
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
@@ -348,10 +348,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--sampler", choices=["uniform", "gem", "expected-error", "denoising-aware"],
                    default="uniform",
                    help="uniform counts, or adaptive sampling (4 spp, then 8 iterations): GEM "
-                        "(Rousselle 2011), minimum expected error of a fixed Gaussian denoiser "
-                        "(Salehi 2022 Lemma A.1), or denoising-aware (Firmino 2023) for --denoiser")
-    r.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
-                   help="denoiser of --sampler denoising-aware and --reconstruct progressive")
+                        "(Rousselle 2011), minimum expected error of a fixed kernel denoiser "
+                        "(Salehi 2022 Lemma A.1; --denoiser gem: GEM kernels of the pilot pass, "
+                        "or gaussian), or denoising-aware (Firmino 2023) for --denoiser")
+    r.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default=None,
+                   help="denoiser of --sampler denoising-aware and --reconstruct progressive "
+                        "(default oidn), of --sampler expected-error (default gem)")
     r.add_argument("--reconstruct", choices=["none", "gem", "gaussian", "oidn", "progressive"],
                    default="none",
                    help="reconstruction written beside the raw render")

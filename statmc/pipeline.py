@@ -64,8 +64,14 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
 
 def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None, seed: int = 0,
                         progress: bool = False, gamma: float = 0.2, initial_spp: int = 4,
-                        iterations: int = 8, denoiser: str = "oidn") -> PixelStats:
-    """One render: fixed ``counts`` (uniform or a user map) or an adaptive ``sampler``."""
+                        iterations: int = 8, denoiser: str | None = None) -> PixelStats:
+    """One render: fixed ``counts`` (uniform or a user map) or an adaptive ``sampler``.
+
+    ``denoiser`` is the one the sampler optimises for: ``"oidn"`` (default), ``"gem"`` or
+    ``"gaussian"`` for ``"denoising-aware"``; ``"gem"`` (default: GEM kernels chosen on the
+    pilot pass and held fixed) or ``"gaussian"`` (a fixed σ = 1 Gaussian) for
+    ``"expected-error"``.
+    """
     if sampler == "uniform":
         if counts is None:
             counts = np.full((renderer.height, renderer.width), int(spp), np.int64)
@@ -75,7 +81,12 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
     from .adaptive import adaptive_render
     opts = {"gamma": gamma} if sampler == "gem" else {}
     if sampler == "denoising-aware":
-        opts = {"denoiser": denoiser}
+        opts = {"denoiser": denoiser or "oidn"}
+    elif sampler == "expected-error":
+        if denoiser not in (None, "gem", "gaussian"):
+            raise InputError(f"the expected-error sampler needs a kernel denoiser, 'gem' or "
+                             f"'gaussian'; got {denoiser!r}.")
+        opts = {"kernels": "gem"} if denoiser in (None, "gem") else {}
     res = adaptive_render(renderer, spp, sampler=sampler, initial_spp=initial_spp,
                           iterations=iterations, seed=seed, progress=progress, **opts)
     res.stats.meta.update(seconds_sampler=res.seconds_sampler, seconds_render=res.seconds_render,

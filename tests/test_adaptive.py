@@ -105,3 +105,21 @@ def test_doubling_schedule_errors(toy):
         adaptive_render(toy, 4, sampler="gem", initial_spp=8, schedule="doubling")
     with pytest.raises(InputError, match="needs 0 passes"):
         adaptive_render(toy, 8, sampler="gem", initial_spp=8, schedule="doubling", iterations=2)
+
+
+def test_expected_error_with_gem_pilot_kernels_holds_them_fixed():
+    """get_sampler('expected-error', kernels='gem') is a fresh PilotKernelSampler per render:
+    the kernels come from the first (pilot) pass and do not change afterwards."""
+    from statmc.adaptive import get_sampler
+    from statmc.analytic import PilotKernelSampler
+    a = get_sampler("expected-error", kernels="gem")
+    b = get_sampler("expected-error", kernels="gem")
+    assert isinstance(a, PilotKernelSampler) and a is not b
+    seen = []
+    r = ToyRenderer("mixed", width=16, height=16)
+    res = adaptive_render(r, 8, sampler=a, seed=3,
+                          callback=lambda k, stats, counts: seen.append(a.kernels.copy()
+                                                                        if a.kernels is not None else None))
+    assert int(res.stats.n.sum()) == 8 * 16 * 16
+    later = [k for k in seen[1:] if k is not None]
+    assert later and all(np.array_equal(later[0], k) for k in later)

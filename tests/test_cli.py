@@ -223,3 +223,20 @@ def test_progressive_command_and_denoising_aware_render(tmp_path, toy_render, to
     assert rep["metrics_reconstruction"]["mse"] < rep["metrics"]["mse"]
     code, _, err = run_cli("progressive", tmp_path / "nothing.exr", "--out", tmp_path / "q.exr")
     assert code == 2 and "nothing.exr" in err and not (tmp_path / "q.exr").exists()
+
+
+def test_render_expected_error_sampler_kernel_denoisers(tmp_path):
+    """--sampler expected-error runs with GEM pilot kernels (default) or a Gaussian, and
+    refuses a denoiser that is not a kernel denoiser, with one line and exit code 2."""
+    for extra in ([], ["--denoiser", "gaussian"]):
+        out = tmp_path / ("d" + "".join(extra))
+        code, _, err = run_cli("render", "toy:mixed", "--spp", 12, "--size", "24x16",
+                               "--sampler", "expected-error", *extra, "--out", out, "-q")
+        assert code == 0, err
+        from statmc.exr import read_exr
+        assert int(read_exr(out / "render.exr").n.sum()) == 12 * 24 * 16
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 12, "--size", "24x16",
+                           "--sampler", "expected-error", "--denoiser", "oidn",
+                           "--out", tmp_path / "bad", "-q")
+    assert code == 2 and "kernel denoiser" in err and "Traceback" not in err
+    assert not (tmp_path / "bad").exists()
