@@ -13,7 +13,19 @@ call beside its wall time (CPU time / wall time close to 2 means both cores were
    ("diagonal", "coherent") against ``y`` and ``z`` on toy scenes, moments estimated
    without the truth (``buffer_moments``); the table in ``docs/combine.md``.
 
-Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_combine.py``
+3. Speed of ``statistical_weights`` ("coherent", the numba kernel) against its NumPy
+   reference path in the same run (256x256, B = 4, 7x7, bin moments; 128x128, B = 1,
+   15x15, the setting of ``combine_denoised``), and its time at 1920x1080 (B = 1, 15x15,
+   5x5 covariance stencils), plus one ``combine_denoised`` call with OIDN at 1080p.
+
+4. Quality of OIDN + combiner (``combine_denoised``, ``reconstruct_stats(...,
+   "oidn+combine")``): relMSE of the raw render, OIDN and OIDN + combiner on the toy
+   ``mixed`` scene and the four built-in Mitsuba scenes at 4-1024 spp against the cached
+   references, with the issue's check (combiner < min(OIDN, raw) at >= 64 spp, <= 1.05
+   OIDN below); the table in ``docs/combine.md``.
+
+Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_combine.py [--part
+kernel|weights|quality|all] [--seeds 0 1 2]``
 """
 
 from __future__ import annotations
@@ -147,6 +159,145 @@ def quality(size=32, bins=4, spp=4, reps=4, k=5, sigma=2.0):
         print(f"  {scene:10s} {row}")
 
 
+def _load():
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+
+
+def weights_speed():
+    """``statistical_weights`` numba vs its NumPy reference, and at 1080p."""
+    from statmc.analytic import apply_kernels as ak
+    from statmc.combine import filter_covariance
+
+    print(f"\nstatistical_weights (coherent, z_bias='estimate'), load average {_load():.2f}:")
+    rng = np.random.default_rng(3)
+    cases = [("256x256, B = 4, 7x7, buffer_moments", 256, 4, 7, "bins"),
+             ("128x128, B = 1, 15x15, 5x5 stencils", 128, 1, 15, "stencil")]
+    for label, n, b, k, kind in cases:
+        ys = rng.gamma(2.0, 0.5, (b if b > 1 else 2, n, n, C))
+        F = _renormalised_gaussian(n, n, 5, 1.0)
+        zs = np.stack([ak(F, yb) for yb in ys])
+        if kind == "bins":
+            var_y, cov_z, cov_yz = buffer_moments(ys, zs, size=k)
+            y, z = ys, zs
+        else:
+            var_y = np.full((n, n, C), 0.1)
+            cov_z, cov_yz = filter_covariance(F, var_y, size=5, cross=True)
+            y, z = ys[0], zs[0]
+        statistical_weights(y[..., :8, :8, :], z[..., :8, :8, :], var_y[:8, :8], cov_z[:8, :8], k,
+                            cov_yz=cov_yz[:8, :8])                       # compile
+        t_fast, c_fast = _timed(lambda: statistical_weights(y, z, var_y, cov_z, k, cov_yz=cov_yz), 2)
+        t0 = time.perf_counter()
+        ref = statistical_weights(y, z, var_y, cov_z, k, cov_yz=cov_yz, _reference=True)
+        t_ref = time.perf_counter() - t0
+        fast = statistical_weights(y, z, var_y, cov_z, k, cov_yz=cov_yz)
+        err = float(np.abs(fast - ref).max())
+        print(f"  {label:40s} numba {t_fast:6.2f} s ({c_fast:.2f} s CPU)  numpy {t_ref:6.2f} s  "
+              f"x{t_ref / t_fast:5.1f}   max |difference| {err:.1e}")
+    # 1080p, B = 1, 15x15, 5x5 stencils (the setting of combine_denoised)
+    y = rng.gamma(2.0, 0.5, (H, W, C))
+    z = 0.8 * y + 0.2 * y.mean()
+    var_y = np.full((H, W, C), 0.1)
+    cov_z = np.ascontiguousarray(np.broadcast_to(
+        np.exp(-np.add.outer(np.arange(-2, 3) ** 2, np.arange(-2, 3) ** 2) / 4.0)[..., None] * 0.01,
+        (H, W, 5, 5, C)))
+    cov_yz = 0.5 * cov_z
+    c0, t0 = time.process_time(), time.perf_counter()
+    w = statistical_weights(y, z, var_y, cov_z, 15, cov_yz=cov_yz)
+    t, c = time.perf_counter() - t0, time.process_time() - c0
+    print(f"  {'1920x1080, B = 1, 15x15, 5x5 stencils':40s} numba {t:6.2f} s ({c:.2f} s CPU), "
+          f"weights {w.nbytes / 2 ** 30:.2f} GiB; load average {_load():.2f}")
+    del w, cov_z, cov_yz
+    try:
+        from statmc import denoisers
+        from statmc.combine import combine_denoised
+        f = denoisers.oidn()
+        y32 = y.astype(np.float32)
+        t0 = time.perf_counter()
+        f(y32)
+        t_oidn = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        combine_denoised(y32, var_y, f, rng=0)
+        t_all = time.perf_counter() - t0
+        print(f"  combine_denoised with OIDN at 1920x1080: {t_all:.1f} s (one OIDN call {t_oidn:.2f} s; "
+              f"9 calls for 8 probes); load average {_load():.2f}")
+    except ImportError as e:                         # pragma: no cover - OIDN missing
+        print(f"  (OIDN unavailable: {e})")
+
+
+REF_SPP = {"glass-caustic": 32768}       # the cached references (out/cache)
+QUALITY_SCENES = ("toy:mixed", "cornell-box", "glossy-spheres", "glass-caustic", "textured-dof")
+QUALITY_SPPS = (4, 16, 64, 256, 1024)
+
+
+def _scene(scene):
+    from statmc.demo import cached_reference
+    from statmc.exr import read_exr
+    from statmc.renderers import make_renderer
+    from statmc.scenes import DEFAULT_SIZES
+
+    if scene.startswith("toy:"):
+        r = ToyRenderer(scene[4:], width=128, height=128)
+        return r, r.true_mean()
+    w, h = DEFAULT_SIZES[scene]
+    r = make_renderer(scene, width=w, height=h)
+    _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
+    return r, read_exr(path).mean
+
+
+def quality_table(seeds=(0,), out="out/combine/quality.md"):
+    """relMSE of raw, OIDN and OIDN + combiner; the issue's check per row."""
+    from statmc.metrics import relmse
+    from statmc.pipeline import reconstruct_stats
+
+    lines = ["| scene | spp | raw | OIDN | OIDN+combiner | comb/OIDN | comb/raw | renders comb < OIDN "
+             "| mix | check |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    print(f"\nOIDN + combiner (reconstruct_stats 'oidn+combine'), relMSE, mean over seeds {seeds}; "
+          f"load average {_load():.2f}")
+    print("  " + lines[0])
+    for scene in QUALITY_SCENES:
+        r, ref = _scene(scene)
+        for spp in QUALITY_SPPS:
+            e = {"raw": [], "oidn": [], "comb": [], "mix": [], "t": []}
+            for seed in seeds:
+                st = r.render(np.full((r.height, r.width), spp, np.int64), seed=seed * 7919 + spp)
+                z, _ = reconstruct_stats(st, "oidn")
+                t0 = time.perf_counter()
+                x, maps = reconstruct_stats(st, "oidn+combine", seed=seed)
+                e["t"].append(time.perf_counter() - t0)
+                e["raw"].append(relmse(st.mean, ref))
+                e["oidn"].append(relmse(z, ref))
+                e["comb"].append(relmse(x, ref))
+                e["mix"].append(float(np.mean(maps["mix"])))
+            raw, oidn, comb = (float(np.mean(e[n])) for n in ("raw", "oidn", "comb"))
+            if spp >= 64:
+                ok = comb < min(oidn, raw)
+                check = "met" if ok else "**not met**"
+            else:
+                ok = comb <= 1.05 * oidn
+                check = "met (<= 1.05 OIDN)" if ok else "**not met** (> 1.05 OIDN)"
+            wins = sum(c < o for c, o in zip(e["comb"], e["oidn"]))
+            row = (f"| {scene} | {spp} | {raw:.5f} | {oidn:.5f} | {comb:.5f} | {comb / oidn:.3f} | "
+                   f"{comb / raw:.3f} | {wins}/{len(seeds)} | {np.mean(e['mix']):.2f} | {check} |")
+            lines.append(row)
+            print(f"  {row}   [{np.mean(e['t']):.1f} s per call]", flush=True)
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    with open(out, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print(f"written {out}")
+
+
 if __name__ == "__main__":
-    main()
-    quality()
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--part", choices=["kernel", "weights", "quality", "all"], default="all")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    args = ap.parse_args()
+    if args.part in ("kernel", "all"):
+        main()
+        quality()
+    if args.part in ("weights", "all"):
+        weights_speed()
+    if args.part in ("quality", "all"):
+        quality_table(tuple(args.seeds))
