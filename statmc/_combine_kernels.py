@@ -296,18 +296,6 @@ MAX_ACTIVE_SET_ITER = 20   # the NumPy path's ``max_iter``
 
 
 @njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _st(S, b, y, x, vy, vx, c):  # pragma: no cover - compiled
-    """``S[b, y, x, R + vy, R + vx, c]`` or 0 when the offset is beyond the stencil radius
-    or the pixel is outside the image (the NumPy path's shifted planes are 0 there)."""
-    R = S.shape[3] // 2
-    if vy < -R or vy > R or vx < -R or vx > R:
-        return 0.0
-    if y < 0 or y >= S.shape[1] or x < 0 or x >= S.shape[2]:
-        return 0.0
-    return S[b if S.shape[0] > 1 else 0, y, x, R + vy, R + vx, c]
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
 def _im(A, b, y, x, c):  # pragma: no cover - compiled
     """``A[b, y, x, c]`` (shared over bins when ``A.shape[0] == 1``), 0 outside the image."""
     if y < 0 or y >= A.shape[1] or x < 0 or x >= A.shape[2]:
@@ -315,31 +303,22 @@ def _im(A, b, y, x, c):  # pragma: no cover - compiled
     return A[b if A.shape[0] > 1 else 0, y, x, c]
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def _delta_var_at(var_y, cov_z, cov_yz, has_yz, b, y, x, oy, ox, c):  # pragma: no cover
-    """``Var(δ)`` of ``δ = (z_c − z_t) − (y_c − y_t)``, tap ``t = c + o`` (NumPy ``_delta_var``)."""
-    ty = y + oy
-    tx = x + ox
-    v = _im(var_y, b, y, x, c) + _im(var_y, b, ty, tx, c)
-    v += _st(cov_z, b, y, x, 0, 0, c) + _st(cov_z, b, ty, tx, 0, 0, c) \
-        - 2.0 * _st(cov_z, b, y, x, oy, ox, c)
-    if has_yz:
-        v += -2.0 * _st(cov_yz, b, y, x, 0, 0, c) + 2.0 * _st(cov_yz, b, y, x, oy, ox, c) \
-            + 2.0 * _st(cov_yz, b, ty, tx, -oy, -ox, c) - 2.0 * _st(cov_yz, b, ty, tx, 0, 0, c)
-    return v
-
-
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  # pragma: no cover
+def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  # pragma: no cover
     """Squared-bias estimates ``s2[j, y − y0, x, c]`` for tap ``j`` and rows ``y0 .. y1 − 1``.
 
     ``max(box_mean(mean_b((δ² − Var δ)·valid), valid), 0)`` over the ``(2 patch + 1)²``
     box of centre pixels, counting only centres whose tap is inside the image (the
     ``z_bias="estimate"`` of :func:`statmc.combine.statistical_weights`).  With ``loo``
     the two centres whose ``δ`` contains ``y_c`` itself (``c`` and ``c − o``) are left out.
+    ``Var δ = P_c + P_t − 2 cov(z_c, z_t) + 2 cov(y_c, z_t) + 2 cov(y_t, z_c)`` with the
+    per-pixel ``P = var_y + var_z − 2 cov(y, z)`` (:func:`_self_term`), the NumPy
+    ``_delta_var`` regrouped.
     """
     B, H, W, C = ys.shape
     r = k // 2
+    Rz = cov_z.shape[3] // 2
+    Rx = cov_yz.shape[3] // 2
     q0 = max(0, y0 - patch)
     q1 = min(H, y1 + patch)
     nq = q1 - q0
@@ -349,6 +328,8 @@ def _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2
         if oy == 0 and ox == 0:
             s2[j] = 0.0
             continue
+        inz = abs(oy) <= Rz and abs(ox) <= Rz
+        inx = has_yz and abs(oy) <= Rx and abs(ox) <= Rx
         q = np.zeros((nq, W, C))
         val = np.zeros((nq, W))
         for yy in range(q0, q1):
@@ -361,9 +342,17 @@ def _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2
                 for c in range(C):
                     acc = 0.0
                     for b in range(B):
+                        bp = b if P.shape[0] > 1 else 0
+                        dv = P[bp, yy, xx, c] + P[bp, ty, tx, c]
+                        if inz:
+                            dv -= 2.0 * cov_z[b if cov_z.shape[0] > 1 else 0, yy, xx,
+                                              Rz + oy, Rz + ox, c]
+                        if inx:
+                            bx = b if cov_yz.shape[0] > 1 else 0
+                            dv += 2.0 * (cov_yz[bx, yy, xx, Rx + oy, Rx + ox, c]
+                                         + cov_yz[bx, ty, tx, Rx - oy, Rx - ox, c])
                         d = (zs[b, yy, xx, c] - zs[b, ty, tx, c]) - (ys[b, yy, xx, c] - ys[b, ty, tx, c])
-                        acc += d * d - _delta_var_at(var_y, cov_z, cov_yz, has_yz, b, yy, xx,
-                                                     oy, ox, c)
+                        acc += d * d - dv
                     q[yy - q0, xx, c] = acc / B
         # separable box sums over the window clipped to the image (zero padding)
         hq = np.zeros((nq, W, C))
@@ -423,28 +412,42 @@ def _solve_small(G, rhs, sol):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
+def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
                   out):  # pragma: no cover - compiled
-    """Weights of rows ``y0 .. y1 − 1`` into ``out`` (see :func:`statistical_weights_numba`)."""
+    """Weights of rows ``y0 .. y1 − 1`` into ``out`` (see :func:`statistical_weights_numba`).
+
+    ``Var(e_t)`` of ``e_t = y_t + z_c − z_t`` is ``var_y(c)`` for the centre and
+    ``P_t + var_z(c) − 2 cov(z_c, z_t) + 2 cov(y_t, z_c)`` otherwise (the NumPy
+    ``_Moments.pair`` regrouped with ``P = var_y + var_z − 2 cov(y, z)``).
+    """
     H = out.shape[0]
     W = out.shape[1]
     C = var_y.shape[3]
     r = k // 2
     kk = k * k
     n = B * kk
+    Rz = cov_z.shape[3] // 2
+    Rx = cov_yz.shape[3] // 2
     for y in prange(y0, y1):
         v = np.empty(n)
+        di = np.empty(n)
         b2 = np.empty((n, C))
         valid = np.zeros(n, np.bool_)
         act = np.zeros(n, np.bool_)
         a = np.zeros(n)
         U = np.empty((n, C))
         G = np.empty((C, C))
+        G0 = np.empty((C, C))
         rhs = np.empty(C)
+        rhs0 = np.empty(C)
         sol = np.empty(C)
         for x in range(W):
             top = 0.0
             for b in range(B):
+                bv = b if var_y.shape[0] > 1 else 0
+                bp = b if P.shape[0] > 1 else 0
+                bz = b if cov_z.shape[0] > 1 else 0
+                bx = b if cov_yz.shape[0] > 1 else 0
                 for j in range(kk):
                     i = b * kk + j
                     oy = j // k - r
@@ -453,21 +456,26 @@ def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B,
                     tx = x + ox
                     ok = 0 <= ty < H and 0 <= tx < W
                     valid[i] = ok
-                    # Var(e_t), e_t = y_t + z_c − z_t, channel mean (NumPy ``_Moments.pair``)
+                    if not ok:
+                        continue
+                    centre = oy == 0 and ox == 0
+                    inz = abs(oy) <= Rz and abs(ox) <= Rz
+                    inx = has_yz and abs(oy) <= Rx and abs(ox) <= Rx
                     vm = 0.0
                     bm = 0.0
                     for c in range(C):
-                        q = _im(var_y, b, ty, tx, c)
-                        if oy != 0 or ox != 0:
-                            q += _st(cov_z, b, y, x, 0, 0, c) - 2.0 * _st(cov_z, b, y, x, oy, ox, c) \
-                                + _st(cov_z, b, ty, tx, 0, 0, c)
-                            if has_yz:
-                                q += 2.0 * _st(cov_yz, b, ty, tx, -oy, -ox, c) \
-                                    - 2.0 * _st(cov_yz, b, ty, tx, 0, 0, c)
+                        if centre:
+                            q = var_y[bv, y, x, c]
+                        else:
+                            q = P[bp, ty, tx, c] + cov_z[bz, y, x, Rz, Rz, c]
+                            if inz:
+                                q -= 2.0 * cov_z[bz, y, x, Rz + oy, Rz + ox, c]
+                            if inx:
+                                q += 2.0 * cov_yz[bx, ty, tx, Rx - oy, Rx - ox, c]
                         vm += q
                         if bias_mode == 0:
                             e2 = s2[j, y - y0, x, c]
-                        elif bias_mode == 1 or (oy == 0 and ox == 0):
+                        elif bias_mode == 1 or centre:
                             e2 = 0.0
                         else:
                             e = _im(zb, b, y, x, c) - _im(zb, b, ty, tx, c)
@@ -475,10 +483,9 @@ def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B,
                         b2[i, c] = e2
                         bm += e2
                     v[i] = vm / C
-                    if ok:
-                        t = v[i] + bm / C
-                        if t > top:
-                            top = t
+                    t = v[i] + bm / C
+                    if t > top:
+                        top = t
             floor = max(1e-12 * top, 1e-300)
             vmin = np.inf
             for i in range(n):
@@ -503,23 +510,28 @@ def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B,
                     a[i] = mmin / a[i] if valid[i] else 0.0
                     act[i] = valid[i]
             else:
-                # coherent: min aᵀ(D + U Uᵀ)a, Σa = 1, a ≥ 0 (Woodbury + active set)
+                # coherent: min aᵀ(D + U Uᵀ)a, Σa = 1, a ≥ 0 (Woodbury + active set);
+                # G = I + Σ_active d_i U_i U_iᵀ and rhs = Σ_active d_i U_i are updated by
+                # removing the dropped taps instead of being summed again
+                for c in range(C):
+                    rhs0[c] = 0.0
+                    for d in range(C):
+                        G0[c, d] = 1.0 if c == d else 0.0
                 for i in range(n):
                     act[i] = valid[i]
-                    for c in range(C):
-                        U[i, c] = np.sqrt(b2[i, c] / (C * vmin))
+                    if valid[i]:
+                        di[i] = vmin / v[i]
+                        for c in range(C):
+                            U[i, c] = np.sqrt(b2[i, c] / (C * vmin))
+                        for c in range(C):
+                            rhs0[c] += U[i, c] * di[i]
+                            for d in range(C):
+                                G0[c, d] += U[i, c] * di[i] * U[i, d]
                 for it in range(MAX_ACTIVE_SET_ITER):
                     for c in range(C):
-                        rhs[c] = 0.0
+                        rhs[c] = rhs0[c]
                         for d in range(C):
-                            G[c, d] = 1.0 if c == d else 0.0
-                    for i in range(n):
-                        if act[i]:
-                            di = vmin / v[i]
-                            for c in range(C):
-                                rhs[c] += U[i, c] * di
-                                for d in range(C):
-                                    G[c, d] += U[i, c] * di * U[i, d]
+                            G[c, d] = G0[c, d]
                     _solve_small(G, rhs, sol)
                     neg = False
                     for i in range(n):
@@ -527,13 +539,17 @@ def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B,
                             s = 0.0
                             for c in range(C):
                                 s += U[i, c] * sol[c]
-                            a[i] = vmin / v[i] * (1.0 - s)
+                            a[i] = di[i] * (1.0 - s)
                         else:
                             a[i] = 0.0
                     for i in range(n):
                         if act[i] and a[i] < 0.0:
                             act[i] = False
                             neg = True
+                            for c in range(C):
+                                rhs0[c] -= U[i, c] * di[i]
+                                for d in range(C):
+                                    G0[c, d] -= U[i, c] * di[i] * U[i, d]
                     if not neg:
                         break
             tot = 0.0
@@ -545,6 +561,16 @@ def _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B,
                     i = b * kk + j
                     w = a[i] / tot if (act[i] and a[i] > 0.0) else 0.0
                     out[y, x, b, j // k, j % k] = np.float32(w)
+
+
+def _self_term(var_y, cov_z, cov_yz, has_yz):
+    """``P = var_y + var_z − 2 cov(y, z)`` per pixel, ``(B', H, W, C)`` (B' = 1 or B)."""
+    Rz = cov_z.shape[3] // 2
+    P = var_y + cov_z[:, :, :, Rz, Rz, :]
+    if has_yz:
+        Rx = cov_yz.shape[3] // 2
+        P = P - 2.0 * cov_yz[:, :, :, Rx, Rx, :]
+    return np.ascontiguousarray(P)
 
 
 def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, method, k, patch,
@@ -562,9 +588,11 @@ def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, metho
         zb = np.zeros((1, 1, 1, C))
     rows = H if bias_mode != BIAS_ESTIMATE else max(1, min(H, band_bytes // (k * k * W * C * 8)))
     s2 = np.zeros((k * k, rows, W, C) if bias_mode == BIAS_ESTIMATE else (1, 1, 1, C))
+    P = _self_term(var_y, cov_z, cov_yz, has_yz)
     for y0 in range(0, H, rows):
         y1 = min(H, y0 + rows)
         if bias_mode == BIAS_ESTIMATE:
-            _bias_planes(ys, zs, var_y, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2)
-        _weights_band(var_y, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1, out)
+            _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2)
+        _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
+                      out)
     return out
