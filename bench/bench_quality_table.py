@@ -187,7 +187,8 @@ def part1(scene, r, ref, spps, seeds, combiner):
                 row["per_seed"] = vals
             rows.append(row)
         got = {row["method"]: row["relmse"] for row in rows if row["spp"] == spp}
-        t = " ".join(f"{k.split()[-1]} {v:.1f}s" for k, v in timing.items() if k.startswith("render"))
+        t = " ".join(f"{k.split()[-1]} {v:.1f}s" for k, v in timing.items()
+                     if k.startswith("render"))
         print(f"  {scene:15s} {spp:5d} spp  {time.perf_counter() - t_spp:6.1f} s  (render: {t};"
               f" reconstruct {timing.get('reconstruct', 0):.1f}s, metrics "
               f"{timing.get('metrics', 0):.1f}s)  relMSE box {got['uniform+box']:.3g} "
@@ -224,8 +225,9 @@ def part2(scene, r, ref, start, stop, seeds, combiner, which):
                     curves[m][k].append(None if any(v is None for v in vals)
                                         else float(np.mean([v[k] for v in vals])))
         print(f"  {scene:15s} doubling {start}->{stop} spp, {render:8s} "
-              f"{time.perf_counter() - t0:6.1f} s  (reconstruct {timing.get('reconstruct', 0):.1f}s,"
-              f" metrics {timing.get('metrics', 0):.1f}s)", flush=True)
+              f"{time.perf_counter() - t0:6.1f} s  (reconstruct "
+              f"{timing.get('reconstruct', 0):.1f}s, metrics {timing.get('metrics', 0):.1f}s)",
+              flush=True)
     return curves
 
 
@@ -357,8 +359,8 @@ def write_report(path, cfg, rows, curves, scenes, mitsuba_scenes, runtime):
         md += [f"### {METRIC_LABEL[k]}", ""]
         for sc in scenes:
             md += [f"**{sc}**", ""] + table1(rows, sc, k) + [""]
-    md += ["### Issue 5's claims (relMSE ratios; ✓ when below 1, or below 1.05 against plain OIDN "
-           "under 64 spp)", "",
+    md += ["### Issue 5's claims (relMSE ratios; ✓ when below 1, or below 1.05 against plain "
+           "OIDN under 64 spp)", "",
            "One render per sampler and spp: the first two columns compare reconstructions of the "
            "same render (paired); the DA columns compare different renders, so differences of "
            "a few per cent are within render-to-render noise.  The last column (no claim) shows "
@@ -367,12 +369,14 @@ def write_report(path, cfg, rows, curves, scenes, mitsuba_scenes, runtime):
            "uniform+box); below 64 spp by uniform+OIDN.", ""] + checks(rows, scenes) + [""]
     if curves:
         md += ["## Part 2: relative budget to equal error against uniform+OIDN", "",
-               f"Salehi 2022 Table 1 protocol: each sampler starts at {cfg['start']} spp and doubles "
-               f"its budget every pass up to {cfg['stop']} spp; every method's error-vs-budget curve "
+               f"Salehi 2022 Table 1 protocol: each sampler starts at {cfg['start']} spp and "
+               f"doubles its budget every pass up to {cfg['stop']} spp; every method's "
+               "error-vs-budget curve "
                "is interpolated log-log to the budget at which it first reaches the error of "
                "uniform+OIDN at 16 (low), 64 (mid) and 512 (high) spp.  Percentages are that "
                "budget over the reference's; `<` / `>`: the curve was already below the target at "
-               f"{cfg['start']} spp / never reached it by {cfg['stop']} spp (the number is then a bound).",
+               f"{cfg['start']} spp / never reached it by {cfg['stop']} spp (the number is then "
+               "a bound).",
                ""]
         for k in cfg["part2_metrics"]:
             md += [f"### {METRIC_LABEL[k]}", ""]

@@ -111,7 +111,8 @@ def pass_budgets(total: int, first: int, *, schedule: str = "even",
         it = 8 if iterations is None else iterations
         return [rest // it + (1 if k < rest % it else 0) for k in range(it)] if it else []
     if first <= 0:
-        raise InputError(f"the doubling schedule needs an initial pass of > 0 samples; got {first}.")
+        raise InputError(f"the doubling schedule needs an initial pass of > 0 samples; "
+                         f"got {first}.")
     out, done = [], first
     while done < total:
         step = min(done, total - done)
