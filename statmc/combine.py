@@ -799,6 +799,12 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
         Cross-covariance of ``y`` and ``z`` (needed when ``z`` is computed from ``y``).
     patch : int
         Radius of the box for ``z_bias="estimate"`` (default 2, a 5x5 box).
+    leave_centre_out : bool
+        ``z_bias="estimate"``: leave out of tap ``t``'s box the two centres whose ``δ``
+        contains ``y_c`` itself (``c`` and ``c − (t − c)``), so the weights of pixel ``c``
+        do not depend on the noise of ``y_c`` (otherwise taps agreeing with the noisy
+        centre are favoured, and SURE of the combined image, which assumes
+        ``∂a/∂y_c = 0``, is biased; see :func:`combine_denoised`).
     ridge : float
         ``"full"`` only: relative Tikhonov term added to ``M`` (``ridge · mean diag``).
 
@@ -815,6 +821,10 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
     :func:`filter_covariance`), these weights are the classical plug-in answer; their
     quality is that of the moments.  Weights computed from the data make Eq. 10/11
     approximate (the paper's "≈").
+
+    ``"coherent"`` and ``"diagonal"`` run in a numba kernel
+    (``_combine_kernels.statistical_weights_numba``); ``_reference=True`` runs the plain
+    NumPy path instead, which tests compare against (``"full"`` always uses NumPy).
     """
     multi = np.ndim(y) == 4
     ys, zs, _ = _pair("y", y, "z", z, multi=multi)
@@ -1016,7 +1026,7 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     Jacobian-vector products ``J v ≈ (f(x + h v) − f(x)) / h``:
     ``E[(J v)_p (J v)_q] = (J Σ Jᵀ)_pq`` and ``E[v_p (J v)_q] = J_qp σ_p²``.  This extends
     the variance estimate of Firmino et al. 2023 (§"Deep NN Variance Estimate",
-    ``Σ_j (∂f_i/∂x_j)² σ_j²`` from ``±σ`` vectors; :func:`statmc.sure.output_variance`)
+    ``Σ_j (∂f_i/∂x_j)² σ_j²`` from ``±σ`` vectors [3]_; :func:`statmc.sure.output_variance`)
     to the covariances that Eq. 10/11 of Back et al. 2020 [1]_ need when ``z`` is
     computed from ``y`` (the cross term ``cov_yz``, see :func:`combine_bias_variance`).
 
@@ -1055,6 +1065,14 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     -----
     Exact (up to the finite difference) for linear denoisers; for OIDN the first-order
     variance exceeds the empirical one by 16–20 % (``docs/error-estimates.md``).
+
+    References
+    ----------
+    .. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
+       Correlated Pixel Estimates". ACM TOG 39(6), 242, 2020.
+       https://doi.org/10.1145/3414685.3417847
+    .. [3] A. Firmino, J. R. Frisvad, H. W. Jensen. "Denoising-Aware Adaptive Sampling
+       for Monte Carlo Ray Tracing". SIGGRAPH 2023. https://doi.org/10.1145/3588432.3591537
     """
     xx = as_float_array("x", x, ndim=3, dtype=np.float64)
     check_finite("x", xx)
@@ -1237,7 +1255,16 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     ``y_c``: ``β̂`` improves and the SURE mix becomes accurate (0.16 estimated, 0.16
     true).  (iii) Eq. 8's weights sum to one, so ``β̂`` always adds a full average of
     residuals ``y − z``; where ``z`` is better than any such average — low spp,
-    fireflies — only the mix can keep ``z``.
+    fireflies — only the mix can keep ``z``.  Quality table: ``docs/combine.md``.
+
+    References
+    ----------
+    .. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
+       Correlated Pixel Estimates". ACM TOG 39(6), 242, 2020.
+       https://doi.org/10.1145/3414685.3417847
+    .. [2] A. Firmino, J. R. Frisvad, H. W. Jensen. "Progressive Denoising of Monte Carlo
+       Rendered Images". Computer Graphics Forum 41(2), 2022.
+       https://doi.org/10.1111/cgf.14454
     """
     yy = as_float_array("y", y, ndim=3, dtype=np.float64)
     check_finite("y", yy)
