@@ -354,7 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default=None,
                    help="denoiser of --sampler denoising-aware and --reconstruct progressive "
                         "(default oidn), of --sampler expected-error (default gem)")
-    r.add_argument("--reconstruct", choices=["none", "gem", "gaussian", "oidn", "progressive"],
+    r.add_argument("--reconstruct", choices=["none", "gem", "gaussian", "oidn", "progressive",
+                                             "oidn+combine"],
                    default="none",
                    help="reconstruction written beside the raw render")
     r.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
