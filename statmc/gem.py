@@ -194,13 +194,28 @@ def _weight_map(n, gamma, shape, dtype):
 # Post-processing and selection
 # ---------------------------------------------------------------------------------------
 
-def _map_sigmas(sigmas, final):
+def _map_sigmas(sigmas, final, map_scale=None):
     """Outlier-removal filter of pair k: the coarse scale's Gaussian, doubled in the final
-    reconstruction (§4.4 and §6 of [1])."""
-    return [sigmas[k + 1] * (2.0 if final else 1.0) for k in range(len(sigmas) - 1)]
+    reconstruction (§4.4 and §6 of [1]); ``map_scale`` overrides the factor."""
+    f = _map_scale(final, map_scale)
+    return [sigmas[k + 1] * f for k in range(len(sigmas) - 1)]
 
 
-def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAULT_TRUNCATE):
+def _map_scale(final, map_scale):
+    if map_scale is None:
+        return 2.0 if final else 1.0
+    try:
+        f = float(map_scale)
+    except (TypeError, ValueError):
+        f = float("nan")
+    if not math.isfinite(f) or f <= 0:
+        raise InputError(f"`map_scale` must be a number > 0 (outlier filter = map_scale × the "
+                         f"coarse scale) or None; got {map_scale!r}.")
+    return f
+
+
+def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAULT_TRUNCATE,
+                          map_scale=None):
     """Remove outliers from binary stopping maps (§4.4 and §6 of [1]).
 
     Map ``k`` (pair ``σ_k → σ_{k+1}``) is filtered with a border-renormalised Gaussian of
@@ -213,6 +228,9 @@ def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAUL
     stop : (K-1, H, W) array of 0/1 (bool or float)
     sigmas : (K,) scales of the bank
     final : bool
+    map_scale : float, optional
+        Outlier filter of pair k = ``map_scale · σ_{k+1}`` (default 2 when ``final``,
+        else 1, as in §6).
 
     Returns
     -------
@@ -222,14 +240,14 @@ def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAUL
     sig = _check_sigmas(sigmas)
     if raw.ndim != 3 or raw.shape[0] != len(sig) - 1:
         raise InputError(f"`stop` must be (K-1, H, W) = ({len(sig) - 1}, H, W); got {raw.shape}.")
-    return _postprocess(raw, sig, final, truncate) > 0.5
+    return _postprocess(raw, sig, final, truncate, map_scale) > 0.5
 
 
-def _postprocess(raw, sig, final, truncate):
+def _postprocess(raw, sig, final, truncate, map_scale=None):
     km1, h, w = raw.shape
     out = np.empty_like(raw)
     filt = np.empty((h, w), np.float32)
-    for k, s in enumerate(_map_sigmas(sig, final)):
+    for k, s in enumerate(_map_sigmas(sig, final, map_scale)):
         wk = gaussian_kernel_1d(s, truncate=truncate)
         _run(raw[k], 1, None, 0, s, truncate, out_x=filt)
         r = len(wk) // 2
@@ -239,11 +257,11 @@ def _postprocess(raw, sig, final, truncate):
     return out
 
 
-def _postprocess_reference(raw, sig, final, truncate):
+def _postprocess_reference(raw, sig, final, truncate, map_scale=None):
     """NumPy reference of the post-processing (dense weight matrices, float64)."""
     out = np.empty(raw.shape, bool)
     h, w = raw.shape[1:]
-    for k, s in enumerate(_map_sigmas(sig, final)):
+    for k, s in enumerate(_map_sigmas(sig, final, map_scale)):
         ay = _weight_matrix(h, s, truncate)
         ax = _weight_matrix(w, s, truncate)
         b = raw[k].astype(np.float64)
@@ -434,7 +452,7 @@ def _variance_prior_reference(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
 
 
 def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
-          debias=False):
+          debias=False, map_scale=None):
     """Bank → stopping maps → post-processing → selection → image.
 
     With ``keep_bank`` the per-channel variances of every scale are kept and the
@@ -474,7 +492,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
         if k:
             _k.stop_pair(vals[k - 1], vals[k], prev, slots[k], c, cv, fr[k - 1], weight, raw[k - 1])
         prev = slots[k]
-    maps = _postprocess(raw, sig, final, truncate) if postprocess else raw
+    maps = _postprocess(raw, sig, final, truncate, map_scale) if postprocess else raw
     scales = np.empty((h, w), np.intp)
     _k.first_stop(maps, scales)
     image = np.empty((h, w * c), dt)
@@ -508,7 +526,8 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
 # ---------------------------------------------------------------------------------------
 
 def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
-           sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE) -> dict:
+           sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE,
+           map_scale=None) -> dict:
     """Select a filter scale per pixel and return everything that went into the choice.
 
     Parameters
@@ -530,6 +549,10 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
         Override the scales (increasing; 0 = pixel filter).
     postprocess : bool
         Apply the outlier removal of §4.4 (default) or use the raw selector decisions.
+    map_scale : float, optional
+        Outlier filter of pair k = ``map_scale · σ_{k+1}``; default 2 when ``final``, else 1
+        (§6).  ``sigmas=(0, 1, √2, …)`` with ``map_scale=1`` beat §6's final settings on
+        the four built-in Mitsuba scenes but not on every toy scene (``docs/gem.md`` §5c).
 
     Returns
     -------
@@ -542,23 +565,26 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
     """
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
     sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
-    out = _core(m, v, vsum, nn, gamma, sig, final, postprocess, truncate, keep_bank=True)
+    _map_scale(final, map_scale)
+    out = _core(m, v, vsum, nn, gamma, sig, final, postprocess, truncate, keep_bank=True,
+                map_scale=map_scale)
     out["stop_raw"] = out.pop("raw") > 0.5
     out["stop"] = out.pop("maps") > 0.5
     return out
 
 
 def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
-                  sigmas=None, postprocess: bool = True) -> np.ndarray:
+                  sigmas=None, postprocess: bool = True, map_scale=None) -> np.ndarray:
     """Selected scale index per pixel, ``(H, W)``; see :func:`select`."""
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
     sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
+    _map_scale(final, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, postprocess, DEFAULT_TRUNCATE,
-                 keep_bank=False)["scales"]
+                 keep_bank=False, map_scale=map_scale)["scales"]
 
 
 def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
-                extra_output: bool = False):
+                extra_output: bool = False, sigmas=None, map_scale=None):
     """GEM reconstruction: each pixel takes the filter scale that minimises its MSE.
 
     Parameters
@@ -578,6 +604,11 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
         it ``ρ = 1``.
     extra_output : bool
         Also return the dictionary of :func:`select` (scales, bank, maps, est. MSE).
+    sigmas, map_scale : optional
+        Override the scales and the outlier-filter factor (see :func:`select`).  The
+        defaults are §6's; ``sigmas=(0.0,) + tuple(2 ** (k / 2) for k in range(8))`` (finest
+        Gaussian σ = 1) with ``map_scale=1.0`` did better on the four built-in Mitsuba
+        scenes, worse on the toy texture and fireflies scenes (``docs/gem.md`` §5c).
 
     Returns
     -------
@@ -600,12 +631,14 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
     (dtype('float32'), True)
     """
     if extra_output:
-        info = select(mean, mean_var, gamma=gamma, final=final, n=n)
+        info = select(mean, mean_var, gamma=gamma, final=final, n=n, sigmas=sigmas,
+                      map_scale=map_scale)
         return info["image"], info
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    sig = list(FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
+    sig = _check_sigmas(sigmas) if sigmas is not None else list(FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
+    _map_scale(final, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, True, DEFAULT_TRUNCATE,
-                 keep_bank=False)["image"]
+                 keep_bank=False, map_scale=map_scale)["image"]
 
 
 def _allocate(gain, budget, batch):

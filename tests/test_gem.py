@@ -142,13 +142,14 @@ def test_postprocessing_removes_isolated_outliers():
     np.testing.assert_array_equal(gem.postprocess_stop_maps(edge, sig, final=False), edge > 0.5)
 
 
-@pytest.mark.parametrize("final", [False, True])
-def test_postprocessing_kernel_equals_reference(final):
+@pytest.mark.parametrize("final,map_scale", [(False, None), (True, None), (True, 1.0),
+                                             (False, 1.5)])
+def test_postprocessing_kernel_equals_reference(final, map_scale):
     rng = np.random.default_rng(2)
     sig = F.FINAL_SIGMAS if final else F.ADAPTIVE_SIGMAS
     raw = (rng.uniform(size=(len(sig) - 1, 37, 45)) < 0.3).astype(np.float32)
-    got = gem._postprocess(raw, list(sig), final, 3.0) > 0.5
-    ref = gem._postprocess_reference(raw, list(sig), final, 3.0)
+    got = gem._postprocess(raw, list(sig), final, 3.0, map_scale) > 0.5
+    ref = gem._postprocess_reference(raw, list(sig), final, 3.0, map_scale)
     # float32 kernel vs float64 reference can only differ where the mean is ~1/2
     assert np.mean(got != ref) < 1e-3
 
@@ -605,3 +606,26 @@ def test_count_scan_and_weight_map_kernels_equal_numpy():
         got = gem._weight_map(counts.astype(float), 0.2, counts.shape, dt)
         ref = (gem.error_rate_weight(0.2) * (1.0 - 1.0 / counts)).astype(dt)
         np.testing.assert_array_equal(got, ref)
+
+
+def test_map_scale_and_sigmas_options():
+    """``map_scale=None`` is §6's factor (2 final, 1 adaptive); other factors change the
+    outlier filter; bad factors are refused."""
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("texture", width=48, height=40)
+    st = r.render_uniform(16, seed=3)
+    a = gem.reconstruct(st.mean, st.mean_var, n=st.n)
+    np.testing.assert_array_equal(a, gem.reconstruct(st.mean, st.mean_var, n=st.n, map_scale=2.0))
+    b = gem.reconstruct(st.mean, st.mean_var, n=st.n, final=False)
+    np.testing.assert_array_equal(b, gem.reconstruct(st.mean, st.mean_var, n=st.n, final=False,
+                                                     map_scale=1.0))
+    s1 = (0.0,) + tuple(2 ** (k / 2) for k in range(8))
+    c, info = gem.reconstruct(st.mean, st.mean_var, n=st.n, sigmas=s1, map_scale=1.0,
+                              extra_output=True)
+    np.testing.assert_array_equal(c, gem.reconstruct(st.mean, st.mean_var, n=st.n, sigmas=s1,
+                                                     map_scale=1.0))
+    assert info["sigmas"] == s1 and not np.array_equal(a, c)
+    for bad in (0, -1.0, float("nan"), "x"):
+        with pytest.raises(InputError, match="map_scale"):
+            gem.reconstruct(st.mean, st.mean_var, map_scale=bad)
+
