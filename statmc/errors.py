@@ -7,6 +7,8 @@ it as one line.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 
@@ -64,3 +66,18 @@ def check_same_shape(name: str, a: np.ndarray, ref_name: str, ref_shape: tuple) 
         raise InputError(
             f"`{name}` must have the shape of `{ref_name}` {tuple(ref_shape)}; got {a.shape}."
         )
+
+
+def as_number(name: str, value, *, lo: float | None = None, lo_open: bool = False) -> float:
+    """``value`` as a finite float, optionally ``>= lo`` (``> lo`` with ``lo_open``).
+
+    Booleans and non-numbers are refused with an :class:`InputError` naming ``name``.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+            or not np.isfinite(float(value)):
+        raise InputError(f"`{name}` must be a finite number; got {value!r}.")
+    f = float(value)
+    if lo is not None and (f < lo or (lo_open and f == lo)):
+        rel = ">" if lo_open else ">="
+        raise InputError(f"`{name}` must be {rel} {lo}; got {value!r}.")
+    return f

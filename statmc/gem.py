@@ -31,7 +31,7 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
@@ -204,14 +204,7 @@ def _map_sigmas(sigmas, final, map_scale=None):
 def _map_scale(final, map_scale):
     if map_scale is None:
         return 2.0 if final else 1.0
-    try:
-        f = float(map_scale)
-    except (TypeError, ValueError):
-        f = float("nan")
-    if not math.isfinite(f) or f <= 0:
-        raise InputError(f"`map_scale` must be a number > 0 (outlier filter = map_scale × the "
-                         f"coarse scale) or None; got {map_scale!r}.")
-    return f
+    return as_number("map_scale", map_scale, lo=0.0, lo_open=True)
 
 
 def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAULT_TRUNCATE,

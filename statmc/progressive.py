@@ -27,7 +27,7 @@ import numbers
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 from .stats import PixelStats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
@@ -100,16 +100,6 @@ def _variance(mean_var, shape, dtype=np.float64, check=True):
         check_finite("mean_var", v)
         check_nonnegative("mean_var", v)
     return v
-
-
-def _number(name, v, *, lo=None, lo_open=False, allow_zero=True):
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(float(v)):
-        raise InputError(f"`{name}` must be a finite number; got {v!r}.")
-    f = float(v)
-    if lo is not None and (f < lo or (lo_open and f == lo)):
-        rel = ">" if lo_open else ">="
-        raise InputError(f"`{name}` must be {rel} {lo}; got {v!r}.")
-    return f
 
 
 def _smooth(a, sigma):
@@ -288,10 +278,10 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     cn = channel_noise
     sy = _like("sure_y", sure_y, shape)
     d = _like("divergence", divergence, shape)
-    sm = _number("smooth", smooth, lo=0.0)
+    sm = as_number("smooth", smooth, lo=0.0)
     if relative_eps is not None:
-        relative_eps = _number("relative_eps", relative_eps, lo=0.0, lo_open=True)
-    z = _number("shrink", shrink, lo=0.0)
+        relative_eps = as_number("relative_eps", relative_eps, lo=0.0, lo_open=True)
+    z = as_number("shrink", shrink, lo=0.0)
     if n is not None:
         nn = as_float_array("n", n, ndim=2, dtype=np.float64)
         if nn.shape != shape[:2]:
@@ -522,10 +512,10 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
             raise InputError(f"`sigma_s` must be a number > 0 or 'auto'; got {sigma_s!r}.")
         ss = _auto_sigma_s_from_mean(v_sum / v.size if v.size else 0.0)
     else:
-        ss = _number("sigma_s", sigma_s, lo=0.0, lo_open=True)
-    cc = _number("c", c)
-    aa = _number("a", a, lo=0.0, lo_open=True)
-    ee = _number("eps", eps, lo=0.0)
+        ss = as_number("sigma_s", sigma_s, lo=0.0, lo_open=True)
+    cc = as_number("c", c)
+    aa = as_number("a", a, lo=0.0, lo_open=True)
+    ee = as_number("eps", eps, lo=0.0)
     if channels not in ("shared", "separate"):
         raise InputError(f"`channels` must be 'shared' or 'separate'; got {channels!r}.")
     if cdf not in ("normal", "logistic"):

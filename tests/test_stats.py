@@ -258,3 +258,13 @@ def test_bad_channel_covariance_is_named():
     tiny[..., 0, 1] *= 1 + 1e-12
     t = PixelStats(s.n, s.mean, s.m2, m2_cross=tiny)
     assert np.array_equal(t.m2_cross, np.swapaxes(t.m2_cross, -1, -2))
+
+
+def test_as_number_accepts_finite_reals_and_names_the_parameter():
+    from statmc.errors import as_number
+    assert as_number("a", 2) == 2.0 and as_number("a", np.float32(0.5)) == 0.5
+    assert as_number("a", 0.0, lo=0.0) == 0.0
+    for bad, kw in ((True, {}), ("1", {}), (float("nan"), {}), (np.inf, {}),
+                    (-1.0, {"lo": 0.0}), (0.0, {"lo": 0.0, "lo_open": True})):
+        with pytest.raises(InputError, match="`a` must be"):
+            as_number("a", bad, **kw)
