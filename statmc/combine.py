@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _combine_kernels as _ck
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 
 __all__ = [
     "combine", "combine_multi", "combine_boosting",
@@ -310,9 +310,7 @@ def gaussian_weights(height, width, buffers, size, sigma):
     """
     h, w, b = _check_hwb(height, width, buffers)
     k = _check_size(size)
-    s = float(sigma)
-    if not np.isfinite(s) or s <= 0:
-        raise InputError(f"`sigma` must be a finite number > 0; got {sigma!r}.")
+    s = as_number("sigma", sigma, lo=0.0, lo_open=True)
     ax = np.arange(k) - k // 2
     g = np.exp(-(ax[:, None] ** 2 + ax[None, :] ** 2) / (2.0 * s * s))
     g = np.broadcast_to(g / (b * g.sum()), (b, k, k)).astype(np.float32)
@@ -836,9 +834,7 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
         raise InputError(f"`method` must be one of {_METHODS}; got {method!r}.")
     if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)) or patch < 0:
         raise InputError(f"`patch` must be an integer >= 0; got {patch!r}.")
-    ridge = float(ridge)
-    if not np.isfinite(ridge) or ridge < 0:
-        raise InputError(f"`ridge` must be a finite number >= 0; got {ridge!r}.")
+    ridge = as_number("ridge", ridge, lo=0.0)
     mom = _Moments(_image_moment("var_y", var_y, B, H, W, C, nonneg=True),
                    _stencil("cov_z", cov_z, B, H, W, C),
                    _stencil("cov_yz", cov_yz, B, H, W, C, required=False))
@@ -1085,9 +1081,7 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     m = _check_size(size)
     if isinstance(probes, bool) or not isinstance(probes, (int, np.integer)) or probes < 1:
         raise InputError(f"`probes` must be an integer >= 1; got {probes!r}.")
-    eps = float(eps)
-    if not np.isfinite(eps) or eps <= 0:
-        raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
+    eps = as_number("eps", eps, lo=0.0, lo_open=True)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
     gen = np.random.default_rng(rng)
@@ -1278,9 +1272,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     for name, v in (("smooth", smooth), ("patch", patch)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
             raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
-    ms = float(mix_sigma)
-    if not np.isfinite(ms) or ms <= 0:
-        raise InputError(f"`mix_sigma` must be a finite number > 0; got {mix_sigma!r}.")
+    ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     z, cov_z, cov_yz, V, JV = denoiser_moments(denoiser, yy, mean_var, size=stencil,
                                                probes=probes, rng=rng, extra_output=True)
     mv = np.asarray(mean_var, np.float64)
