@@ -40,7 +40,7 @@ import numpy as np
 from scipy import special
 
 from . import _analytic_kernels as _ak
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 from .sampling import counts_from_density
 
 __all__ = [
@@ -134,12 +134,7 @@ def _check_kernels(kernels, hw):
 def _check_loss(loss, eps):
     if not isinstance(loss, str) or loss.lower() not in _LOSSES:
         raise InputError(f"`loss` must be one of 'mse', 'mrse' (alias 'relmse'); got {loss!r}.")
-    try:
-        eps = float(eps)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`eps` must be a finite number >= 0; got {eps!r}.") from exc
-    if not np.isfinite(eps) or eps < 0:
-        raise InputError(f"`eps` must be a finite number >= 0; got {eps}.")
+    eps = as_number("eps", eps, lo=0.0)
     return "mse" if loss.lower() == "mse" else "mrse", eps
 
 
@@ -903,12 +898,7 @@ def _smooth_reference_estimate(mean, mean_var, sigma):
     from scipy.ndimage import correlate1d
 
     from .filters import border_scale, gaussian_filter, gaussian_kernel_1d
-    try:
-        sig = float(sigma)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`weight_sigma` must be None or a number >= 0; got {sigma!r}.") from exc
-    if not np.isfinite(sig) or sig < 0:
-        raise InputError(f"`weight_sigma` must be None or a finite number >= 0; got {sigma!r}.")
+    sig = as_number("weight_sigma", sigma, lo=0.0)
     m = np.asarray(mean, np.float64)
     mv = np.asarray(mean_var, np.float64)
     if sig == 0:
@@ -1059,11 +1049,8 @@ def _unconditional_map(kernels, n, x_ref, var_est, budget, loss, eps):
 
 
 def _check_mix(mix):
-    try:
-        lam = float(mix)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`mix` must be a number in [0, 1]; got {mix!r}.") from exc
-    if not 0.0 <= lam <= 1.0:
+    lam = as_number("mix", mix, lo=0.0)
+    if lam > 1.0:
         raise InputError(f"`mix` must be a number in [0, 1] (weight of uniform sampling); "
                          f"got {mix!r}.")
     return lam
