@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .analytic import apply_kernels
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 from .stats import PixelStats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -117,16 +117,6 @@ def _positive_int(name, v):
     if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
         raise InputError(f"`{name}` must be a positive integer; got {v!r}.")
     return int(v)
-
-
-def _positive_float(name, v):
-    try:
-        f = float(v)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`{name}` must be a finite number > 0; got {v!r}.") from exc
-    if not np.isfinite(f) or f <= 0:
-        raise InputError(f"`{name}` must be a finite number > 0; got {v!r}.")
-    return f
 
 
 def _call(denoiser, x32):
@@ -304,7 +294,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     """
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
-    eps = _positive_float("eps", eps)
+    eps = as_number("eps", eps, lo=0.0, lo_open=True)
     k = _positive_int("k", k)
     f = _check_denoiser(denoiser)
     gen = np.random.default_rng(rng)
@@ -435,7 +425,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
     if method == "fd":
         fx = _call(f, x32)
         calls = 1
-        h = _step(_positive_float("eps", eps), relative, xx, noise)
+        h = _step(as_number("eps", eps, lo=0.0, lo_open=True), relative, xx, noise)
     if noise.rms > 0.0 and (method == "jvp" or h is not None):
         for _ in range(k):
             v = noise.apply(gen.integers(0, 2, xx.shape) * 2.0 - 1.0)
