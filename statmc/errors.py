@@ -81,3 +81,14 @@ def as_number(name: str, value, *, lo: float | None = None, lo_open: bool = Fals
         rel = ">" if lo_open else ">="
         raise InputError(f"`{name}` must be {rel} {lo}; got {value!r}.")
     return f
+
+
+def as_int(name: str, value, *, lo: int = 1) -> int:
+    """``value`` as a Python int ``>= lo`` (default: a positive integer).
+
+    Booleans, floats and non-numbers are refused with an :class:`InputError` naming ``name``.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo:
+        what = {0: "a non-negative integer", 1: "a positive integer"}.get(lo, f"an integer >= {lo}")
+        raise InputError(f"`{name}` must be {what}; got {value!r}.")
+    return int(value)

@@ -36,13 +36,12 @@ References
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
 from .analytic import apply_kernels
-from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_int, as_number, check_finite, check_nonnegative
 from .stats import PixelStats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -111,12 +110,6 @@ class _Noise:
     @property
     def rms(self) -> float:
         return float(np.sqrt(np.mean(self.diag)))
-
-
-def _positive_int(name, v):
-    if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-        raise InputError(f"`{name}` must be a positive integer; got {v!r}.")
-    return int(v)
 
 
 def _call(denoiser, x32):
@@ -295,7 +288,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
-    k = _positive_int("k", k)
+    k = as_int("k", k)
     f = _check_denoiser(denoiser)
     gen = np.random.default_rng(rng)
     fx = _call(f, xx.astype(np.float32))
@@ -402,7 +395,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
         raise InputError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}.")
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
-    k = _positive_int("k", k)
+    k = as_int("k", k)
     f = _check_denoiser(denoiser)
     if method == "exact":
         if not callable(getattr(f, "kernels", None)):

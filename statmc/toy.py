@@ -40,11 +40,10 @@ sample about 0.5–1 outside the firefly region).
 
 from __future__ import annotations
 
-import numbers
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_int, check_finite, check_nonnegative
 from .stats import PixelStats
 
 __all__ = ["ToyRenderer", "FAMILIES", "throughput_central_moments", "sample_throughput",
@@ -311,12 +310,6 @@ def _to_channels(rgb, c):
     return rgb[..., lo] * (1 - f) + rgb[..., lo + 1] * f
 
 
-def _positive_int(name, v):
-    if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-        raise InputError(f"`{name}` must be a positive integer; got {v!r}.")
-    return int(v)
-
-
 # ---------------------------------------------------------------------------- renderer
 class ToyRenderer:
     """Procedural images with exactly known per-pixel sample distributions.
@@ -357,9 +350,9 @@ class ToyRenderer:
                  channels: int = 3):
         if not isinstance(scene, str) or scene not in _SCENES:
             raise InputError(f"`scene` must be one of {', '.join(_SCENES)}; got {scene!r}.")
-        self.width = _positive_int("width", width)
-        self.height = _positive_int("height", height)
-        self.channels = _positive_int("channels", channels)
+        self.width = as_int("width", width)
+        self.height = as_int("height", height)
+        self.channels = as_int("channels", channels)
         self.scene = scene
         self.name = f"toy:{scene}"
         maps = _scene_maps(scene, self.height, self.width)
@@ -536,7 +529,7 @@ class ToyRenderer:
             available) and ``meta`` holding ``renderer``, ``scene`` and ``seed``.
         """
         n = self.check_counts(counts)
-        chunk = _positive_int("chunk_size", chunk_size)
+        chunk = as_int("chunk_size", chunk_size)
         rng = np.random.default_rng(seed)
         h, w, c = self.shape
         flat = n.ravel()
@@ -572,9 +565,7 @@ class ToyRenderer:
     def render_uniform(self, spp: int, *, seed=0, progress: bool = False,
                        features: bool = True, chunk_size: int = DEFAULT_CHUNK) -> PixelStats:
         """:meth:`render` with ``spp`` samples in every pixel."""
-        if isinstance(spp, bool) or not isinstance(spp, numbers.Integral) or spp < 0:
-            raise InputError(f"`spp` must be a non-negative integer; got {spp!r}.")
-        counts = np.full((self.height, self.width), int(spp), np.int64)
+        counts = np.full((self.height, self.width), as_int("spp", spp, lo=0), np.int64)
         return self.render(counts, seed=seed, progress=progress, features=features,
                            chunk_size=chunk_size)
 
