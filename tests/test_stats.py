@@ -268,3 +268,14 @@ def test_as_number_accepts_finite_reals_and_names_the_parameter():
                     (-1.0, {"lo": 0.0}), (0.0, {"lo": 0.0, "lo_open": True})):
         with pytest.raises(InputError, match="`a` must be"):
             as_number("a", bad, **kw)
+
+
+def test_as_int_accepts_integers_only_and_names_the_parameter():
+    from statmc.errors import as_int
+    assert as_int("k", 3) == 3 and type(as_int("k", np.int64(3))) is int
+    assert as_int("k", 0, lo=0) == 0
+    for bad, kw, what in ((True, {}, "positive"), (2.0, {}, "positive"), ("2", {}, "positive"),
+                          (0, {}, "positive"), (-1, {"lo": 0}, "non-negative"),
+                          (2, {"lo": 3}, ">= 3")):
+        with pytest.raises(InputError, match=f"`k` must be .*{what}"):
+            as_int("k", bad, **kw)
