@@ -277,6 +277,61 @@ def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover - com
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover - compiled
+    """Noise-corrected squared difference of one scale pair, summed over channels.
+
+    ``out = Σ_c (f1 − f0)² − max(Σ_c (v0 + v1) − 2 cov, 0)``: the squared difference of
+    Eq. 1 of Rousselle et al. 2011 minus its noise part ``Var(f1 − f0) = Var[f1] + Var[f0]
+    − 2 Cov(f0, f1)`` (statmc's ``bias="pooled"`` departure; unbiased for the squared
+    bias difference).  f0, f1 : (H, W*C) values; v0, v1 : (H, W*Cv) their variances
+    (``Cv`` = C per channel or 1 if summed); cov : (H, W) covariance of the two scales of
+    the channel-summed variance; out : (H, W).  Accumulates in float64.
+    NumPy reference: ``statmc.gem.pooled_selector``.
+    """
+    H, Lx = f0.shape
+    W = Lx // C
+    for y in prange(H):
+        a = f0[y]
+        b = f1[y]
+        va = v0[y]
+        vb = v1[y]
+        cv = cov[y]
+        o = out[y]
+        for i in range(W):
+            d2 = 0.0
+            for c in range(C):
+                d = np.float64(b[i * C + c]) - np.float64(a[i * C + c])
+                d2 += d * d
+            vs = 0.0
+            for c in range(Cv):
+                vs += np.float64(va[i * Cv + c]) + np.float64(vb[i * Cv + c])
+            o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def stop_pooled(pooled, v0, v1, Cv, fk, weight, out):  # pragma: no cover - compiled
+    """Binary stopping map from a pooled bias estimate (``bias="pooled"``).
+
+    ``S = weight · fk · max(pooled, 0) + Σ_c (v1 − v0)``, 1 where ``S > 0`` (stop at the
+    finer scale): Eq. 1 of Rousselle et al. 2011 with the squared difference replaced by
+    the pooled, noise-corrected estimate of :func:`pooled_bias_input` (clamped at 0 after
+    pooling).  pooled : (H, W); v0, v1 : (H, W*Cv); out : (H, W) float32.
+    NumPy reference: ``statmc.gem.pooled_selector``.
+    """
+    H, W = pooled.shape
+    for y in prange(H):
+        p = pooled[y]
+        va = v0[y]
+        vb = v1[y]
+        o = out[y]
+        for i in range(W):
+            s = weight * fk * max(np.float64(p[i]), 0.0)
+            for c in range(Cv):
+                s += np.float64(vb[i * Cv + c]) - np.float64(va[i * Cv + c])
+            o[i] = 1.0 if s > 0.0 else 0.0
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def finish_stop_map(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cover
     """Centre-excluded filtered stopping map, rounded (§4.4 and §6 of Rousselle et al. 2011).
 

@@ -37,9 +37,9 @@ from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pa
 
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
-    "estimate_mse", "difference_variance", "select", "select_scales", "reconstruct",
-    "sampling_map",
-    "DEFAULT_GAMMA", "RELMSE_EPS",
+    "estimate_mse", "difference_variance", "pooled_selector", "select", "select_scales",
+    "reconstruct", "sampling_map",
+    "DEFAULT_GAMMA", "RELMSE_EPS", "BIAS_MODES", "POOLED_FINAL_SIGMAS", "BIAS_POOL_SIGMA",
 ]
 
 #: Default error-rate parameter γ (the paper's Fig. 8 uses 0.2; §7 results use 0.1).
@@ -48,6 +48,19 @@ DEFAULT_GAMMA = 0.2
 RELMSE_EPS = 1e-3
 #: z(γ) = −log(1 − (1.9 γ)^(1/√2)) is finite only for γ < 1/1.9.
 _GAMMA_MAX = 1.0 / 1.9
+#: Bias estimates of the scale selector: ``"paper"`` (Eq. 1 of [1] with ρ·z(γ)) and
+#: ``"pooled"`` (statmc's departure: noise-corrected, Gaussian-pooled; docs/gem.md §5d).
+BIAS_MODES = ("paper", "pooled")
+#: Final-reconstruction scales with ``bias="pooled"``: the pixel estimate and ten
+#: Gaussians ×√2 from σ = 0.6 to 13.6 (§6 of [1]: eight from √2 to 16).  Finest σ
+#: measured on the Mitsuba scenes (docs/gem.md §5d): uniform+GEM / box on textured-dof
+#: at 64 spp was 0.77 (√2), 0.65 (1), 0.50 (1/√2), 0.44 (0.6), 0.44 (0.5), but σ = 0.5
+#: kept fireflies on glass-caustic (2 of 16 renders > 1× box at 16 spp).
+POOLED_FINAL_SIGMAS: tuple[float, ...] = (0.0,) + tuple(0.6 * 2.0 ** (k / 2) for k in range(10))
+#: σ (pixels) of the Gaussian that pools the noise-corrected squared differences
+#: (``bias="pooled"``); of 0.7, 1, 1.5 and 2 measured on the Mitsuba scenes, 1 was best
+#: or within 0.01 of it (docs/gem.md §5d).
+BIAS_POOL_SIGMA = 1.0
 
 
 # ---------------------------------------------------------------------------------------
@@ -143,6 +156,66 @@ def selector(values, variances, r2, *, weight=1.0) -> np.ndarray:
     return np.asarray(weight) * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
 
 
+def pooled_selector(values, variances, diff_variances, r2, *, pool_sigma: float = BIAS_POOL_SIGMA,
+                    weight=1.0, truncate: float = DEFAULT_TRUNCATE) -> np.ndarray:
+    """Scale selector with a pooled, noise-corrected bias estimate (``bias="pooled"``).
+
+    **A departure from [1]** (docs/gem.md §5d).  Eq. 1 estimates the bias term of each
+    pixel from its own squared difference ``(c − f)²``, whose expectation is
+    ``(Bias[c] − Bias[f])² + Var(c − f)``.  At moderate sample counts the noise part
+    dominates, and the selector stops at fine scales wherever the noise happens to be
+    large (the paper compensates with ρ·z(γ), calibrated on raw squares).  Here the noise
+    part is subtracted and the result is averaged over a small Gaussian window, then
+    clamped at 0:
+
+    ``B_k = max(G_pool * [Σ_c (v_{k+1} − v_k)² − Σ_c Var(v_{k+1} − v_k)], 0)``,
+
+    ``S_k = weight · (r_{k+1}² + r_k²)/(r_{k+1}² − r_k²) · B_k + Σ_c (Var_{k+1} − Var_k)``.
+
+    Before the clamp, ``B_k`` is an unbiased estimate of the pooled squared bias
+    difference (``E[(c − f)²] − Var(c − f)``), so with ``weight = 1`` ``S_k`` estimates
+    the ΔMSE of §4.2 itself and ``S_k > 0`` (stop at the finer scale) is the plain MSE
+    comparison; no error-rate weight z(γ) is involved.  On a locally quadratic image the
+    bias term is exact, as in Eq. 1.  NumPy reference of the compiled selection
+    (:func:`statmc._filter_kernels.pooled_bias_input`, ``stop_pooled``).
+
+    Parameters
+    ----------
+    values : (K, H, W, C) ndarray
+        Filtered values, fine to coarse (:func:`statmc.filters.filter_bank`).
+    variances : (K, H, W, C) or (K, H, W) ndarray
+        Their variances (per channel or summed over channels).
+    diff_variances : (K-1, H, W, C) or (K-1, H, W) ndarray
+        ``Var(v_{k+1} − v_k)`` (:func:`difference_variance`).
+    r2 : (K,) array
+        Second moments of the kernels (0 for the pixel filter).
+    pool_sigma : float
+        σ of the border-renormalised pooling Gaussian (0: no pooling).
+    weight : float or (H, W) array
+        Weight of the bias term (1: the MSE comparison).
+
+    Returns
+    -------
+    S : (K-1, H, W) float64 ndarray
+    """
+    from .filters import gaussian_filter
+    v = np.asarray(values, dtype=np.float64)
+    var = np.asarray(variances, dtype=np.float64)
+    dv = np.asarray(diff_variances, dtype=np.float64)
+    if v.ndim == 3:
+        v = v[..., None]
+    if var.ndim == 4:
+        var = var.sum(axis=3)
+    if dv.ndim == 4:
+        dv = dv.sum(axis=3)
+    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:])
+    d = ((v[1:] - v[:-1]) ** 2).sum(axis=3) - dv
+    if pool_sigma > 0:
+        d = np.stack([gaussian_filter(x, pool_sigma, truncate=truncate) for x in d])
+    bias = np.maximum(d, 0.0)
+    return np.asarray(weight) * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
+
+
 # ---------------------------------------------------------------------------------------
 # Input checks
 # ---------------------------------------------------------------------------------------
@@ -178,6 +251,27 @@ def _check_sigmas(sigmas):
             any(b <= a for a, b in zip(sig, sig[1:])):
         raise InputError(f"`sigmas` must be >= 2 increasing scales >= 0; got {sigmas!r}.")
     return sig
+
+
+def _resolve_mode(final, bias, sigmas, map_scale):
+    """Bias mode, scales and outlier-filter factor from the arguments.
+
+    ``bias=None`` is ``"pooled"`` for the final reconstruction and ``"paper"`` for the
+    adaptive iterations; ``sigmas=None`` then takes that mode's default scales
+    (:data:`POOLED_FINAL_SIGMAS` for the pooled final reconstruction, §6 of [1]
+    otherwise).  ``map_scale=None`` is §6's factor in every mode.
+    """
+    if bias is None:
+        bias = "pooled" if final else "paper"
+    if not isinstance(bias, str) or bias not in BIAS_MODES:
+        raise InputError(f"`bias` must be one of {BIAS_MODES} (the paper's per-pixel Eq. 1, or "
+                         f"the pooled noise-corrected estimate); got {bias!r}.")
+    pooled_final = bias == "pooled" and final
+    if sigmas is None:
+        sigmas = POOLED_FINAL_SIGMAS if pooled_final else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
+    sig = _check_sigmas(sigmas)
+    _map_scale(final, map_scale)
+    return bias, sig, map_scale
 
 
 def _weight_map(n, gamma, shape, dtype):
@@ -445,12 +539,15 @@ def _variance_prior_reference(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
 
 
 def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
-          debias=False, map_scale=None):
+          debias=False, map_scale=None, bias="paper", pool_sigma=BIAS_POOL_SIGMA):
     """Bank → stopping maps → post-processing → selection → image.
 
     With ``keep_bank`` the per-channel variances of every scale are kept and the
     estimated MSE is computed; without it only the channel-summed variance is filtered
-    (all the selector needs) and two scales of it are held at a time.
+    (all the selector needs) and two scales of it are held at a time.  ``bias="pooled"``
+    forms the stopping maps with :func:`pooled_selector` (compiled): per pair, the
+    covariance of the two scales (one filter pass over the channel-summed variance), the
+    noise-corrected squared difference, its pooling (one filter pass), the decision.
     """
     h, w = m.shape[:2]
     x, c = _rows(m)
@@ -462,7 +559,10 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     r2, frac = _pair_factors(sig, truncate)
     dt = x.dtype
     fr = frac.astype(dt)
-    weight = _weight_map(n, gamma, (h, w), dt)
+    weight = _weight_map(n, gamma, (h, w), dt)      # also validates γ in the pooled mode
+    pooled = bias == "pooled"
+    if pooled:
+        work = np.empty((3, h, w), dt)                # covariance, D, pooled D
     vals = np.empty((nsc,) + x.shape, dt)
     if keep_bank:
         vars_ = np.empty((nsc,) + vr.shape, dt)
@@ -482,7 +582,12 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
                 slots[k] = vr
         else:
             _run(x, c, vr, cv, s, truncate, out_x=vals[k], out_v=slots[k])
-        if k:
+        if k and pooled:
+            _pair_covariance_rows(vsum, 1, sig[k - 1], s, truncate, out=work[0])
+            _k.pooled_bias_input(vals[k - 1], vals[k], prev, slots[k], work[0], c, cv, work[1])
+            _run(work[1], 1, None, 0, pool_sigma, truncate, out_x=work[2])
+            _k.stop_pooled(work[2], prev, slots[k], cv, float(fr[k - 1]), 1.0, raw[k - 1])
+        elif k:
             _k.stop_pair(vals[k - 1], vals[k], prev, slots[k], c, cv, fr[k - 1], weight, raw[k - 1])
         prev = slots[k]
     maps = _postprocess(raw, sig, final, truncate, map_scale) if postprocess else raw
@@ -491,7 +596,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     image = np.empty((h, w * c), dt)
     _k.gather(vals, c, scales, image)
     out = {"image": image.reshape(m.shape), "scales": scales, "sigmas": tuple(sig), "r2": r2,
-           "bias_factors": frac, "raw": raw, "maps": maps}
+           "bias_factors": frac, "raw": raw, "maps": maps, "bias": bias}
     if keep_bank:
         est = np.empty((h, w * c), dt)
         if debias:
@@ -520,7 +625,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
 
 def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
            sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE,
-           map_scale=None) -> dict:
+           map_scale=None, bias=None) -> dict:
     """Select a filter scale per pixel and return everything that went into the choice.
 
     Parameters
@@ -544,8 +649,16 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
         Apply the outlier removal of §4.4 (default) or use the raw selector decisions.
     map_scale : float, optional
         Outlier filter of pair k = ``map_scale · σ_{k+1}``; default 2 when ``final``, else 1
-        (§6).  ``sigmas=(0, 1, √2, …)`` with ``map_scale=1`` beat §6's final settings on
-        the four built-in Mitsuba scenes but not on every toy scene (``docs/gem.md`` §5c).
+        (§6).
+    bias : {"pooled", "paper"}, optional
+        How the selector estimates the bias term.  ``"paper"``: Eq. 1 of [1], each pixel's
+        own squared difference weighted by ``ρ·z(γ)``.  ``"pooled"`` (**a departure**, see
+        :func:`pooled_selector` and ``docs/gem.md`` §5d): the squared difference minus its
+        known noise variance, averaged over a Gaussian of σ = :data:`BIAS_POOL_SIGMA` and
+        clamped at 0, in the plain MSE comparison (weight 1; ``gamma`` and ``n`` do not
+        enter).  Default: ``"pooled"`` when ``final`` (with the scales
+        :data:`POOLED_FINAL_SIGMAS` unless given), ``"paper"`` otherwise.
+        ``bias="paper"`` with ``final`` is the literal §6.
 
     Returns
     -------
@@ -554,30 +667,29 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
         ``sigmas``; ``sigmas``; ``r2`` kernel second moments; ``bias_factors``;
         ``values``, ``variances`` (K, H, W, C) the bank; ``stop_raw``, ``stop``
         (K-1, H, W) bool stopping maps before/after post-processing; ``est_mse``
-        (H, W, C) estimated MSE of the selected filter (§5).
+        (H, W, C) estimated MSE of the selected filter (§5, from the raw squared
+        differences whatever ``bias``); ``bias`` the mode used.
     """
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
-    _map_scale(final, map_scale)
+    bias, sig, map_scale = _resolve_mode(final, bias, sigmas, map_scale)
     out = _core(m, v, vsum, nn, gamma, sig, final, postprocess, truncate, keep_bank=True,
-                map_scale=map_scale)
+                map_scale=map_scale, bias=bias)
     out["stop_raw"] = out.pop("raw") > 0.5
     out["stop"] = out.pop("maps") > 0.5
     return out
 
 
 def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
-                  sigmas=None, postprocess: bool = True, map_scale=None) -> np.ndarray:
+                  sigmas=None, postprocess: bool = True, map_scale=None, bias=None) -> np.ndarray:
     """Selected scale index per pixel, ``(H, W)``; see :func:`select`."""
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    sig = _check_sigmas(sigmas if sigmas is not None else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS))
-    _map_scale(final, map_scale)
+    bias, sig, map_scale = _resolve_mode(final, bias, sigmas, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, postprocess, DEFAULT_TRUNCATE,
-                 keep_bank=False, map_scale=map_scale)["scales"]
+                 keep_bank=False, map_scale=map_scale, bias=bias)["scales"]
 
 
 def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
-                extra_output: bool = False, sigmas=None, map_scale=None):
+                extra_output: bool = False, sigmas=None, map_scale=None, bias=None):
     """GEM reconstruction: each pixel takes the filter scale that minimises its MSE.
 
     Parameters
@@ -587,21 +699,28 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
     mean_var : (H, W, C) ndarray
         **Variance of the mean** per pixel and channel (sample variance / n), >= 0.
     gamma : float
-        Error-rate parameter γ (§4.3 of [1]), in (0, 0.526); 0.1–0.3 is sensible.
+        Error-rate parameter γ (§4.3 of [1]), in (0, 0.526); 0.1–0.3 is sensible.  Used by
+        ``bias="paper"`` only (validated always).
     final : bool
-        Use the final-reconstruction settings of §6 (8 Gaussian scales σ = √2 … 16 ×√2,
-        outlier filters of twice the coarse scale, only switches to coarser scales);
-        ``False`` gives the adaptive-iteration settings (σ = 1, 2, 4, 8).
+        Final reconstruction (§6: only switches to coarser scales in the outlier removal;
+        by default with the pooled bias estimate, see ``bias``); ``False`` gives the
+        adaptive-iteration settings of the paper (σ = 1, 2, 4, 8, outlier filters of the
+        coarse scale, ``bias="paper"``).
     n : (H, W) ndarray, optional
-        Samples per pixel (>= 2) for the low-count correction ``ρ = 1 − 1/n``; without
-        it ``ρ = 1``.
+        Samples per pixel (>= 2) for the low-count correction ``ρ = 1 − 1/n`` of
+        ``bias="paper"``; without it ``ρ = 1``.
     extra_output : bool
         Also return the dictionary of :func:`select` (scales, bank, maps, est. MSE).
     sigmas, map_scale : optional
-        Override the scales and the outlier-filter factor (see :func:`select`).  The
-        defaults are §6's; ``sigmas=(0.0,) + tuple(2 ** (k / 2) for k in range(8))`` (finest
-        Gaussian σ = 1) with ``map_scale=1.0`` did better on the four built-in Mitsuba
-        scenes, worse on the toy texture and fireflies scenes (``docs/gem.md`` §5c).
+        Override the scales and the outlier-filter factor (see :func:`select`).
+    bias : {"pooled", "paper"}, optional
+        Bias estimate of the selector (see :func:`select`).  The default for ``final`` is
+        ``"pooled"`` — **a departure from the paper** — with the scales
+        :data:`POOLED_FINAL_SIGMAS` (σ = 0.6 … 13.6; §6's outlier removal unchanged).
+        On the four built-in Mitsuba scenes at 16–64 spp uniform+GEM then had
+        0.03–0.44× the relMSE of the box filter, against 0.03–0.91× for the literal §6
+        (``bias="paper"``), which stayed above 0.5× on ``textured-dof``
+        (``docs/gem.md`` §5d).
 
     Returns
     -------
@@ -625,13 +744,12 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
     """
     if extra_output:
         info = select(mean, mean_var, gamma=gamma, final=final, n=n, sigmas=sigmas,
-                      map_scale=map_scale)
+                      map_scale=map_scale, bias=bias)
         return info["image"], info
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    sig = _check_sigmas(sigmas) if sigmas is not None else list(FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
-    _map_scale(final, map_scale)
+    bias, sig, map_scale = _resolve_mode(final, bias, sigmas, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, True, DEFAULT_TRUNCATE,
-                 keep_bank=False, map_scale=map_scale)["image"]
+                 keep_bank=False, map_scale=map_scale, bias=bias)["image"]
 
 
 def _allocate(gain, budget, batch):
