@@ -297,6 +297,14 @@ def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover - co
         vb = v1[y]
         cv = cov[y]
         o = out[y]
+        if C == 3 and Cv == 1:  # the fast path of reconstruct, unrolled so that it vectorises
+            for i in range(W):
+                d0 = np.float64(b[3 * i]) - np.float64(a[3 * i])
+                d1 = np.float64(b[3 * i + 1]) - np.float64(a[3 * i + 1])
+                d2 = np.float64(b[3 * i + 2]) - np.float64(a[3 * i + 2])
+                vs = np.float64(va[i]) + np.float64(vb[i]) - 2.0 * np.float64(cv[i])
+                o[i] = d0 * d0 + d1 * d1 + d2 * d2 - max(vs, 0.0)
+            continue
         for i in range(W):
             d2 = 0.0
             for c in range(C):

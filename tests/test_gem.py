@@ -266,12 +266,16 @@ def test_pooled_selection_kernels_equal_numpy_reference(dtype, sigmas):
     f0, f1 = (np.ascontiguousarray(info["values"][k]).reshape(h, w * c) for k in (0, 1))
     v0, v1 = (np.ascontiguousarray(info["variances"][k]).reshape(h, w * c) for k in (0, 1))
     cov = rng.uniform(0, 0.01, (h, w)).astype(dtype)
-    d = np.empty((h, w), dtype)
-    K.pooled_bias_input(f0, f1, v0, v1, cov, c, c, d)
     ref = (((info["values"][1] - info["values"][0]).astype(np.float64) ** 2).sum(-1)
            - np.maximum((info["variances"][0] + info["variances"][1]).astype(np.float64).sum(-1)
                         - 2 * cov, 0))
-    np.testing.assert_allclose(d, ref, rtol=1e-5 if dtype == np.float32 else 1e-12, atol=1e-7)
+    d1 = np.empty((h, w), dtype)                 # channel-summed variances (unrolled path)
+    K.pooled_bias_input(f0, f1, np.ascontiguousarray(info["variances"][0].sum(-1)),
+                        np.ascontiguousarray(info["variances"][1].sum(-1)), cov, c, 1, d1)
+    d = np.empty((h, w), dtype)                  # per-channel variances
+    K.pooled_bias_input(f0, f1, v0, v1, cov, c, c, d)
+    for got in (d, d1):
+        np.testing.assert_allclose(got, ref, rtol=1e-5 if dtype == np.float32 else 1e-12, atol=1e-7)
     out = np.empty((h, w), np.float32)
     K.stop_pooled(d, v0, v1, c, 2.5, 1.0, out)
     s = 2.5 * np.maximum(d.astype(np.float64), 0) + (v1.astype(np.float64) - v0).reshape(h, w, c).sum(-1)
