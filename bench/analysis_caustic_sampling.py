@@ -1,0 +1,409 @@
+"""Adaptive sampling on the firefly-heavy ``glass-caustic`` scene (issues 3 and 5).
+
+Paired renders at equal budget: for every seed, one uniform render and one adaptive render
+per sampler variant, each reconstructed by the same final method (GEM for issue 3, OIDN
+for issue 5) and scored by relMSE (ε = 0.01) against the cached high-spp reference
+(``toy:NAME`` scenes: the exact mean).  Prints, per variant, the mean relMSE, the ratio of
+the means to uniform with a paired-bootstrap 90 % interval, the median of the per-seed
+ratios, the wins and a one-sided Wilcoxon signed-rank p-value (H1: adaptive < uniform).
+
+Variants (``--variants``): ``uniform``; ``gem`` (the library's adaptive GEM);
+``gem-paper`` (``rounds=1, var_prior=0, debias=False``); ``gem-prior<k>[s<σ>]`` (pooled
+variance prior of ``k`` pseudo-samples over a Gaussian of σ); ``gem-mix<λ>`` (a share λ of
+every pass spread uniformly); ``gem-it<m>`` (m passes); ``gem-init<s>`` (an s-spp pilot);
+``gem-rob<τ>`` (pixels whose sample variance exceeds τ × the 5×5 median get the
+neighbourhood's median mean and variance before the sampler sees them: no chasing of
+outliers); ``da``, ``da-mix<λ>``, ``da-it<m>``, ``da-init<s>``, ``da-rob<τ>``,
+``da-prior<k>[s<σ>]`` the same for denoising-aware sampling with OIDN.
+
+``--diagnose`` also splits the squared error of the final images by pixel classes:
+
+* by the pilot pass of each adaptive render: pixels whose pilot sample variance is 0 in
+  every channel ("zero"), pixels whose pilot caught an outlier (pilot relative sample
+  variance in the top 1 %, "hot"), and the rest;
+* by the reference: pixels whose per-sample relative variance (from the reference's own
+  statistics) is in the top 10 % ("caustic"), and the rest.
+
+``--decompose`` splits the expected relMSE of each variant over ``--seeds`` renders into
+the reference's own noise, the squared bias and the variance of the output, with and
+without the "catastrophic" renders (relMSE > 1.2 × the median render).
+
+``--trace`` counts, per pass of each adaptive render, the newly caught fireflies (pixel
+mean above 5 × (reference + 0.2)) and their distance to the earlier ones.
+
+Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_caustic_sampling.py
+--scene glass-caustic --spp 16 --seeds 24 --final gem --variants uniform gem`` (about 3 s
+per adaptive render, 0.6 s per GEM and 0.3 s per OIDN reconstruction at 128×96).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+from scipy import stats as sst
+
+from statmc import metrics
+from statmc.adaptive import adaptive_render, get_sampler
+from statmc.demo import cached_reference
+from statmc.exr import read_exr
+from statmc.pipeline import reconstruct_stats
+from statmc.renderers import make_renderer
+
+REF_SPP = {"glass-caustic": 32768}
+EPS = 0.01
+
+
+def _reference(scene):
+    if scene.startswith("toy:"):
+        from statmc.stats import PixelStats
+        from statmc.toy import ToyRenderer
+
+        r = ToyRenderer(scene[4:], width=128, height=96)
+        t = r.true_mean()
+        return r, PixelStats.from_mean_var(t, np.zeros_like(t), np.full(t.shape[:2], 2))
+    r = make_renderer(scene)
+    _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
+    return r, read_exr(path)
+
+
+# --------------------------------------------------------------------------- variants
+def _gem_opts(**kw):
+    from statmc.gem import sampling_map
+
+    def s(stats, budget, rng):
+        return sampling_map(stats.mean, stats.mean_var, stats.n, budget, rng=rng, **kw)
+    return s
+
+
+def _mix(inner, lam):
+    """``(1 − λ)`` of the budget from ``inner``, ``λ`` uniformly."""
+    from statmc.sampling import counts_from_density
+
+    def s(stats, budget, rng):
+        b_uni = int(round(lam * budget))
+        c = counts_from_density(np.ones(stats.n.shape), b_uni, rng=rng)
+        return c + inner(stats, budget - b_uni, rng)
+    return s
+
+
+def _robust(stats, tau, size=5):
+    """Prototype: pixels whose sample variance exceeds ``tau`` times the median of their
+    ``size``×``size`` neighbourhood get the neighbourhood's median mean and variance."""
+    from scipy.ndimage import median_filter
+
+    s2 = stats.sample_var
+    lum = s2.mean(-1)
+    med = median_filter(lum, size=size, mode="nearest")
+    out = lum > tau * med
+    m = stats.mean.copy()
+    v = stats.mean_var.copy()
+    for c in range(m.shape[-1]):
+        mm = median_filter(stats.mean[..., c], size=3, mode="nearest")
+        vv = median_filter(s2[..., c], size=size, mode="nearest") / stats.n
+        m[..., c] = np.where(out, mm, m[..., c])
+        v[..., c] = np.where(out, vv, v[..., c])
+    return m, v, out
+
+
+def _gem_robust(tau, **kw):
+    from statmc.gem import sampling_map
+
+    def s(stats, budget, rng):
+        m, v, _ = _robust(stats, tau)
+        return sampling_map(m, v, stats.n, budget, rng=rng, **kw)
+    return s
+
+
+def _robust_stats(stats, tau):
+    from statmc.stats import PixelStats
+
+    m, v, _ = _robust(stats, tau)
+    return PixelStats.from_mean_var(m, v * stats.n[..., None], stats.n, albedo=stats.albedo,
+                                    normal=stats.normal, depth=stats.depth)
+
+
+def _da_robust(tau):
+    from statmc.da_sampling import sampler
+
+    def s(stats, budget, rng):
+        return sampler(_robust_stats(stats, tau), budget, rng, denoiser="oidn")
+    return s
+
+
+def _shrink(stats, k, sigma=1.0):
+    """Prototype of the pooled variance prior (posterior mean of σ² under a scaled-inverse-χ²
+    prior of ``k`` pseudo-degrees of freedom centred on the Gaussian-pooled neighbourhood)."""
+    from statmc.filters import gaussian_filter
+    from statmc.stats import PixelStats
+
+    s2 = stats.sample_var
+    pooled = gaussian_filter(s2, sigma)
+    nm1 = (stats.n - 1.0)[..., None]
+    s2t = (nm1 * s2 + k * pooled) / (nm1 + k)
+    return PixelStats.from_mean_var(stats.mean, s2t, stats.n, albedo=stats.albedo,
+                                    normal=stats.normal, depth=stats.depth)
+
+
+def _da_prior(k, sigma=1.0):
+    from statmc.da_sampling import sampler
+
+    def s(stats, budget, rng):
+        return sampler(_shrink(stats, k, sigma), budget, rng, denoiser="oidn")
+    return s
+
+
+def variant(name):
+    """``(sampler, adaptive_render options)`` of a named variant."""
+    if name == "uniform":
+        return None, {}
+    if name == "gem":
+        return "gem", {}
+    if name == "gem-paper":
+        return _gem_opts(rounds=1, var_prior=0.0, debias=False), {}
+    if name.startswith("gem-prior"):            # gem-prior<k>[s<sigma>]
+        body = name[len("gem-prior"):]
+        k, _, sg = body.partition("s")
+        return _gem_opts(var_prior=float(k), var_prior_sigma=float(sg or 1.0)), {}
+    if name.startswith("gem-rob"):              # gem-rob<tau>
+        return _gem_robust(float(name[len("gem-rob"):])), {}
+    if name.startswith("gem-mix"):              # gem-mix<lambda>
+        return _mix(get_sampler("gem"), float(name[len("gem-mix"):])), {}
+    if name.startswith("gem-it"):               # gem-it<iterations>
+        return "gem", {"iterations": int(name[len("gem-it"):])}
+    if name.startswith("gem-init"):             # gem-init<initial spp>
+        return "gem", {"initial_spp": int(name[len("gem-init"):])}
+    if name == "da":
+        return "denoising-aware", {"denoiser": "oidn"}
+    if name.startswith("da-prior"):             # da-prior<k>[s<sigma>]
+        k, _, sg = name[len("da-prior"):].partition("s")
+        return _da_prior(float(k), float(sg or 1.0)), {}
+    if name.startswith("da-rob"):
+        return _da_robust(float(name[6:])), {}
+    if name.startswith("da-mix"):
+        return _mix(get_sampler("denoising-aware", denoiser="oidn"), float(name[6:])), {}
+    if name.startswith("da-it"):
+        return "denoising-aware", {"denoiser": "oidn", "iterations": int(name[5:])}
+    if name.startswith("da-init"):
+        return "denoising-aware", {"denoiser": "oidn", "initial_spp": int(name[7:])}
+    raise SystemExit(f"unknown variant {name!r}")
+
+
+def render(r, name, spp, seed, initial_spp=None):
+    """(final stats, pilot stats or None); adaptive runs start with ``initial_spp``
+    (default: 4, or 2 below 8 spp as in bench_quality_table.py)."""
+    if name == "uniform":
+        return r.render(np.full((r.height, r.width), spp, np.int64), seed=10_000 + seed), None
+    sampler, opts = variant(name)
+    opts = dict(opts)
+    opts.setdefault("initial_spp", initial_spp or (2 if spp < 8 else 4))
+    pilot = {}
+
+    def cb(k, stats, counts):
+        if k == 0:
+            pilot["stats"] = stats
+
+    res = adaptive_render(r, spp, sampler=sampler, seed=seed, callback=cb, **opts)
+    return res.stats, pilot["stats"]
+
+
+# --------------------------------------------------------------------------- diagnosis
+def _classes_pilot(pilot, ref):
+    s2 = pilot.sample_var / (ref * ref + EPS)
+    rel = s2.mean(-1)
+    zero = np.all(pilot.sample_var <= 0, axis=-1)
+    hot = rel >= np.quantile(rel, 0.99)
+    return {"zero": zero, "hot": hot & ~zero, "rest": ~zero & ~hot}
+
+
+def _classes_ref(ref_stats):
+    ref = ref_stats.mean
+    rel = (ref_stats.sample_var / (ref * ref + EPS)).mean(-1)
+    caustic = rel >= np.quantile(rel, 0.9)
+    return {"caustic": caustic, "calm": ~caustic}
+
+
+def ratio_ci(e, eu, *, level=0.9, reps=20000, seed=0):
+    """Paired bootstrap interval of ``mean(e)/mean(eu)`` (seeds resampled together)."""
+    e, eu = np.asarray(e), np.asarray(eu)
+    idx = np.random.default_rng(seed).integers(0, e.size, (reps, e.size))
+    r = e[idx].mean(1) / eu[idx].mean(1)
+    return tuple(np.quantile(r, [(1 - level) / 2, (1 + level) / 2]))
+
+
+def decompose(r, ref_stats, spp, seeds, final, seed0=500, name="uniform"):
+    """Split the expected relMSE of sampler ``name`` + ``final`` into the reference's own noise, the
+    squared bias and the variance of the output (over ``seeds`` renders), overall and in
+    the reference's caustic class; median-render and mean-render relMSE beside them."""
+    ref = ref_stats.mean
+    den = ref * ref + EPS
+    imgs = []
+    for i in range(seeds):
+        st, _ = render(r, name, spp, seed0 + i)
+        imgs.append(np.asarray(reconstruct_stats(st, final)[0], np.float64))
+    imgs = np.array(imgs)
+    per = ((imgs - ref) ** 2 / den).mean(axis=(1, 2, 3))
+    keep = per <= 1.2 * np.median(per)          # renders without a surviving firefly
+    floor = ref_stats.mean_var / den
+    out = {}
+    for name, sel in (("all", keep), ("no-catastrophe", keep)):
+        x = imgs[sel] if name != "all" else imgs
+        mu = x.mean(0)
+        var = x.var(0, ddof=1) / den
+        bias2 = np.maximum((mu - ref) ** 2 / den - floor - var / len(x), 0)   # E[(mu-r)^2] corrected
+        m = _classes_ref(ref_stats)["caustic"]
+        out[name] = {"renders": int(len(x)), "relmse": float(((x - ref) ** 2 / den).mean()),
+                     "floor": float(floor.mean()), "bias2": float(bias2.mean()),
+                     "var": float(var.mean()),
+                     "caustic floor": float(floor.mean(-1)[m].sum() / m.size),
+                     "caustic bias2": float(bias2.mean(-1)[m].sum() / m.size),
+                     "caustic var": float(var.mean(-1)[m].sum() / m.size)}
+    out["median render"] = float(np.median(per))
+    out["catastrophes"] = int((~keep).sum())
+    return out
+
+
+def trace(r, ref_stats, spp, seeds, name, seed0=500):
+    """Fireflies caught per pass: ``[(pass, new, [Chebyshev distance to earlier ones])]``
+    per seed; uniform renders are one pass."""
+    ref = ref_stats.mean.mean(-1)
+    logs = []
+    for i in range(seeds):
+        prev = {"ff": np.zeros(ref.shape, bool)}
+        log = []
+
+        def cb(k, st, counts):
+            hot = st.mean.mean(-1) > 5 * (ref + 0.2)
+            ys, xs = np.nonzero(hot & ~prev["ff"])
+            py, px = np.nonzero(prev["ff"])
+            d = [int(np.min(np.maximum(abs(py - y), abs(px - x)))) if py.size else -1
+                 for y, x in zip(ys, xs)]
+            if ys.size:
+                log.append((k, int(ys.size), d))
+            prev["ff"] = hot
+
+        if name == "uniform":
+            st, _ = render(r, name, spp, seed0 + i)
+            cb(0, st, None)
+        else:
+            sampler, opts = variant(name)
+            opts = dict(opts)
+            opts.setdefault("initial_spp", 2 if spp < 8 else 4)
+            adaptive_render(r, spp, sampler=sampler, seed=seed0 + i, callback=cb, **opts)
+        logs.append(log)
+    return logs
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="glass-caustic")
+    ap.add_argument("--spp", type=int, nargs="*", default=[16])
+    ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--seed0", type=int, default=500)
+    ap.add_argument("--final", default="gem", choices=("gem", "oidn", "none"))
+    ap.add_argument("--variants", nargs="*", default=["uniform", "gem"])
+    ap.add_argument("--diagnose", action="store_true")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--trace", action="store_true", help="only the firefly trace")
+    ap.add_argument("--decompose", action="store_true",
+                    help="only the bias/variance/reference split of uniform renders")
+    a = ap.parse_args(argv)
+    r, ref_stats = _reference(a.scene)
+    ref = ref_stats.mean
+    floor = float(np.mean(ref_stats.mean_var / (ref * ref + EPS)))
+    rc = _classes_ref(ref_stats)
+    print(f"{a.scene}: reference {int(ref_stats.n.max())} spp, own relMSE {floor:.4f}; "
+          f"final {a.final}; seeds {a.seed0}..{a.seed0 + a.seeds - 1}", flush=True)
+    out = {"scene": a.scene, "final": a.final, "floor": floor, "cells": []}
+    if a.trace:
+        for spp in a.spp:
+            for name in a.variants:
+                logs = trace(r, ref_stats, spp, a.seeds, name, a.seed0)
+                tot = [sum(c for _, c, _ in lg) for lg in logs]
+                near = [sum(1 for _, _, d in lg for x in d if 0 <= x <= 5) for lg in logs]
+                print(f"\n{spp} spp {name}: fireflies caught per render {np.mean(tot):.2f} "
+                      f"(of them within 5 px of an earlier one: {np.mean(near):.2f})")
+                for i, lg in enumerate(logs):
+                    print(f"  seed {a.seed0 + i}: {lg}")
+                out["cells"].append({"spp": spp, "variant": name, "trace": logs})
+        if a.json:
+            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
+            with open(a.json, "w") as f:
+                json.dump(out, f, indent=1)
+        return
+    if a.decompose:
+        for spp in a.spp:
+            for name in a.variants:
+                d = decompose(r, ref_stats, spp, a.seeds, a.final, a.seed0, name)
+                out["cells"].append({"spp": spp, "variant": name, "decomposition": d})
+                print(f"\n{spp} spp, {name} + {a.final}, {a.seeds} renders:", flush=True)
+                for k, v in d.items():
+                    txt = (", ".join(f"{kk} {vv:.5f}" if isinstance(vv, float) else f"{kk} {vv}"
+                                     for kk, vv in v.items()) if isinstance(v, dict) else f"{v}")
+                    print(f"  {k:15s} {txt}", flush=True)
+        if a.json:
+            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
+            with open(a.json, "w") as f:
+                json.dump(out, f, indent=1)
+        return
+    for spp in a.spp:
+        err = {v: [] for v in a.variants}
+        diag = {v: {} for v in a.variants}
+        t0 = time.perf_counter()
+        for i in range(a.seeds):
+            seed = a.seed0 + i
+            for v in a.variants:
+                st, pilot = render(r, v, spp, seed)
+                img, _ = reconstruct_stats(st, a.final)
+                pp = metrics.relmse(img, ref, per_pixel=True)
+                err[v].append(float(pp.mean()))
+                if a.diagnose:
+                    d = diag[v]
+                    for cname, m in rc.items():
+                        d.setdefault("ref:" + cname, []).append(float(pp[m].sum() / pp.size))
+                        d.setdefault("n ref:" + cname, []).append(float(st.n[m].mean()))
+                    d.setdefault("box", []).append(float(metrics.relmse(st.mean, ref)))
+                    if pilot is not None:
+                        for cname, m in _classes_pilot(pilot, ref).items():
+                            d.setdefault("pilot:" + cname, []).append(float(pp[m].sum() / pp.size))
+                            d.setdefault("n pilot:" + cname, []).append(float(st.n[m].mean()))
+                            d.setdefault("frac pilot:" + cname, []).append(float(m.mean()))
+                    # bias of the final image in the caustic class (signed, relative)
+                    m = rc["caustic"]
+                    d.setdefault("signed caustic", []).append(
+                        float(((img - ref) / np.sqrt(ref * ref + EPS))[m].mean()))
+        eu = np.array(err["uniform"]) if "uniform" in err else None
+        print(f"\n{a.scene} {spp} spp, final {a.final} ({time.perf_counter() - t0:.0f} s)")
+        print(f"  {'variant':16s} {'mean relMSE':>11s} {'ratio':>6s} {'wins':>5s} {'p':>6s} {'90% CI':>12s} {'median':>6s}  per seed")
+        for v in a.variants:
+            e = np.array(err[v])
+            line = f"  {v:16s} {e.mean():11.5f}"
+            cell = {"spp": spp, "variant": v, "errors": err[v]}
+            if eu is not None and v != "uniform":
+                ratio = e.mean() / eu.mean()
+                wins = int((e < eu).sum())
+                p = float(sst.wilcoxon(e, eu, alternative="less").pvalue)
+                lo, hi = ratio_ci(e, eu)
+                med = float(np.median(e / eu))
+                line += f" {ratio:6.3f} {wins:2d}/{len(e):<2d} {p:6.3f} [{lo:.2f}, {hi:.2f}] {med:6.3f}"
+                cell.update(ratio=ratio, wins=wins, p=p, ci90=(lo, hi), median_ratio=med)
+            else:
+                line += " " * 42
+            print(line + "  " + " ".join(f"{x:.4f}" for x in e), flush=True)
+            out["cells"].append(cell)
+            if a.diagnose:
+                cell["diag"] = diag[v]
+                for key, vals in diag[v].items():
+                    print(f"      {key:22s} {np.mean(vals):10.5f}  "
+                          + " ".join(f"{x:.4f}" for x in vals))
+    if a.json:
+        os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
