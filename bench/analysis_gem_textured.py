@@ -6,9 +6,19 @@ approximation (Eq. 1) on noise-free filtered values, then on the noisy values, w
 without the outlier removal.  True bias comes from the cached 65536-spp reference, true
 variances of the mean from a 1024-spp render.  Prints relMSE ratios to uniform+box.
 
-Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_gem_textured.py``
-(about a minute; renders the 65536-spp reference first if it is not cached).
+With ``--variants`` it instead prints the tables of docs/gem.md §5d: uniform+GEM / box
+for the selector variants that were tried (the paper's Eq. 1, the pooled noise-corrected
+bias estimate with several banks and outlier filters), on the four built-in Mitsuba scenes at
+16/32/64 spp (``--seeds`` renders each, 16 for glass-caustic, seeds ``1000 s + spp`` as in
+``bench_quality_gem.py``, against the cached 65536-spp references, 32768 for
+glass-caustic) and on the toy scenes (64×48, exact truth, 4 renders).
+
+Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_gem_textured.py
+[--variants [--seeds N]]`` (about a minute, or a few minutes with ``--variants``;
+renders a missing reference first).
 """
+
+import argparse
 
 import numpy as np
 from scipy.ndimage import correlate1d
@@ -54,14 +64,15 @@ def main():
     r = make_renderer("textured-dof")
     ref, _ = cached_reference(r, 65536, "out/cache")
     pvar = render_with_sampler(r, 1024, sampler="uniform", seed=99).sample_var
-    names = ["library default (§6)", "incremental rule, true MSE", "Eq. 1 on noise-free values",
+    names = ["the paper's §6 (bias='paper')", "incremental rule, true MSE", "Eq. 1 on noise-free values",
              "  same with ρ·z(γ)", "noisy values, true variances", "all estimated, no post",
              "σ from 1, map filter 1×", "expected-error oracle (σ from 1)"]
     for spp in (16, 64):
         rows = []
         for seed in (1, 2):
             st = render_with_sampler(r, spp, sampler="uniform", seed=seed)
-            info = gem.select(st.mean, st.mean_var, n=st.n, sigmas=SIGMA_FROM_1, postprocess=False)
+            info = gem.select(st.mean, st.mean_var, n=st.n, sigmas=SIGMA_FROM_1, postprocess=False,
+                              bias="paper")
             vals, var, r2 = info["values"], info["variances"], info["r2"]
             tv, tvar = (np.asarray(a) for a in filter_bank(ref, pvar / spp, SIGMA_FROM_1))
             emse = ((tv - ref[None]) ** 2).sum(-1) + tvar.sum(-1)
@@ -69,7 +80,7 @@ def main():
             S_noisy = gem.selector(vals, var, r2, weight=w)
             eerr = (((tv - ref[None]) ** 2 + tvar) / (ref[None] ** 2 + 0.01)).mean(-1)
             images = [
-                gem.reconstruct(st.mean, st.mean_var, n=st.n),
+                gem.reconstruct(st.mean, st.mean_var, n=st.n, bias="paper"),
                 _pick(vals, _first_stop(emse[1:] - emse[:-1] > 0)),
                 _pick(vals, _first_stop(gem.selector(tv, tvar, r2, weight=1.0) > 0)),
                 _pick(vals, _first_stop(gem.selector(tv, tvar, r2, weight=w) > 0)),
@@ -85,5 +96,69 @@ def main():
             print(f"  {name:36s} {v:.3f}")
 
 
+# ------------------------------------------------------------------ --variants (§5d)
+def _bank(lo, count):
+    return (0.0,) + tuple(lo * S2 ** k for k in range(count))
+
+
+#: name -> keyword arguments of gem.reconstruct
+VARIANTS = {
+    "paper §6 (bias='paper')": dict(bias="paper"),
+    "paper, σ from 1, map 1× (§5c)": dict(bias="paper", sigmas=SIGMA_FROM_1, map_scale=1.0),
+    "paper, σ from 0.6": dict(bias="paper", sigmas=_bank(0.6, 10)),
+    "pooled, §6 bank (σ from √2)": dict(bias="pooled", sigmas=_bank(S2, 8)),
+    "pooled, σ from 1": dict(bias="pooled", sigmas=_bank(1.0, 9)),
+    "pooled, σ from 1/√2": dict(bias="pooled", sigmas=_bank(0.5 * S2, 10)),
+    "pooled, σ from 0.5": dict(bias="pooled", sigmas=_bank(0.5, 11)),
+    "pooled, σ from 0.6, map 1× ": dict(bias="pooled", map_scale=1.0),
+    "**pooled default** (σ from 0.6, map 2×)": dict(),
+}
+
+
+def variants(seeds, caustic_seeds):
+    from statmc.toy import ToyRenderer
+    REF = {"glass-caustic": 32768}
+    cases = []
+    for scene in ("cornell-box", "glossy-spheres", "glass-caustic", "textured-dof"):
+        r = make_renderer(scene)
+        ref, _ = cached_reference(r, REF.get(scene, 65536), "out/cache")
+        for spp in (16, 32, 64):
+            for s in range(caustic_seeds if scene == "glass-caustic" else seeds):
+                cases.append((scene, spp, lambda r=r, spp=spp, s=s: render_with_sampler(
+                    r, spp, sampler="uniform", seed=1000 * s + spp), ref))
+    for scene in ("texture", "edges", "mixed", "gradient", "fireflies"):
+        r = ToyRenderer(scene, width=64, height=48)
+        for spp in (16, 32, 64):
+            for s in range(4):
+                cases.append((f"toy:{scene}", spp, lambda r=r, spp=spp, s=s: r.render_uniform(
+                    spp, seed=100 * s + spp), r.true_mean()))
+    res = {}
+    for scene, spp, render, ref in cases:
+        st = render()
+        m, mv = st.mean.astype(np.float32), st.mean_var.astype(np.float32)
+        box = metrics.relmse(m, ref)
+        for name, kw in VARIANTS.items():
+            img = gem.reconstruct(m, mv, n=st.n, **kw)
+            res.setdefault((scene, spp, name), []).append(metrics.relmse(img, ref) / box)
+    cols = list(dict.fromkeys((c[0], c[1]) for c in res))
+    for group in (lambda c: not c[0].startswith("toy"), lambda c: c[0].startswith("toy")):
+        cs = [c for c in cols if group(c)]
+        print("| selector | " + " | ".join(f"{c[0]} {c[1]}" for c in cs) + " |")
+        print("| --- " * (len(cs) + 1) + "|")
+        for name in VARIANTS:
+            print(f"| {name} | " + " | ".join(f"{np.mean(res[c + (name,)]):.3f}" for c in cs) + " |")
+        print()
+
+
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--variants", action="store_true", help="the §5d tables instead")
+    ap.add_argument("--seeds", type=int, default=2, help="renders per Mitsuba cell (--variants)")
+    ap.add_argument("--caustic-seeds", type=int, default=16,
+                    help="renders per glass-caustic cell (--variants): its relMSE is ruled by "
+                         "rare fireflies")
+    a = ap.parse_args()
+    if a.variants:
+        variants(a.seeds, a.caustic_seeds)
+    else:
+        main()
