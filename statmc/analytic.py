@@ -467,8 +467,9 @@ def gem_kernels(mean, mean_var, *, n=None, gamma=None, final=False, dtype=np.flo
     gamma : float, optional
         GEM's error-rate parameter (default ``statmc.gem.DEFAULT_GAMMA``).
     final : bool
-        GEM's final-reconstruction bank (σ up to 16: ``k = 97``, ``H·W·97²`` entries) or,
-        by default, the adaptive bank (σ = 0, 1, 2, 4, 8: ``k <= 49``).
+        GEM's final-reconstruction bank (the default pooled selector's σ up to 13.6:
+        ``k = 83``, ``H·W·83²`` entries; §6's σ up to 16 would give ``k = 97``) or, by
+        default, the adaptive bank (σ = 0, 1, 2, 4, 8: ``k <= 49``).
     dtype : float32 or float64
 
     Returns

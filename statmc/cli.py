@@ -153,7 +153,8 @@ def cmd_render(args) -> int:
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
-                                    denoiser=args.denoiser or "oidn", seed=args.seed)
+                                    denoiser=args.denoiser or "oidn", seed=args.seed,
+                                    gem_bias=args.gem_bias)
     seconds_rec = time.perf_counter() - t0
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
@@ -175,6 +176,7 @@ def cmd_render(args) -> int:
         "scene": args.scene, "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
         "sampler": args.sampler, "reconstruct": args.reconstruct, "gamma": args.gamma,
+        "gem_bias": args.gem_bias,
         "spp": total / n.size, "total_samples": total,
         "spp_min": int(n.min()), "spp_max": int(n.max()),
         "seconds": seconds, "samples_per_second": total / max(seconds, 1e-12),
@@ -202,7 +204,7 @@ def cmd_reconstruct(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
     stats = read_exr(args.input, spp=args.spp)
-    image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma)
+    image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"{args.method}.{k}": v for k, v in maps.items()})
     return 0
@@ -358,7 +360,12 @@ def build_parser() -> argparse.ArgumentParser:
                                              "oidn+combine"],
                    default="none",
                    help="reconstruction written beside the raw render")
-    r.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
+    r.add_argument("--gamma", type=float, default=0.2,
+                   help="GEM error-rate parameter (adaptive sampler; final reconstruction only "
+                        "with --gem-bias paper)")
+    r.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
+                   help="bias estimate of the final GEM reconstruction: pooled (default, "
+                        "docs/gem.md 5d) or the paper's per-pixel Eq. 1")
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_render)
 
@@ -367,7 +374,10 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--method", choices=["gem"], default="gem")
     rc.add_argument("--out", required=True, help="output EXR (a PNG preview goes beside it)")
     rc.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
-    rc.add_argument("--gamma", type=float, default=0.2)
+    rc.add_argument("--gamma", type=float, default=0.2,
+                    help="GEM error-rate parameter (used with --gem-bias paper)")
+    rc.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
+                    help="bias estimate of the GEM scale selector (docs/gem.md 5d)")
     rc.add_argument("-q", "--quiet", action="store_true")
     rc.set_defaults(func=cmd_reconstruct)
 

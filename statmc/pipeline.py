@@ -14,7 +14,8 @@ RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combi
 
 
 def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2,
-                      sigma: float = 1.0, denoiser: str = "oidn", seed: int = 0):
+                      sigma: float = 1.0, denoiser: str = "oidn", seed: int = 0,
+                      gem_bias: str | None = None):
     """Reconstruct an image from pixel statistics.
 
     ``method``: ``"none"`` (the pixel means), ``"gem"`` (Rousselle 2011), ``"gaussian"``
@@ -22,6 +23,9 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
     ``"oidn+combine"`` (OIDN improved by the combination kernel of Back 2020 with
     classical statistical weights and a SURE mix, :func:`statmc.combine.combine_denoised`),
     or ``"combine"`` (the same with ``denoiser``).
+    ``gem_bias`` selects GEM's bias estimate (:func:`statmc.gem.reconstruct`'s ``bias``):
+    ``None``/``"pooled"``, the default, or ``"paper"`` (Eq. 1 of Rousselle 2011, the only
+    mode in which ``gamma`` changes the final reconstruction).
     Returns ``(image (H, W, C) float32, maps)`` where ``maps`` holds per-pixel diagnostics
     (for GEM: ``"scale"``, the selected scale index, and ``"sigma"``, its Gaussian σ with
     0 for the pixel filter; for progressive: ``"alpha"``, the gated mixing weight; for the
@@ -33,7 +37,7 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
     if method == "gem":
         from .gem import reconstruct
         img, info = reconstruct(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
-                                gamma=gamma, n=stats.n, extra_output=True)
+                                gamma=gamma, n=stats.n, extra_output=True, bias=gem_bias)
         scales = np.asarray(info["scales"])
         sigma = np.asarray(info["sigmas"], np.float32)[scales]
         return img, {"scale": scales.astype(np.float32), "sigma": sigma}

@@ -255,3 +255,27 @@ def test_render_reconstruct_oidn_combine(tmp_path, toy_ref):
         rel[method] = json.loads((out / "report.json").read_text())["metrics_reconstruction"]["relmse"]
     assert "oidn+combine.mix" in exr_info(out / "reconstruction.exr")["channels"]
     assert rel["oidn+combine"] <= 1.05 * rel["oidn"], rel
+
+
+def test_reconstruct_gem_bias_option_matches_the_library(tmp_path, toy_render):
+    """`statmc reconstruct --gem-bias paper|pooled` writes exactly gem.reconstruct(bias=...) of
+    the file's statistics; --gamma changes the paper's reconstruction only."""
+    from statmc import gem
+    from statmc.exr import read_exr, read_image
+    st = read_exr(toy_render)
+    imgs = {}
+    for bias, gamma in (("pooled", 0.2), ("pooled", 0.05), ("paper", 0.2), ("paper", 0.05)):
+        out = tmp_path / f"{bias}_{gamma}.exr"
+        code, _, err = run_cli("reconstruct", toy_render, "--gem-bias", bias, "--gamma", gamma,
+                               "--out", out, "-q")
+        assert code == 0, err
+        imgs[bias, gamma] = read_image(out)[..., :3]
+        want = gem.reconstruct(st.mean.astype(np.float32), st.mean_var.astype(np.float32),
+                               gamma=gamma, n=st.n, bias=bias)
+        np.testing.assert_allclose(imgs[bias, gamma], want, rtol=1e-6, atol=1e-7)
+    assert np.array_equal(imgs["pooled", 0.2], imgs["pooled", 0.05])
+    assert not np.array_equal(imgs["paper", 0.2], imgs["paper", 0.05])
+    assert not np.array_equal(imgs["paper", 0.2], imgs["pooled", 0.2])
+    with pytest.raises(SystemExit) as e:  # argparse refuses an unknown choice (exit 2)
+        run_cli("reconstruct", toy_render, "--gem-bias", "robust", "--out", tmp_path / "x.exr")
+    assert e.value.code == 2 and not (tmp_path / "x.exr").exists()
