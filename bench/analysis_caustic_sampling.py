@@ -156,6 +156,32 @@ def _da_prior(k, sigma=1.0):
     return s
 
 
+def _cap(inner, cap):
+    """At most ``cap`` samples per pixel in total: counts above it go to the pixels below
+    it, in proportion to their remaining room (a maximum per-pixel share)."""
+    from statmc.sampling import counts_from_density
+
+    def s(stats, budget, rng):
+        c = np.asarray(inner(stats, budget, rng), np.int64)
+        room = np.maximum(cap - stats.n, 0)
+        over = np.maximum(c - room, 0)
+        c = c - over
+        extra = int(over.sum())
+        while extra:
+            free = np.maximum(room - c, 0).astype(float)
+            if free.sum() <= 0:           # nowhere left below the cap: spread uniformly
+                free = np.ones_like(free)
+            add = counts_from_density(free, extra, rng=rng)
+            fit = np.minimum(add, np.maximum(room - c, 0)) if free.sum() else add
+            c = c + fit
+            extra -= int(fit.sum())
+            if not fit.sum():
+                c = c + counts_from_density(np.ones(c.shape), extra, rng=rng)
+                break
+        return c
+    return s
+
+
 def variant(name):
     """``(sampler, adaptive_render options)`` of a named variant."""
     if name == "uniform":
@@ -170,6 +196,10 @@ def variant(name):
         return _gem_opts(var_prior=float(k), var_prior_sigma=float(sg or 1.0)), {}
     if name.startswith("gem-rob"):              # gem-rob<tau>
         return _gem_robust(float(name[len("gem-rob"):])), {}
+    if name.startswith("gem-cap"):              # gem-cap<max samples per pixel>
+        return _cap(get_sampler("gem"), int(name[len("gem-cap"):])), {}
+    if name.startswith("da-cap"):
+        return _cap(get_sampler("denoising-aware", denoiser="oidn"), int(name[6:])), {}
     if name.startswith("gem-mix"):              # gem-mix<lambda>
         return _mix(get_sampler("gem"), float(name[len("gem-mix"):])), {}
     if name.startswith("gem-it"):               # gem-it<iterations>
@@ -210,6 +240,20 @@ def render(r, name, spp, seed, initial_spp=None):
     return res.stats, pilot["stats"]
 
 
+def final_image(st, final):
+    """The final reconstruction: a :func:`statmc.pipeline.reconstruct_stats` method, or
+    ``gem-prior<k>[s<σ>]``: GEM on the variance shrunk by the pooled prior (a
+    reconstruction-side experiment: the selector sees regional variances)."""
+    if final.startswith("gem-prior"):
+        from statmc.gem import reconstruct
+
+        k, _, sg = final[len("gem-prior"):].partition("s")
+        v = _shrink(st, float(k), float(sg or 1.0)).mean_var
+        return np.asarray(reconstruct(st.mean.astype(np.float32), v.astype(np.float32), n=st.n),
+                          np.float64)
+    return np.asarray(reconstruct_stats(st, final)[0], np.float64)
+
+
 # --------------------------------------------------------------------------- diagnosis
 def _classes_pilot(pilot, ref):
     s2 = pilot.sample_var / (ref * ref + EPS)
@@ -243,7 +287,7 @@ def decompose(r, ref_stats, spp, seeds, final, seed0=500, name="uniform"):
     imgs = []
     for i in range(seeds):
         st, _ = render(r, name, spp, seed0 + i)
-        imgs.append(np.asarray(reconstruct_stats(st, final)[0], np.float64))
+        imgs.append(final_image(st, final))
     imgs = np.array(imgs)
     per = ((imgs - ref) ** 2 / den).mean(axis=(1, 2, 3))
     keep = per <= 1.2 * np.median(per)          # renders without a surviving firefly
@@ -297,17 +341,38 @@ def trace(r, ref_stats, spp, seeds, name, seed0=500):
     return logs
 
 
+def survival(r, ref_stats, spp, seeds, name, final, seed0=500):
+    """Caught fireflies (raw mean > 5 × (reference + 0.2)) and whether ``final`` removes
+    them: rows ``(n of the pixel, kept, relative squared error of the output there)``;
+    kept = output > 2 × (reference + 0.2)."""
+    ref = ref_stats.mean.mean(-1)
+    den = (ref_stats.mean ** 2 + EPS)
+    rows = []
+    for i in range(seeds):
+        st, _ = render(r, name, spp, seed0 + i)
+        img = final_image(st, final)
+        ff = st.mean.mean(-1) > 5 * (ref + 0.2)
+        kept = img.mean(-1) > 2 * (ref + 0.2)
+        err = ((img - ref_stats.mean) ** 2 / den).mean(-1)
+        for y, x in zip(*np.nonzero(ff)):
+            rows.append((int(st.n[y, x]), bool(kept[y, x]), float(err[y, x])))
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="glass-caustic")
     ap.add_argument("--spp", type=int, nargs="*", default=[16])
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--seed0", type=int, default=500)
-    ap.add_argument("--final", default="gem", choices=("gem", "oidn", "none"))
+    ap.add_argument("--final", default="gem",
+                    help="gem, oidn, none (pipeline.reconstruct_stats) or gem-prior<k>[s<σ>]")
     ap.add_argument("--variants", nargs="*", default=["uniform", "gem"])
     ap.add_argument("--diagnose", action="store_true")
     ap.add_argument("--json", default=None)
     ap.add_argument("--trace", action="store_true", help="only the firefly trace")
+    ap.add_argument("--survival", action="store_true",
+                    help="only: do caught fireflies survive the final reconstruction, by n")
     ap.add_argument("--decompose", action="store_true",
                     help="only the bias/variance/reference split of uniform renders")
     a = ap.parse_args(argv)
@@ -318,6 +383,28 @@ def main(argv=None):
     print(f"{a.scene}: reference {int(ref_stats.n.max())} spp, own relMSE {floor:.4f}; "
           f"final {a.final}; seeds {a.seed0}..{a.seed0 + a.seeds - 1}", flush=True)
     out = {"scene": a.scene, "final": a.final, "floor": floor, "cells": []}
+    if a.survival:
+        bins = [(0, 16), (16, 24), (24, 48), (48, 96), (96, 10 ** 9)]
+        for spp in a.spp:
+            for name in a.variants:
+                rows = survival(r, ref_stats, spp, a.seeds, name, a.final, a.seed0)
+                nn = np.array([x[0] for x in rows] or [0])
+                kp = np.array([x[1] for x in rows] or [False])
+                er = np.array([x[2] for x in rows] or [0.0])
+                print(f"\n{spp} spp {name} + {a.final}: {len(rows) / a.seeds:.2f} fireflies per "
+                      f"render, kept {kp.mean():.2f}; their error per render "
+                      f"{er.sum() / a.seeds / ref.shape[0] / ref.shape[1]:.5f} (relMSE units)")
+                for lo, hi in bins:
+                    m = (nn >= lo) & (nn < hi) if rows else np.zeros(1, bool)
+                    if m.any():
+                        print(f"  n in [{lo}, {min(hi, 9999)}): {int(m.sum()):4d} caught, kept "
+                              f"{kp[m].mean():.2f}, mean error there {er[m].mean():8.3f}")
+                out["cells"].append({"spp": spp, "variant": name, "survival": rows})
+        if a.json:
+            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
+            with open(a.json, "w") as f:
+                json.dump(out, f, indent=1)
+        return
     if a.trace:
         for spp in a.spp:
             for name in a.variants:
@@ -357,7 +444,7 @@ def main(argv=None):
             seed = a.seed0 + i
             for v in a.variants:
                 st, pilot = render(r, v, spp, seed)
-                img, _ = reconstruct_stats(st, a.final)
+                img = final_image(st, a.final)
                 pp = metrics.relmse(img, ref, per_pixel=True)
                 err[v].append(float(pp.mean()))
                 if a.diagnose:
