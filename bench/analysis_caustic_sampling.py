@@ -31,6 +31,35 @@ without the "catastrophic" renders (relMSE > 1.2 × the median render).
 ``--trace`` counts, per pass of each adaptive render, the newly caught fireflies (pixel
 mean above 5 × (reference + 0.2)) and their distance to the earlier ones.
 
+Findings of session 3 (statmc/gem.py at commit 7bee907, 128×96, 32768-spp reference whose
+own relMSE is 0.0029):
+
+* relMSE per render is heavy-tailed: most renders sit near the median, a few are 2–80×
+  higher ("catastrophes": a caught firefly that the reconstruction keeps).  The ratio of
+  the means moves by ±30 % when 24 more seeds are added (16 spp GEM: 1.195 over 24 seeds,
+  0.988 over 64, 1.311 over 40); paired-bootstrap 90 % intervals are wide.
+* 16 spp, ratio of means adaptive / uniform [90 % CI], median per-seed ratio, wins,
+  Wilcoxon p: GEM 0.988 [0.75, 1.29], 0.965, 39/64, 0.67; DA+OIDN 0.976 [0.66, 1.48],
+  0.980, 37/64, 0.69.  32 spp GEM (48 seeds) 0.546 [0.34, 0.93], 64 spp 0.473
+  [0.31, 0.79]: there uniform itself has the catastrophes.
+* The pilot-starvation hypothesis is refuted: pixels with zero pilot variance are 0.05 %
+  of the image, carry 1.5 % of the error and get 40 spp on average (var_prior=2).
+* Chasing is confirmed: uniform catches 2.4 fireflies per 16-spp render, isolated;
+  adaptive GEM 6.2 and DA 7.1, three quarters of them within 5 px of an earlier catch.
+  GEM removes 89 % and OIDN 97 % of fireflies caught at n = 16, but only 78–88 % of those
+  in pixels with n ≥ 48, where the adaptive samplers put them; the error in the firefly
+  pixels per render is 22× (GEM) and 4.4× (OIDN) uniform's.
+* The typical (non-catastrophic) uniform+GEM render at 16 spp: 0.0179 = reference noise
+  0.0029 + squared bias 0.0127 (0.0096 of it in the 10 % caustic pixels) + variance
+  0.0024.  A sampler acts on the variance and a little on the caustic bias: the best
+  non-catastrophic adaptive renders reach 0.0168 (0.94×); uniform at 4× the budget
+  reaches 0.0150 (0.84×).
+* Sampler variants, none better at 16 spp: 8-spp pilot, pooled variance prior k = 8/16
+  over σ = 2/4, uniform share λ = 0.3, outlier-robust inputs (τ = 8, 32), a per-pixel
+  cap of 24/32 samples (1.4–1.6 relMSE in single renders: undiluted firefly clusters).
+* toy:mixed at 4 spp (2-spp pilot): DA+OIDN / uniform+OIDN = 0.782 [0.71, 0.85], 24/32
+  wins, p < 0.001 — the table's 1.11 was one render.
+
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_caustic_sampling.py
 --scene glass-caustic --spp 16 --seeds 24 --final gem --variants uniform gem`` (about 3 s
 per adaptive render, 0.6 s per GEM and 0.3 s per OIDN reconstruction at 128×96).
@@ -242,8 +271,17 @@ def render(r, name, spp, seed, initial_spp=None):
 
 def final_image(st, final):
     """The final reconstruction: a :func:`statmc.pipeline.reconstruct_stats` method, or
-    ``gem-prior<k>[s<σ>]``: GEM on the variance shrunk by the pooled prior (a
-    reconstruction-side experiment: the selector sees regional variances)."""
+    ``gem-prior<k>[s<σ>]``: GEM on the variance shrunk by the pooled prior, or
+    ``gem-maxs<σ>``: GEM on ``max(s², G_σ * s²)/n`` (reconstruction-side experiments: the
+    selector sees regional variances)."""
+    if final.startswith("gem-maxs"):
+        from statmc.filters import gaussian_filter
+        from statmc.gem import reconstruct
+
+        s2 = st.sample_var
+        v = np.maximum(s2, gaussian_filter(s2, float(final[len("gem-maxs"):]))) / st.n[..., None]
+        return np.asarray(reconstruct(st.mean.astype(np.float32), v.astype(np.float32), n=st.n),
+                          np.float64)
     if final.startswith("gem-prior"):
         from statmc.gem import reconstruct
 
