@@ -210,18 +210,29 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0):
+def _add_gem_options(parser, gamma_use: str = "") -> None:
+    """``--gamma`` and ``--gem-bias``: the GEM selector's error rate and bias estimate."""
+    parser.add_argument("--gamma", type=float, default=0.2,
+                        help=f"GEM error-rate parameter γ (Rousselle 2011 §4.3): used by {gamma_use}"
+                             "by the final GEM reconstruction only with --gem-bias paper")
+    parser.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
+                        help="bias estimate of GEM's final scale selection: pooled (default, "
+                             "docs/gem.md §5d) or the paper's per-pixel Eq. 1")
+
+
+def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0, gem_bias=None):
     """A denoiser bound to ``stats``' features (OIDN) or variance (GEM)."""
+    from .pipeline import _denoiser_options
     from .progressive import bind_denoiser
-    opts = {"gamma": gamma} if name == "gem" else {"sigma": sigma} if name == "gaussian" else {}
-    return bind_denoiser(name, stats, **opts)
+    return bind_denoiser(name, stats, **_denoiser_options(name, gamma, sigma, gem_bias))
 
 
 def cmd_denoise(args) -> int:
     from .exr import read_exr
     from .stats import PixelStats
     stats = read_exr(args.input, spp=args.spp)
-    den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma)
+    den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
+                         gem_bias=args.gem_bias)
     x = stats.mean.astype(np.float32)
     out = np.asarray(den(x), np.float32)
     result = out
@@ -246,7 +257,7 @@ def cmd_progressive(args) -> int:
     from .pipeline import reconstruct_stats
     stats = read_exr(args.input, spp=args.spp)
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
-                                    seed=args.seed)
+                                    seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"progressive.{k}": v for k, v in maps.items()})
     return 0
@@ -360,12 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
                                              "oidn+combine"],
                    default="none",
                    help="reconstruction written beside the raw render")
-    r.add_argument("--gamma", type=float, default=0.2,
-                   help="GEM error-rate parameter (adaptive sampler; final reconstruction only "
-                        "with --gem-bias paper)")
-    r.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
-                   help="bias estimate of the final GEM reconstruction: pooled (default, "
-                        "docs/gem.md 5d) or the paper's per-pixel Eq. 1")
+    _add_gem_options(r, "the adaptive --sampler gem always; ")
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_render)
 
@@ -374,10 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--method", choices=["gem"], default="gem")
     rc.add_argument("--out", required=True, help="output EXR (a PNG preview goes beside it)")
     rc.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
-    rc.add_argument("--gamma", type=float, default=0.2,
-                    help="GEM error-rate parameter (used with --gem-bias paper)")
-    rc.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
-                    help="bias estimate of the GEM scale selector (docs/gem.md 5d)")
+    _add_gem_options(rc)
     rc.add_argument("-q", "--quiet", action="store_true")
     rc.set_defaults(func=cmd_reconstruct)
 
@@ -409,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
-    d.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
+    _add_gem_options(d)
     d.add_argument("--sigma", type=float, default=1.0, help="Gaussian standard deviation (pixels)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("-q", "--quiet", action="store_true")
@@ -421,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     pg.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn")
     pg.add_argument("--out", required=True)
     pg.add_argument("--spp", type=int)
-    pg.add_argument("--gamma", type=float, default=0.2, help="GEM error-rate parameter")
+    _add_gem_options(pg)
     pg.add_argument("--seed", type=int, default=0, help="seed of MC-SURE's random probes")
     pg.add_argument("-q", "--quiet", action="store_true")
     pg.set_defaults(func=cmd_progressive)

@@ -184,7 +184,7 @@ class GEMDenoiser:
 
     name = "gem"
 
-    def __init__(self, mean_var, *, gamma: float = 0.2, final: bool = True, n=None):
+    def __init__(self, mean_var, *, gamma: float = 0.2, final: bool = True, n=None, bias=None):
         mv = as_float_array("mean_var", mean_var, ndim=3)
         check_finite("mean_var", mv)
         check_nonnegative("mean_var", mv)
@@ -192,27 +192,31 @@ class GEMDenoiser:
         self.gamma = gamma
         self.final = bool(final)
         self.n = n
+        self.bias = bias
 
     def __call__(self, color):
         from . import gem as _gem  # lazy: statmc.gem is a peer module
 
         x = _color("color", color, shape=self.mean_var.shape)
         return _gem.reconstruct(x, self.mean_var.astype(x.dtype, copy=False), gamma=self.gamma,
-                                final=self.final, n=self.n)
+                                final=self.final, n=self.n, bias=self.bias)
 
     def __repr__(self):
-        return f"gem(mean_var=<{self.mean_var.shape}>, gamma={self.gamma}, final={self.final})"
+        return (f"gem(mean_var=<{self.mean_var.shape}>, gamma={self.gamma}, final={self.final}, "
+                f"bias={self.bias!r})")
 
 
-def gem(mean_var, *, gamma: float = 0.2, final: bool = True, n=None) -> GEMDenoiser:
+def gem(mean_var, *, gamma: float = 0.2, final: bool = True, n=None, bias=None) -> GEMDenoiser:
     """GEM reconstruction (Rousselle et al. 2011) bound to a variance-of-the-mean image.
 
     Parameters
     ----------
     mean_var : (H, W, C) ndarray
         **Variance of the mean** of the image that will be denoised (``stats.mean_var``).
-    gamma, final, n
-        As in :func:`statmc.gem.reconstruct`.
+    gamma, final, n, bias
+        As in :func:`statmc.gem.reconstruct`: with ``final=True`` the default ``bias`` is the
+        pooled estimate (docs/gem.md §5d), which does not use ``gamma``; ``bias="paper"``
+        is Eq. 1 of Rousselle 2011 with the error-rate weight z(γ).
 
     Notes
     -----
@@ -221,7 +225,11 @@ def gem(mean_var, *, gamma: float = 0.2, final: bool = True, n=None) -> GEMDenoi
     violate, so (MC-)SURE of GEM is approximate.  Finite differences (small steps) see
     the linear pieces.
     """
-    return GEMDenoiser(mean_var, gamma=gamma, final=final, n=n)
+    if bias is not None:
+        from .gem import BIAS_MODES
+        if not isinstance(bias, str) or bias not in BIAS_MODES:
+            raise InputError(f"`bias` must be one of {BIAS_MODES} or None; got {bias!r}.")
+    return GEMDenoiser(mean_var, gamma=gamma, final=final, n=n, bias=bias)
 
 
 # ----------------------------------------------------------------------------- OIDN

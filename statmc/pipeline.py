@@ -13,6 +13,13 @@ __all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
 RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combine", "combine")
 
 
+def _denoiser_options(name, gamma, sigma, gem_bias=None) -> dict:
+    """Options of :func:`statmc.progressive.bind_denoiser` for the denoiser ``name``."""
+    if name == "gem":
+        return {"gamma": gamma, "bias": gem_bias}
+    return {"sigma": sigma} if name == "gaussian" else {}
+
+
 def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 0.2,
                       sigma: float = 1.0, denoiser: str = "oidn", seed: int = 0,
                       gem_bias: str | None = None):
@@ -48,7 +55,7 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
     if method == "progressive":
         # Firmino 2022: x + α'(y − x) with the classical α and the Student-t gate.
         from .progressive import bind_denoiser, progressive_denoise
-        opts = {"gamma": gamma} if denoiser == "gem" else {"sigma": sigma} if denoiser == "gaussian" else {}
+        opts = _denoiser_options(denoiser, gamma, sigma, gem_bias)
         img, info = progressive_denoise(stats, bind_denoiser(denoiser, stats, **opts), rng=seed,
                                         extra_output=True)
         alpha = np.asarray(info["alpha_gated"], np.float32)  # (H, W, C): report its channel mean
@@ -58,7 +65,7 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         from .combine import combine_denoised
         from .progressive import bind_denoiser
         name = "oidn" if method == "oidn+combine" else denoiser
-        opts = {"gamma": gamma} if name == "gem" else {"sigma": sigma} if name == "gaussian" else {}
+        opts = _denoiser_options(name, gamma, sigma, gem_bias)
         img, info = combine_denoised(stats.mean, stats.mean_var, bind_denoiser(name, stats, **opts),
                                      rng=seed, extra_output=True)
         lam = np.asarray(info["mix"], np.float32)

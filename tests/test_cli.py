@@ -279,3 +279,20 @@ def test_reconstruct_gem_bias_option_matches_the_library(tmp_path, toy_render):
     with pytest.raises(SystemExit) as e:  # argparse refuses an unknown choice (exit 2)
         run_cli("reconstruct", toy_render, "--gem-bias", "robust", "--out", tmp_path / "x.exr")
     assert e.value.code == 2 and not (tmp_path / "x.exr").exists()
+
+
+def test_denoise_and_progressive_forward_gem_bias(tmp_path, toy_render):
+    """`denoise --denoiser gem` and `progressive --denoiser gem` pass --gem-bias and --gamma to
+    GEM: the paper's rule moves with γ, the pooled default does not."""
+    from statmc.exr import read_image
+    out = {}
+    for cmd in ("denoise", "progressive"):
+        for bias, gamma in (("paper", 0.05), ("paper", 0.3), ("pooled", 0.05), ("pooled", 0.3)):
+            path = tmp_path / f"{cmd}_{bias}_{gamma}.exr"
+            code, _, err = run_cli(cmd, toy_render, "--denoiser", "gem", "--gem-bias", bias,
+                                   "--gamma", gamma, "--out", path, "-q")
+            assert code == 0, err
+            out[cmd, bias, gamma] = read_image(path)
+        assert not np.array_equal(out[cmd, "paper", 0.05], out[cmd, "paper", 0.3])
+        assert np.array_equal(out[cmd, "pooled", 0.05], out[cmd, "pooled", 0.3])
+        assert not np.array_equal(out[cmd, "paper", 0.3], out[cmd, "pooled", 0.3])

@@ -94,9 +94,15 @@ def test_gem_adapter_equals_reconstruct(toy):
 
     r, st = toy
     x = st.mean.astype(np.float32)
-    f = D.gem(st.mean_var, gamma=0.3)
-    ref = gem.reconstruct(x, st.mean_var.astype(np.float32), gamma=0.3)
-    np.testing.assert_array_equal(f(x), ref)
+    mv = st.mean_var.astype(np.float32)
+    # The paper's rule uses γ, so a dropped `gamma` would show; the pooled default does not.
+    paper = D.gem(st.mean_var, gamma=0.05, bias="paper")(x)
+    np.testing.assert_array_equal(paper, gem.reconstruct(x, mv, gamma=0.05, bias="paper"))
+    assert not np.array_equal(paper, gem.reconstruct(x, mv, gamma=0.3, bias="paper"))
+    np.testing.assert_array_equal(D.gem(st.mean_var, gamma=0.3)(x), gem.reconstruct(x, mv))
+    assert "bias='paper'" in repr(D.gem(st.mean_var, bias="paper"))
+    with pytest.raises(InputError, match="`bias`"):
+        D.gem(st.mean_var, bias="robust")
 
 
 def test_gem_adapter_rejects_bad_variance_and_shape(toy):
