@@ -399,8 +399,9 @@ def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
         are 0), zero-padded to the largest *selected* scale's size ``k``.  So
         ``apply_kernels(K, x)`` is the bank's filtered value at each pixel's scale —
         GEM's reconstruction (Rousselle et al. 2011, §4 and §6) for the selection given.
-        Memory ``H·W·k²`` entries: ``k = 49`` for σ = 8 (the adaptive bank), 97 for
-        σ = 16 (the final bank).
+        Memory ``H·W·k²`` entries: ``k = 49`` for σ = 8 (the adaptive bank), 83 for
+        σ = 13.6 (the default final bank, ``bias="pooled"``), 97 for σ = 16 (§6's final
+        bank, ``bias="paper"``).
 
     Notes
     -----

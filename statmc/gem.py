@@ -642,13 +642,18 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
         Variance of the mean of each pixel estimate (>= 0).
     gamma : float
         Error-rate parameter γ of §4.3 of [1] (rate of wrong stops on constant input).
+        Used by ``bias="paper"`` only; unused (but validated) with ``bias="pooled"``.
     final : bool
-        Final-reconstruction settings of §6 (:data:`~statmc.filters.FINAL_SIGMAS`, map
-        filters of twice the coarse scale, only switches to coarser scales) instead of the
-        adaptive ones (:data:`~statmc.filters.ADAPTIVE_SIGMAS`, coarse-scale map filters).
+        Final-reconstruction settings (map filters of twice the coarse scale, only
+        switches to coarser scales, §6) with the scales :data:`POOLED_FINAL_SIGMAS` and
+        ``bias="pooled"`` by default, or §6's :data:`~statmc.filters.FINAL_SIGMAS` with
+        ``bias="paper"``; ``False`` gives the adaptive settings
+        (:data:`~statmc.filters.ADAPTIVE_SIGMAS`, coarse-scale map filters,
+        ``bias="paper"``).
     n : (H, W) int array, optional
-        Samples per pixel (>= 2), for the low-count correction ``ρ = 1 − 1/n`` (§4.3);
-        ``ρ = 1`` when not given.
+        Samples per pixel (>= 2), for the low-count correction ``ρ = 1 − 1/n`` (§4.3) of
+        ``bias="paper"``; ``ρ = 1`` when not given.  Unused (but validated) with
+        ``bias="pooled"``.
     sigmas : sequence of float, optional
         Override the scales (increasing; 0 = pixel filter).
     postprocess : bool
@@ -687,7 +692,12 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
 
 def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
                   sigmas=None, postprocess: bool = True, map_scale=None, bias=None) -> np.ndarray:
-    """Selected scale index per pixel, ``(H, W)``; see :func:`select`."""
+    """Selected scale index per pixel, ``(H, W)``; see :func:`select`.
+
+    As there, ``gamma`` and ``n`` only enter with ``bias="paper"`` (the default when not
+    ``final``); with ``bias="pooled"`` (the default when ``final``) they are validated
+    and unused.
+    """
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
     bias, sig, map_scale = _resolve_mode(final, bias, sigmas, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, postprocess, DEFAULT_TRUNCATE,
@@ -706,7 +716,7 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
         **Variance of the mean** per pixel and channel (sample variance / n), >= 0.
     gamma : float
         Error-rate parameter γ (§4.3 of [1]), in (0, 0.526); 0.1–0.3 is sensible.  Used by
-        ``bias="paper"`` only (validated always).
+        ``bias="paper"`` only; unused (but validated) with ``bias="pooled"``.
     final : bool
         Final reconstruction (§6: only switches to coarser scales in the outlier removal;
         by default with the pooled bias estimate, see ``bias``); ``False`` gives the
@@ -714,7 +724,8 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
         coarse scale, ``bias="paper"``).
     n : (H, W) ndarray, optional
         Samples per pixel (>= 2) for the low-count correction ``ρ = 1 − 1/n`` of
-        ``bias="paper"``; without it ``ρ = 1``.
+        ``bias="paper"``; without it ``ρ = 1``.  Unused (but validated) with
+        ``bias="pooled"``.
     extra_output : bool
         Also return the dictionary of :func:`select` (scales, bank, maps, est. MSE).
     sigmas, map_scale : optional
