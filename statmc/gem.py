@@ -130,6 +130,50 @@ def _pair_factors(sigmas, truncate):
     return r2, bias_factor(r2[:-1], r2[1:])
 
 
+def _channel_sum(name, a, shape, channels, ref):
+    """``a`` as float64 of ``shape``, summed over channels if given per channel."""
+    arr = as_float_array(name, a, ndim=(3, 4)).astype(np.float64, copy=False)
+    if arr.shape == shape + (channels,):
+        return arr.sum(axis=3)
+    if arr.shape != shape:
+        raise InputError(f"`{name}` must be {shape + (channels,)} (per channel) or {shape} "
+                         f"(summed over channels) to match {ref}; got {arr.shape}.")
+    return arr
+
+
+def _selector_inputs(values, variances, r2, weight, diff_variances=None):
+    """Coerce and check the inputs of :func:`selector` and :func:`pooled_selector`.
+
+    Returns ``values`` as (K, H, W, C) float64 (a (K, H, W) array is one channel),
+    ``variances`` and ``diff_variances`` summed over channels ((K, H, W), (K−1, H, W)),
+    the pair bias factors (K−1,) of :func:`bias_factor` and ``weight`` as a float64
+    scalar or (H, W) array.
+    """
+    v = as_float_array("values", values, ndim=(3, 4)).astype(np.float64, copy=False)
+    if v.ndim == 3:
+        v = v[..., None]
+    k, h, w, c = v.shape
+    if k < 2:
+        raise InputError(f"`values` must hold K >= 2 scales (K, H, W, C); got shape {v.shape}.")
+    ref = f"`values` {v.shape}"
+    var = _channel_sum("variances", variances, (k, h, w), c, ref)
+    dv = None
+    if diff_variances is not None:
+        dv = _channel_sum("diff_variances", diff_variances, (k - 1, h, w), c, ref)
+    r = as_float_array("r2", r2, ndim=1).astype(np.float64, copy=False)
+    if r.shape != (k,):
+        raise InputError(f"`r2` must hold one second moment per scale, shape ({k},) to match "
+                         f"{ref}; got {r.shape}.")
+    if not (np.all(np.isfinite(r)) and r[0] >= 0 and np.all(np.diff(r) > 0)):
+        raise InputError(f"`r2` must be increasing second moments >= 0, fine to coarse "
+                         f"(statmc.filters.kernel_moment2); got {r.tolist()}.")
+    wt = as_float_array("weight", weight).astype(np.float64, copy=False)
+    if wt.shape not in ((), (h, w)):
+        raise InputError(f"`weight` must be a number or an (H, W) = {(h, w)} map; got shape "
+                         f"{wt.shape}.")
+    return v, var, dv, bias_factor(r[:-1], r[1:]), wt
+
+
 def selector(values, variances, r2, *, weight=1.0) -> np.ndarray:
     """Scale selector ``S`` of Eq. 1 of [1] for every consecutive pair, summed over channels.
 
@@ -151,15 +195,9 @@ def selector(values, variances, r2, *, weight=1.0) -> np.ndarray:
     -------
     S : (K-1, H, W) float64 ndarray
     """
-    v = np.asarray(values, dtype=np.float64)
-    var = np.asarray(variances, dtype=np.float64)
-    if v.ndim == 3:
-        v = v[..., None]
-    if var.ndim == 4:
-        var = var.sum(axis=3)
-    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:])
+    v, var, _, frac, wt = _selector_inputs(values, variances, r2, weight)
     bias = ((v[1:] - v[:-1]) ** 2).sum(axis=3)
-    return np.asarray(weight) * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
+    return wt * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
 
 
 def pooled_selector(values, variances, diff_variances, r2, *, pool_sigma: float = BIAS_POOL_SIGMA,
@@ -196,30 +234,28 @@ def pooled_selector(values, variances, diff_variances, r2, *, pool_sigma: float 
     r2 : (K,) array
         Second moments of the kernels (0 for the pixel filter).
     pool_sigma : float
-        σ of the border-renormalised pooling Gaussian (0: no pooling).
+        σ (pixels, finite, >= 0) of the border-renormalised pooling Gaussian
+        (0: no pooling).
     weight : float or (H, W) array
         Weight of the bias term (1: the MSE comparison).
+    truncate : float
+        The pooling Gaussian is cut at ``ceil(truncate · pool_sigma)`` pixels from its
+        centre (:func:`statmc.filters.gaussian_kernel_1d`); default
+        :data:`~statmc.filters.DEFAULT_TRUNCATE` = 3, as in the bank.
 
     Returns
     -------
     S : (K-1, H, W) float64 ndarray
     """
-    from .filters import gaussian_filter
-    v = np.asarray(values, dtype=np.float64)
-    var = np.asarray(variances, dtype=np.float64)
-    dv = np.asarray(diff_variances, dtype=np.float64)
-    if v.ndim == 3:
-        v = v[..., None]
-    if var.ndim == 4:
-        var = var.sum(axis=3)
-    if dv.ndim == 4:
-        dv = dv.sum(axis=3)
-    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:])
+    from .filters import _check_truncate, gaussian_filter
+    v, var, dv, frac, wt = _selector_inputs(values, variances, r2, weight, diff_variances)
+    pool_sigma = as_number("pool_sigma", pool_sigma, lo=0.0)
+    truncate = _check_truncate(truncate)
     d = ((v[1:] - v[:-1]) ** 2).sum(axis=3) - dv
     if pool_sigma > 0:
         d = np.stack([gaussian_filter(x, pool_sigma, truncate=truncate) for x in d])
     bias = np.maximum(d, 0.0)
-    return np.asarray(weight) * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
+    return wt * np.reshape(frac, (-1, 1, 1)) * bias + (var[1:] - var[:-1])
 
 
 # ---------------------------------------------------------------------------------------
@@ -260,12 +296,14 @@ def _check_sigmas(sigmas):
 
 
 def _resolve_mode(final, bias, sigmas, map_scale):
-    """Bias mode, scales and outlier-filter factor from the arguments.
+    """Bias mode, scales and outlier-filter factor from the arguments, checked.
 
     ``bias=None`` is ``"pooled"`` for the final reconstruction and ``"paper"`` for the
     adaptive iterations; ``sigmas=None`` then takes that mode's default scales
     (:data:`POOLED_FINAL_SIGMAS` for the pooled final reconstruction, §6 of [1]
-    otherwise).  ``map_scale=None`` is §6's factor in every mode.
+    otherwise).  ``map_scale=None`` is §6's factor in every mode (2 when ``final``,
+    else 1).  Returns ``(bias, sigmas, map_scale)`` with ``map_scale`` that factor as a
+    float.
     """
     if bias is None:
         bias = "pooled" if final else "paper"
@@ -276,8 +314,7 @@ def _resolve_mode(final, bias, sigmas, map_scale):
     if sigmas is None:
         sigmas = POOLED_FINAL_SIGMAS if pooled_final else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
     sig = _check_sigmas(sigmas)
-    _map_scale(final, map_scale)
-    return bias, sig, map_scale
+    return bias, sig, _map_scale(final, map_scale)
 
 
 def _weight_map(n, gamma, shape, dtype):
@@ -545,7 +582,7 @@ def _variance_prior_reference(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
 
 
 def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
-          debias=False, map_scale=None, bias="paper", pool_sigma=BIAS_POOL_SIGMA):
+          debias=False, map_scale=None, bias="paper"):
     """Bank → stopping maps → post-processing → selection → image.
 
     With ``keep_bank`` the per-channel variances of every scale are kept and the
@@ -553,7 +590,9 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     (all the selector needs) and two scales of it are held at a time.  ``bias="pooled"``
     forms the stopping maps with :func:`pooled_selector` (compiled): per pair, the
     covariance of the two scales (one filter pass over the channel-summed variance), the
-    noise-corrected squared difference, its pooling (one filter pass), the decision.
+    noise-corrected squared difference, its pooling over :data:`BIAS_POOL_SIGMA` (one
+    filter pass), the decision.  ``gamma`` is validated in every mode but only enters
+    ``bias="paper"``.
     """
     h, w = m.shape[:2]
     x, c = _rows(m)
@@ -565,10 +604,12 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     r2, frac = _pair_factors(sig, truncate)
     dt = x.dtype
     fr = frac.astype(dt)
-    weight = _weight_map(n, gamma, (h, w), dt)      # also validates γ in the pooled mode
     pooled = bias == "pooled"
     if pooled:
+        error_rate_weight(gamma)                      # validates γ; unused by this mode
         work = np.empty((3, h, w), dt)                # covariance, D, pooled D
+    else:
+        weight = _weight_map(n, gamma, (h, w), dt)
     vals = np.empty((nsc,) + x.shape, dt)
     if keep_bank:
         vars_ = np.empty((nsc,) + vr.shape, dt)
@@ -591,7 +632,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
         if k and pooled:
             _pair_covariance_rows(vsum, 1, sig[k - 1], s, truncate, out=work[0])
             _k.pooled_bias_input(vals[k - 1], vals[k], prev, slots[k], work[0], c, cv, work[1])
-            _run(work[1], 1, None, 0, pool_sigma, truncate, out_x=work[2])
+            _run(work[1], 1, None, 0, BIAS_POOL_SIGMA, truncate, out_x=work[2])
             _k.stop_pooled(work[2], prev, slots[k], cv, float(fr[k - 1]), 1.0, raw[k - 1])
         elif k:
             _k.stop_pair(vals[k - 1], vals[k], prev, slots[k], c, cv, fr[k - 1], weight, raw[k - 1])

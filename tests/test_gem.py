@@ -302,10 +302,19 @@ def test_pooled_selection_kernels_equal_numpy_reference(dtype, sigmas):
     K.pooled_bias_input(f0, f1, v0, v1, cov, c, c, d)
     for got in (d, d1):
         np.testing.assert_allclose(got, ref, rtol=1e-5 if dtype == np.float32 else 1e-12, atol=1e-7)
-    out = np.empty((h, w), np.float32)
-    K.stop_pooled(d, v0, v1, c, 2.5, 1.0, out)
-    s = 2.5 * np.maximum(d.astype(np.float64), 0) + (v1.astype(np.float64) - v0).reshape(h, w, c).sum(-1)
-    np.testing.assert_array_equal(out > 0.5, s > 0)
+    # the decision kernel against pooled_selector (no pooling, the same noise part), for
+    # the weight 1 that reconstruct uses and for others
+    dvar1 = np.maximum((info["variances"][0] + info["variances"][1]).astype(np.float64).sum(-1)
+                       - 2 * cov, 0)[None]
+    fk = float(gem.bias_factor(info["r2"][0], info["r2"][1]))
+    for weight in (1.0, 0.7, 2.5):
+        out = np.empty((h, w), np.float32)
+        K.stop_pooled(d, v0, v1, c, fk, weight, out)
+        S1 = gem.pooled_selector(info["values"][:2], info["variances"][:2], dvar1, info["r2"][:2],
+                                 pool_sigma=0.0, weight=weight)[0]
+        sure = np.abs(S1) > tol * np.abs(info["variances"][:2]).sum((0, -1))
+        assert sure.mean() > 0.99
+        np.testing.assert_array_equal((out > 0.5)[sure], (S1 > 0)[sure])
 
 
 def test_float32_and_float64_agree():
@@ -500,6 +509,52 @@ def test_bad_input():
             gem.reconstruct(m, v, bias=bad)
     with pytest.raises(InputError, match="`bias` must be one of"):
         gem.select_scales(m, v, bias="x")
+
+
+def test_selector_bad_input():
+    """selector / pooled_selector (public NumPy references) check their inputs: a NaN or
+    negative ``pool_sigma`` must not silently switch pooling off."""
+    rng = np.random.default_rng(41)
+    vals = rng.normal(size=(3, 8, 9, 2))
+    var = rng.uniform(0.1, 1.0, vals.shape)
+    dvar = rng.uniform(0.0, 0.5, (2, 8, 9, 2))
+    r2 = np.array([0.0, 1.0, 4.0])
+    ok = gem.pooled_selector(vals, var, dvar, r2)
+    assert ok.shape == (2, 8, 9)
+    # channel-summed variances are the same input
+    np.testing.assert_allclose(gem.pooled_selector(vals, var.sum(-1), dvar.sum(-1), r2), ok,
+                               rtol=1e-12, atol=1e-12)
+    for bad in (np.nan, -1.0, np.inf, "1", True):
+        with pytest.raises(InputError, match="`pool_sigma`"):
+            gem.pooled_selector(vals, var, dvar, r2, pool_sigma=bad)
+    for bad in (0.0, -3.0, np.nan):
+        with pytest.raises(InputError, match="`truncate`"):
+            gem.pooled_selector(vals, var, dvar, r2, truncate=bad)
+    for f in (lambda **kw: gem.pooled_selector(**{"diff_variances": dvar, **kw}), gem.selector):
+        with pytest.raises(InputError, match="`values` must have 3 or 4 dimensions"):
+            f(values=vals[0, 0], variances=var, r2=r2)
+        with pytest.raises(InputError, match="`values` must hold K >= 2"):
+            f(values=vals[:1], variances=var[:1], r2=r2[:1])
+        with pytest.raises(InputError, match="`variances` must be .*got \\(3, 8, 9, 3\\)"):
+            f(values=vals, variances=np.ones((3, 8, 9, 3)), r2=r2)
+        with pytest.raises(InputError, match="`variances`"):
+            f(values=vals, variances=var[:2], r2=r2)
+        with pytest.raises(InputError, match="`r2` must hold one second moment per scale"):
+            f(values=vals, variances=var, r2=r2[:2])
+        with pytest.raises(InputError, match="`weight` must be a number or an \\(H, W\\)"):
+            f(values=vals, variances=var, r2=r2, weight=np.ones((9, 8)))
+    for bad in (dvar[:1], dvar[..., :1], np.ones((2, 9, 8))):
+        with pytest.raises(InputError, match="`diff_variances` must be"):
+            gem.pooled_selector(vals, var, bad, r2)
+    for bad in (r2[::-1], np.array([0.0, np.nan, 4.0])):
+        with pytest.raises(InputError, match="`r2` must be increasing"):
+            gem.pooled_selector(vals, var, dvar, bad)
+    # a weight map of shape (H, W) is accepted and applied per pixel
+    wmap = rng.uniform(0.5, 2.0, (8, 9))
+    S = gem.selector(vals, var, r2, weight=wmap)
+    frac = gem.bias_factor(r2[:-1], r2[1:])[:, None, None]
+    ref = wmap * frac * ((vals[1:] - vals[:-1]) ** 2).sum(-1) + (var[1:] - var[:-1]).sum(-1)
+    np.testing.assert_allclose(S, ref, rtol=1e-12, atol=1e-12)
 
 
 # ------------------------------------------- robust sampler options (docs/gem.md §5)
