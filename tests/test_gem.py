@@ -593,6 +593,45 @@ def test_debiased_squared_difference_is_unbiased_on_a_constant_noisy_image():
         assert sps.ttest_1samp(d2, 0.0, alternative="greater").pvalue < 1e-10
 
 
+def test_pooled_bias_input_is_unbiased_before_the_clamp_on_constant_noisy_images():
+    """The noise-corrected squared difference of ``bias="pooled"``
+    (:func:`statmc._filter_kernels.pooled_bias_input`, C = 3 with channel-summed
+    variances as in ``reconstruct``) and its σ = 1 pooling have mean 0 on a constant
+    noisy image (no bias), with the variances estimated from the samples: one-sample
+    t-tests over pixels 24 apart (independent: the filters and the pooling reach 9 px),
+    Bonferroni over 2 pairs × 2 stages.  The raw squared differences are not unbiased."""
+    from statmc import _filter_kernels as K
+    rng = np.random.default_rng(42)
+    sig, n, h = (0.0, 1.0, 2.0), 4, 480
+    d_all, p_all, raw_all = ([[] for _ in range(2)] for _ in range(3))
+    for _ in range(5):
+        m, mv = _noisy(np.full((h, h, 3), 0.5), n, 2.0, rng)
+        vals, vars_ = (np.asarray(a) for a in F.filter_bank(m, mv, sig))
+        vsum = np.ascontiguousarray(mv.sum(-1))
+        for k in (1, 2):
+            cov = np.empty((h, h))
+            gem._pair_covariance_rows(vsum, 1, sig[k - 1], sig[k], F.DEFAULT_TRUNCATE, out=cov)
+            d = np.empty((h, h))
+            K.pooled_bias_input(vals[k - 1].reshape(h, -1), vals[k].reshape(h, -1),
+                                np.ascontiguousarray(vars_[k - 1].sum(-1)),
+                                np.ascontiguousarray(vars_[k].sum(-1)), cov, 3, 1, d)
+            pooled = F.gaussian_filter(d, gem.BIAS_POOL_SIGMA)
+            grid = (slice(12, None, 24), slice(12, None, 24))
+            d_all[k - 1].append(d[grid].ravel())
+            p_all[k - 1].append(pooled[grid].ravel())
+            raw_all[k - 1].append(((vals[k] - vals[k - 1]) ** 2).sum(-1)[grid].ravel())
+    for k in range(2):
+        for name, x in (("unpooled", d_all[k]), ("pooled", p_all[k])):
+            x = np.concatenate(x)
+            p = sps.ttest_1samp(x, 0.0).pvalue
+            print(f"pair {k}->{k + 1} {name}: mean {x.mean():.3g} ± {sps.sem(x):.2g} "
+                  f"({x.size} pixels), p = {p:.3f}")
+            assert p > 0.001 / 4, (k, name, x.mean(), p)
+        raw = np.concatenate(raw_all[k])
+        print(f"pair {k}->{k + 1} raw squared difference: mean {raw.mean():.3g}")
+        assert sps.ttest_1samp(raw, 0.0, alternative="greater").pvalue < 1e-10
+
+
 def test_debiased_estimated_mse_equals_reference():
     rng = np.random.default_rng(23)
     truth = np.full((30, 34, 3), 0.4)
