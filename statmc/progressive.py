@@ -33,7 +33,7 @@ from .stats import PixelStats
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
            "bind_denoiser", "auto_sigma_s", "DEFAULT_SMOOTH", "DEFAULT_RELATIVE_EPS",
            "DEFAULT_SHRINK", "DEFAULT_WINDOW", "DEFAULT_C", "DEFAULT_CHANNELS",
-           "DEFAULT_A", "DEFAULT_EPS_T"]
+           "DEFAULT_A", "DEFAULT_EPS_T", "outlier_alpha", "DEFAULT_OUTLIER"]
 
 #: Standard deviation (pixels) of the Gaussian that smooths σ², SURE and the divergence
 #: before Eq. 9: their per-pixel estimates are far too noisy to use directly (§4.1 and
@@ -47,6 +47,10 @@ DEFAULT_SHRINK = 2.0
 DEFAULT_RELATIVE_EPS = 0.01
 #: Side of the neighbourhood N_p of Eq. 12–16: 11×11 (§4.2 and §7 of [1]).
 DEFAULT_WINDOW = 11
+#: A pixel whose channel-summed variance of the mean exceeds this factor times its σ = 2 px
+#: Gaussian neighbourhood average is a variance outlier (a caught firefly) and gets the
+#: per-pixel α of :func:`outlier_alpha`: a departure from [1] (docs/quality.md, last section).
+DEFAULT_OUTLIER = 8.0
 #: Shift c and strength a of the gate, Eq. 18: c = 4.2, a = 2 (§4.2 of [1]).
 DEFAULT_C = 4.2
 DEFAULT_A = 2.0
@@ -576,6 +580,62 @@ def bind_denoiser(denoiser, stats: PixelStats, **options):
                      f"{type(denoiser).__name__}.")
 
 
+def outlier_alpha(alpha, x, y, mean_var, *, factor: float = DEFAULT_OUTLIER,
+                  sigma: float = 2.0) -> np.ndarray:
+    """Raise the smoothed α at variance outliers to their own per-pixel estimate.
+
+    **A departure from [1]_** (docs/quality.md, last section).  Eq. 9 is formed from
+    σ², SURE and the divergence smoothed over σ = 4 px, so one pixel whose render caught a
+    firefly gets the α of its neighbourhood: where that α is small (e.g. 0.23 in a caustic
+    at 1024 spp, where the denoiser's bias shows), most of the firefly passes into
+    ``x + α(y − x)``.  At pixels whose channel-summed σ² exceeds ``factor`` times its
+    Gaussian (``sigma``) neighbourhood average, this returns
+
+    ``α'_p = max(α_p, min(1, σ²_p / (y_p − x_p)²))``  (per channel),
+
+    the single-pixel plug-in of the minimiser of Eq. 8, ``α* = E[(x − μ)(x − y)] /
+    E[(x − y)²] ≈ σ²/E[(y − x)²]`` for a denoised ``y`` much less noisy than ``x``, with
+    ``E[(y − x)²]`` estimated by the pixel's own squared difference.  Elsewhere α is
+    unchanged.  As samples accumulate σ²_p → 0 and ``α'_p → α_p``, so convergence is that
+    of the gated α.  The confidence gate is applied afterwards, as to any α.
+
+    Parameters
+    ----------
+    alpha : (H, W, C) or (H, W) ndarray
+        Mixing weights (e.g. :func:`mixing_weights`).
+    x, y : (H, W, C) ndarray
+        The render and its denoised image.
+    mean_var : (H, W, C) ndarray
+        σ², the variance of the mean of ``x``.
+    factor : float
+        Outlier threshold (> 1).
+    sigma : float
+        σ (pixels) of the neighbourhood average (> 0).
+
+    Returns
+    -------
+    alpha : (H, W, C) float64 ndarray
+    """
+    from .filters import gaussian_filter
+    factor = as_number("factor", factor, lo=1.0, lo_open=True)
+    sigma = as_number("sigma", sigma, lo=0.0, lo_open=True)
+    xa = as_float_array("x", x, ndim=3)
+    ya = as_float_array("y", y, ndim=3)
+    if ya.shape != xa.shape:
+        raise InputError(f"`y` must have the shape of `x` {xa.shape}; got {ya.shape}.")
+    s2 = _variance(mean_var, xa.shape)
+    al = _like("alpha", alpha, xa.shape, allow_2d=True)
+    v = s2.sum(axis=2)
+    hot = v > factor * gaussian_filter(v, sigma)
+    if not hot.any():
+        return al
+    d2 = (ya[hot] - xa[hot]) ** 2
+    own = np.where(d2 > 0, np.minimum(s2[hot] / np.where(d2 > 0, d2, 1.0), 1.0), 1.0)
+    out = al.copy()
+    out[hot] = np.maximum(al[hot], own)
+    return out
+
+
 def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=None,
                         smooth: float = DEFAULT_SMOOTH, relative_eps=DEFAULT_RELATIVE_EPS,
                         shrink: float = DEFAULT_SHRINK, per_channel: bool = False, k: int = 4,
@@ -583,7 +643,7 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
                         window: int = DEFAULT_WINDOW, sigma_s="auto", c: float = DEFAULT_C,
                         a: float = DEFAULT_A, channels: str = DEFAULT_CHANNELS,
                         cdf: str = "normal", channel_noise: str = "correlated",
-                        extra_output: bool = False):
+                        outlier=DEFAULT_OUTLIER, extra_output: bool = False):
     """Progressively denoised image ``x + α'(y − x)`` (§4 of [1]_, classical α).
 
     Parameters
@@ -605,6 +665,10 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
     smooth, relative_eps, shrink, per_channel, channel_noise
         Of :func:`mixing_weights` (which gets ``mean_var`` as given, so a covariance
         there also enters the standard error of ``shrink``).
+    outlier : float or None
+        ``factor`` of :func:`outlier_alpha`, applied to the classical α (not to a given
+        ``alpha``): variance outliers (caught fireflies) get their per-pixel α.  ``None``
+        gives Eq. 9 alone, as in [1]_.
     k, eps, rng
         Of :func:`statmc.sure.mc_sure` (``k + 1`` denoiser calls in all).
     gate : bool
@@ -646,6 +710,8 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
         al = mixing_weights(x, y, mv, sure_map, div, smooth=smooth, relative_eps=relative_eps,
                             shrink=shrink, per_channel=per_channel,
                             channel_noise=channel_noise, n=stats.n)
+        if outlier is not None:
+            al = outlier_alpha(al, x, y, s2, factor=outlier)
     else:
         if callable(alpha):
             alpha = alpha({"x": x, "y": y, "mean_var": s2, "sure": sure_map, "divergence": div})

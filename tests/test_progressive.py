@@ -664,3 +664,69 @@ def test_hypothesis_outputs_are_finite_and_in_range(h, w, c, seed, zero_var, win
     assert np.isfinite(a).all() and a.min() >= 0 and a.max() <= 1
     ag = pg.confidence_gate(x, y, v, a, window=window)
     assert np.isfinite(ag).all() and np.all(ag >= 0) and np.all(ag <= a + 1e-15)
+
+
+# ----------------------------------------------------------------------- variance outliers
+def test_outlier_alpha_changes_only_variance_outliers_by_the_per_pixel_formula():
+    """α'_p = max(α_p, min(1, σ²_p/(y_p − x_p)²)) exactly where Σ_c σ²_p > factor × its
+    σ = 2 Gaussian average, and α unchanged everywhere else."""
+    from statmc.filters import gaussian_filter
+    rng = np.random.default_rng(5)
+    h, w = 20, 24
+    x = rng.random((h, w, 3))
+    y = x + 0.05 * rng.standard_normal((h, w, 3))
+    s2 = 0.01 * (1 + 0.2 * rng.random((h, w, 3)))
+    s2[7, 9] *= 300.0          # a firefly: far above its neighbours
+    s2[15, 3] *= 300.0
+    y[15, 3] = x[15, 3]        # y == x there: the own estimate is 1
+    alpha = 0.2 * rng.random((h, w, 3))
+    out = pg.outlier_alpha(alpha, x, y, s2)
+    v = s2.sum(2)
+    hot = v > pg.DEFAULT_OUTLIER * gaussian_filter(v, 2.0)
+    assert set(zip(*np.nonzero(hot))) == {(7, 9), (15, 3)}
+    own = np.minimum(s2[7, 9] / (y[7, 9] - x[7, 9]) ** 2, 1.0)
+    np.testing.assert_allclose(out[7, 9], np.maximum(alpha[7, 9], own), rtol=1e-14)
+    np.testing.assert_array_equal(out[15, 3], 1.0)
+    np.testing.assert_array_equal(out[~hot], alpha[~hot])
+    # a lower threshold catches more; (H, W) α is broadcast over channels
+    assert pg.outlier_alpha(alpha[..., 0], x, y, s2, factor=1.01).shape == (h, w, 3)
+
+
+def test_outlier_rule_removes_a_planted_firefly_and_leaves_a_clean_render_unchanged():
+    """Through progressive_denoise: a firefly planted in a render (mean shifted by δ, variance
+    of the mean δ²) keeps most of its error under Eq. 9's smoothed α in a region where the
+    denoiser is biased, and loses it with the outlier rule; without outliers the output is
+    exactly that of Eq. 9 alone."""
+    r = ToyRenderer("texture", width=32, height=32)
+    stt = r.render_uniform(256, seed=2)
+    f = denoisers.gaussian(1.5)
+    clean_new = pg.progressive_denoise(stt, f, rng=0)
+    clean_old = pg.progressive_denoise(stt, f, rng=0, outlier=None)
+    np.testing.assert_array_equal(clean_new, clean_old)
+
+    mean, sv = stt.mean.copy(), stt.sample_var.copy()
+    p, delta = (16, 16), 3.0
+    mean[p] += delta
+    sv[p] = delta ** 2 * stt.n[p]  # one sample of ≈ n·δ: variance of the mean ≈ δ²
+    fire = PixelStats.from_mean_var(mean, sv, stt.n)
+    truth = r.true_mean()[p]
+    z_old, info = pg.progressive_denoise(fire, f, rng=0, outlier=None, extra_output=True)
+    z_new = pg.progressive_denoise(fire, f, rng=0)
+    assert info["alpha_gated"][p].max() < 0.9            # the smoothed α keeps the render
+    assert np.abs(z_old[p] - truth).min() > 1.0          # ... so the firefly stays
+    y_err = np.abs(info["denoised"][p] - truth).max()
+    assert np.abs(z_new[p] - truth).max() <= y_err + 1e-6  # α' = 1 there: z = y (float32 gate)
+    other = np.ones(mean.shape[:2], bool)
+    other[p] = False
+    # elsewhere only the gate's 11×11 sums see the changed α at p (rounding-level changes)
+    np.testing.assert_allclose(z_new[other], z_old[other], rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("kw", [{"factor": 1.0}, {"factor": float("nan")}, {"factor": "8"},
+                                {"sigma": 0.0}, {"sigma": -1.0}])
+def test_outlier_alpha_bad_input(kw):
+    x = np.zeros((4, 4, 3))
+    with pytest.raises(InputError, match="`factor`|`sigma`"):
+        pg.outlier_alpha(np.zeros((4, 4, 3)), x, x, np.ones((4, 4, 3)), **kw)
+    with pytest.raises(InputError, match="`y`"):
+        pg.outlier_alpha(np.zeros((4, 4, 3)), x, np.zeros((4, 5, 3)), np.ones((4, 4, 3)))
