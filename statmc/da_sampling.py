@@ -250,7 +250,8 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         probes, ε = 1e-4).
     output : {"denoised", "progressive"}
         ``"progressive"``: the map of ``z = x + α'(y − x)``
-        (:func:`statmc.progressive.progressive_denoise`, with ``progressive_options``):
+        (:func:`statmc.progressive.progressive_denoise`, with ``progressive_options``;
+        ``outlier=None`` unless given there):
         ``Var[z]`` by :func:`mix_variance` (with ``Cov[x, y] ≈`` the MC-SURE divergence when
         ``covariance``), or its error by Eq. 8 of Firmino 2022
         (:func:`statmc.progressive.mix_error`).
@@ -322,6 +323,10 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
 
         opts = dict(progressive_options or {})
         opts.setdefault("k", k)
+        # The map keeps Eq. 9's α: the outlier rule of the final image (``outlier_alpha``)
+        # fired on the noisy variances of a 2-spp pilot and made the 4-spp toy:mixed map 5 %
+        # worse over 4 renders (docs/quality.md).
+        opts.setdefault("outlier", None)
         out, pinfo = progressive_denoise(stats, f, rng=gen, extra_output=True, **opts)
         ag = pinfo["alpha_gated"]
         if variant == "variance":
