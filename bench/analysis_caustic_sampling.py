@@ -93,6 +93,14 @@ REF_SPP = {"glass-caustic": 32768}
 EPS = 0.01
 
 
+def _write_json(path, out):
+    """Write the collected cells to ``path`` (``--json``), if one was given."""
+    if path:
+        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+        with open(path, "w") as f:
+            json.dump(out, f, indent=1)
+
+
 def _reference(scene):
     if scene.startswith("toy:"):
         from statmc.stats import PixelStats
@@ -445,10 +453,7 @@ def main(argv=None):
                         print(f"  n in [{lo}, {min(hi, 9999)}): {int(m.sum()):4d} caught, kept "
                               f"{kp[m].mean():.2f}, mean error there {er[m].mean():8.3f}")
                 out["cells"].append({"spp": spp, "variant": name, "survival": rows})
-        if a.json:
-            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
-            with open(a.json, "w") as f:
-                json.dump(out, f, indent=1)
+        _write_json(a.json, out)
         return
     if a.trace:
         for spp in a.spp:
@@ -461,10 +466,7 @@ def main(argv=None):
                 for i, lg in enumerate(logs):
                     print(f"  seed {a.seed0 + i}: {lg}")
                 out["cells"].append({"spp": spp, "variant": name, "trace": logs})
-        if a.json:
-            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
-            with open(a.json, "w") as f:
-                json.dump(out, f, indent=1)
+        _write_json(a.json, out)
         return
     if a.decompose:
         for spp in a.spp:
@@ -476,10 +478,7 @@ def main(argv=None):
                     txt = (", ".join(f"{kk} {vv:.5f}" if isinstance(vv, float) else f"{kk} {vv}"
                                      for kk, vv in v.items()) if isinstance(v, dict) else f"{v}")
                     print(f"  {k:15s} {txt}", flush=True)
-        if a.json:
-            os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
-            with open(a.json, "w") as f:
-                json.dump(out, f, indent=1)
+        _write_json(a.json, out)
         return
     for spp in a.spp:
         err = {v: [] for v in a.variants}
@@ -531,10 +530,7 @@ def main(argv=None):
                 for key, vals in diag[v].items():
                     print(f"      {key:22s} {np.mean(vals):10.5f}  "
                           + " ".join(f"{x:.4f}" for x in vals))
-    if a.json:
-        os.makedirs(os.path.dirname(a.json) or ".", exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
+    _write_json(a.json, out)
 
 
 if __name__ == "__main__":
