@@ -225,11 +225,8 @@ def gem(mean_var, *, gamma: float = 0.2, final: bool = True, n=None, bias=None) 
     violate, so (MC-)SURE of GEM is approximate.  Finite differences (small steps) see
     the linear pieces.
     """
-    if bias is not None:
-        from .gem import BIAS_MODES
-        if not isinstance(bias, str) or bias not in BIAS_MODES:
-            raise InputError(f"`bias` must be one of {BIAS_MODES} or None; got {bias!r}.")
-    return GEMDenoiser(mean_var, gamma=gamma, final=final, n=n, bias=bias)
+    from .gem import _check_bias
+    return GEMDenoiser(mean_var, gamma=gamma, final=final, n=n, bias=_check_bias(bias))
 
 
 # ----------------------------------------------------------------------------- OIDN

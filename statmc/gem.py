@@ -295,6 +295,14 @@ def _check_sigmas(sigmas):
     return sig
 
 
+def _check_bias(bias):
+    """``bias`` if it is ``None`` or one of :data:`BIAS_MODES`, else an :class:`InputError`."""
+    if bias is not None and (not isinstance(bias, str) or bias not in BIAS_MODES):
+        raise InputError(f"`bias` must be one of {BIAS_MODES} (the paper's per-pixel Eq. 1, or "
+                         f"the pooled noise-corrected estimate) or None; got {bias!r}.")
+    return bias
+
+
 def _resolve_mode(final, bias, sigmas, map_scale):
     """Bias mode, scales and outlier-filter factor from the arguments, checked.
 
@@ -305,11 +313,8 @@ def _resolve_mode(final, bias, sigmas, map_scale):
     else 1).  Returns ``(bias, sigmas, map_scale)`` with ``map_scale`` that factor as a
     float.
     """
-    if bias is None:
+    if _check_bias(bias) is None:
         bias = "pooled" if final else "paper"
-    if not isinstance(bias, str) or bias not in BIAS_MODES:
-        raise InputError(f"`bias` must be one of {BIAS_MODES} (the paper's per-pixel Eq. 1, or "
-                         f"the pooled noise-corrected estimate); got {bias!r}.")
     pooled_final = bias == "pooled" and final
     if sigmas is None:
         sigmas = POOLED_FINAL_SIGMAS if pooled_final else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
