@@ -616,15 +616,18 @@ def outlier_alpha(alpha, x, y, mean_var, *, factor: float = DEFAULT_OUTLIER,
     -------
     alpha : (H, W, C) float64 ndarray
     """
-    from .filters import gaussian_filter
     factor = as_number("factor", factor, lo=1.0, lo_open=True)
     sigma = as_number("sigma", sigma, lo=0.0, lo_open=True)
     xa = as_float_array("x", x, ndim=3)
-    ya = as_float_array("y", y, ndim=3)
-    if ya.shape != xa.shape:
-        raise InputError(f"`y` must have the shape of `x` {xa.shape}; got {ya.shape}.")
+    ya = _like("y", y, xa.shape)
     s2 = _variance(mean_var, xa.shape)
     al = _like("alpha", alpha, xa.shape, allow_2d=True)
+    return _outlier_alpha(al, xa, ya, s2, factor, sigma)
+
+
+def _outlier_alpha(al, xa, ya, s2, factor, sigma=2.0):
+    """:func:`outlier_alpha` on checked (H, W, C) float64 arrays."""
+    from .filters import gaussian_filter
     v = s2.sum(axis=2)
     hot = v > factor * gaussian_filter(v, sigma)
     if not hot.any():
@@ -699,6 +702,8 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
         raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
     if not isinstance(gate, (bool, np.bool_)):
         raise InputError(f"`gate` must be a bool; got {gate!r}.")
+    if outlier is not None:
+        outlier = as_number("outlier", outlier, lo=1.0, lo_open=True)
     x = stats.mean
     mv = stats.mean_var if mean_var is None else mean_var
     s2 = _variance(mv, x.shape)
@@ -711,7 +716,7 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
                             shrink=shrink, per_channel=per_channel,
                             channel_noise=channel_noise, n=stats.n)
         if outlier is not None:
-            al = outlier_alpha(al, x, y, s2, factor=outlier)
+            al = _outlier_alpha(al, x, y, s2, outlier)
     else:
         if callable(alpha):
             alpha = alpha({"x": x, "y": y, "mean_var": s2, "sure": sure_map, "divergence": div})

@@ -730,3 +730,17 @@ def test_outlier_alpha_bad_input(kw):
         pg.outlier_alpha(np.zeros((4, 4, 3)), x, x, np.ones((4, 4, 3)), **kw)
     with pytest.raises(InputError, match="`y`"):
         pg.outlier_alpha(np.zeros((4, 4, 3)), x, np.zeros((4, 5, 3)), np.ones((4, 4, 3)))
+
+
+@pytest.mark.parametrize("bad", [1.0, 0.5, float("nan"), "8", True])
+def test_progressive_denoise_refuses_a_bad_outlier_factor_before_denoising(bad):
+    stt = ToyRenderer("gradient", width=8, height=8).render_uniform(4, seed=0)
+    calls = []
+
+    def f(x):
+        calls.append(1)
+        return x
+
+    with pytest.raises(InputError, match="`outlier`"):
+        pg.progressive_denoise(stt, f, outlier=bad, rng=0)
+    assert not calls
