@@ -14,7 +14,8 @@ every pass spread uniformly); ``gem-it<m>`` (m passes); ``gem-init<s>`` (an s-sp
 ``gem-rob<τ>`` (pixels whose sample variance exceeds τ × the 5×5 median get the
 neighbourhood's median mean and variance before the sampler sees them: no chasing of
 outliers); ``da``, ``da-mix<λ>``, ``da-it<m>``, ``da-init<s>``, ``da-rob<τ>``,
-``da-prior<k>[s<σ>]`` the same for denoising-aware sampling with OIDN.
+``da-prior<k>[s<σ>]`` the same for denoising-aware sampling with OIDN; ``oracle-c<k>``,
+``oracle-v<p>``: fixed densities from the reference (see ``oracle_density``).
 
 ``--diagnose`` also splits the squared error of the final images by pixel classes:
 
@@ -64,6 +65,10 @@ own relMSE is 0.0029):
   [0.92, 1.22] (32 seeds).  Typical 16-spp uniform render: 0.0154 = reference 0.0029 +
   bias² 0.0100 + variance 0.0027; typical adaptive 0.0145 (0.94×); catastrophes 7/32
   adaptive, 4/32 uniform.
+* Session 4, fixed oracle densities from the reference (``oracle-*``, 32 seeds, pooled
+  reconstruction): caustic × 4 / × 2 / × 0.5 / × 0.25 give 1.014 / 1.181 / 1.032 / 1.171
+  at 16 spp and 1.250 / 1.292 / 0.971 / 0.997 at 64 spp; density ∝ relative variance^0.5
+  / ^1 gives 1.310 / 1.997 at 16 spp.  No fixed map beats uniform.
 * toy:mixed at 4 spp (2-spp pilot): DA+OIDN / uniform+OIDN = 0.782 [0.71, 0.85], 24/32
   wins, p < 0.001 — the table's 1.11 was one render.
 
@@ -266,11 +271,39 @@ def variant(name):
     raise SystemExit(f"unknown variant {name!r}")
 
 
+_ORACLE = {}
+
+
+def oracle_density(name):
+    """Fixed sampling densities computed from the reference's own statistics (an oracle no
+    sampler has): ``oracle-c<k>``: the reference's caustic class (top 10 % per-sample
+    relative variance) gets ``k`` times the density of the rest; ``oracle-v<p>``: density
+    ∝ (relative per-sample variance, Gaussian σ = 1) ** p, floored at 0.25 × its mean."""
+    ref_stats = _ORACLE["ref"]
+    ref = ref_stats.mean
+    rel = (ref_stats.sample_var / (ref * ref + EPS)).mean(-1)
+    if name.startswith("oracle-c"):
+        k = float(name[len("oracle-c"):])
+        return np.where(_classes_ref(ref_stats)["caustic"], k, 1.0)
+    if name.startswith("oracle-v"):
+        from statmc.filters import gaussian_filter
+
+        d = gaussian_filter(rel[..., None], 1.0)[..., 0] ** float(name[len("oracle-v"):])
+        return np.maximum(d, 0.25 * d.mean())
+    raise SystemExit(f"unknown variant {name!r}")
+
+
 def render(r, name, spp, seed, initial_spp=None):
     """(final stats, pilot stats or None); adaptive runs start with ``initial_spp``
     (default: 4, or 2 below 8 spp as in bench_quality_table.py)."""
     if name == "uniform":
         return r.render(np.full((r.height, r.width), spp, np.int64), seed=10_000 + seed), None
+    if name.startswith("oracle"):
+        from statmc.sampling import counts_from_density
+
+        c = counts_from_density(oracle_density(name), spp * r.height * r.width, min_count=2,
+                                rng=seed)
+        return r.render(c, seed=10_000 + seed), None
     sampler, opts = variant(name)
     opts = dict(opts)
     opts.setdefault("initial_spp", initial_spp or (2 if spp < 8 else 4))
@@ -430,6 +463,7 @@ def main(argv=None):
                     help="only the bias/variance/reference split of uniform renders")
     a = ap.parse_args(argv)
     r, ref_stats = _reference(a.scene)
+    _ORACLE["ref"] = ref_stats
     ref = ref_stats.mean
     floor = float(np.mean(ref_stats.mean_var / (ref * ref + EPS)))
     rc = _classes_ref(ref_stats)
