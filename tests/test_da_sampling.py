@@ -204,6 +204,29 @@ def test_denoising_aware_oidn_beats_uniform_oidn_at_equal_budget():
     assert p < 0.05, (np.exp(logs), p)
 
 
+def test_da_progressive_render_is_bitwise_reproducible_on_any_thread_count():
+    """The DA+progressive path of the quality table (map of the progressive output with OIDN,
+    then progressive denoising) twice with one seed, and again on one numba thread: the same
+    counts, means and image to the bit (docs/quality.md, "DA+progressive reproducibility")."""
+    import numba
+
+    pytest.importorskip("pyoidn")
+    r = ToyRenderer("mixed", width=32, height=24)
+    before = numba.get_num_threads()
+    runs = []
+    try:
+        for nt in (before, before, 1):
+            numba.set_num_threads(nt)
+            st = adaptive_render(r, 16, sampler="denoising-aware", initial_spp=4, seed=5,
+                                 iterations=3, denoiser="oidn", output="progressive").stats
+            runs.append((st.n, st.mean, progressive_denoise(st, "oidn", rng=0)))
+    finally:
+        numba.set_num_threads(before)
+    for run in runs[1:]:
+        for p, q in zip(runs[0], run):
+            assert p.tobytes() == q.tobytes()
+
+
 # =========================================================================== bad input
 def test_bad_input_raises_input_error():
     stt = _stats(size=8)

@@ -138,6 +138,23 @@ def test_mc_sure_costs_k_plus_one_denoiser_calls(k):
     assert out.shape == x.shape and out.dtype == np.float64
 
 
+def test_mc_sure_and_output_variance_with_oidn_are_bitwise_reproducible():
+    """One seed, one input: MC-SURE and the first-order variance of OIDN repeat to the bit
+    (OIDN on the CPU, whatever its thread count: docs/quality.md, "DA+progressive
+    reproducibility")."""
+    pytest.importorskip("pyoidn")
+    st = ToyRenderer("mixed", width=32, height=24).render_uniform(8, seed=2)
+    outs = []
+    for threads in (None, None, 1):
+        f = D.oidn(num_threads=threads)
+        s, info = S.mc_sure(f, st.mean, st.mean_var, k=2, rng=7, extra_output=True)
+        v = S.output_variance(f, st.mean, st.mean_var, k=2, rng=7)
+        outs.append((s, info["divergence"], info["denoised"], v))
+    for run in outs[1:]:
+        for p, q in zip(outs[0], run):
+            assert p.tobytes() == q.tobytes()
+
+
 def test_mc_sure_with_zero_variance_is_the_data_term():
     x = np.random.default_rng(1).random((8, 8, 3))
     f = _Counting(D.gaussian(1.0))
