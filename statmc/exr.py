@@ -34,7 +34,8 @@ from .errors import FileFormatError, InputError, as_float_array, check_finite
 from .stats import PixelStats
 
 __all__ = ["read_exr", "read_image", "read_channels", "exr_info", "write_exr",
-           "write_png_preview", "to_display", "SAMPLE_COUNT"]
+           "write_png_preview", "to_display", "SAMPLE_COUNT", "spatial_covariance_channels",
+           "read_spatial_covariance", "SPATIAL_COVARIANCE"]
 
 SAMPLE_COUNT = "SampleCount"
 _RGB = ("R", "G", "B")
@@ -44,6 +45,8 @@ _COV = ("Covariance.RG", "Covariance.RB", "Covariance.GB")   # pairs a < b of R,
 _DEPTH = ("Z", "P.Z")            # preference order: our own ``Z``, then pbrt-v4's camera-space P.Z
 _MAX_F32_COUNT = 2 ** 24         # integers above this are not all representable in float32
 _TONEMAPS = ("srgb", "reinhard", "aces")
+#: Prefix of the neighbour-covariance channels ``SpatialCovariance.<dy><dx>.<R|G|B>``.
+SPATIAL_COVARIANCE = "SpatialCovariance"
 
 
 # ---------------------------------------------------------------------------- reading
@@ -499,6 +502,80 @@ def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> 
             raise FileFormatError(f"could not write EXR file {_name(path)!r}: {e}") from e
 
     _atomic_write(path, write, overwrite=overwrite, protect=protect)
+
+
+# ------------------------------------------------------------- spatial covariance
+def _spatial_name(dy: int, dx: int, c: str) -> str:
+    return f"{SPATIAL_COVARIANCE}.{dy:+d}{dx:+d}.{c}"
+
+
+def spatial_covariance_channels(cov, n) -> dict:
+    """Channels holding a neighbour-covariance stencil, for ``write_exr(..., extra=)``.
+
+    ``cov`` is the covariance of the pixel *means*, ``(H, W, m, m, 3)`` with
+    ``cov[p, R + dy, R + dx] = cov(z_p, z_{p + (dy, dx)})`` (e.g. the second output of
+    :meth:`statmc.mitsuba_backend.MitsubaRenderer.render_crn`).  Like ``Variance.*`` the
+    file stores the covariance of *one* sample pair, ``n · cov`` (uniform ``n``), in
+    channels ``SpatialCovariance.<dy><dx>.<R|G|B>`` with signed offsets, e.g.
+    ``SpatialCovariance.-1+2.G``; the centre ``+0+0`` equals ``Variance.*``.
+    """
+    a = as_float_array("cov", cov, ndim=5, dtype=np.float64)
+    check_finite("cov", a)
+    H, W, m, m2, C = a.shape
+    if m != m2 or m % 2 == 0 or C != 3:
+        raise InputError(f"`cov` must be (H, W, m, m, 3) with odd m; got {a.shape}.")
+    nn = as_float_array("n", n, ndim=2, dtype=np.float64)
+    if nn.shape != (H, W):
+        raise InputError(f"`n` must be (H, W) = {(H, W)}; got {nn.shape}.")
+    R = m // 2
+    return {_spatial_name(dy, dx, c): a[:, :, R + dy, R + dx, k] * nn
+            for dy in range(-R, R + 1) for dx in range(-R, R + 1) for k, c in enumerate(_RGB)}
+
+
+def read_spatial_covariance(path, n=None):
+    """The neighbour-covariance stencil of an EXR file, or ``None`` if it has none.
+
+    Returns the covariance of the pixel means, ``(H, W, m, m, 3)`` float64 (the stored
+    one-sample covariance divided by ``n``: ``SampleCount`` unless ``n`` is given).  A
+    partial stencil (a missing offset or channel) raises
+    :class:`~statmc.errors.FileFormatError` naming what is missing.
+    """
+    import re
+
+    p = _name(path)
+    _, arrays, _ = _open(p)
+    pat = re.compile(rf"^{SPATIAL_COVARIANCE}\.([+-]\d+)([+-]\d+)\.([RGB])$")
+    found = {}
+    for name in arrays:
+        mt = pat.match(name)
+        if mt:
+            found[(int(mt.group(1)), int(mt.group(2)), mt.group(3))] = name
+    if not found:
+        return None
+    R = max(max(abs(dy), abs(dx)) for dy, dx, _ in found)
+    want = [_spatial_name(dy, dx, c) for dy in range(-R, R + 1) for dx in range(-R, R + 1)
+            for c in _RGB]
+    missing = [w for w in want if w not in arrays]
+    if missing:
+        raise FileFormatError(f"{p!r} has a partial {SPATIAL_COVARIANCE} stencil ({2 * R + 1}x"
+                              f"{2 * R + 1}); missing {len(missing)} channel(s), e.g. {missing[:3]}.")
+    if n is None:
+        if SAMPLE_COUNT not in arrays:
+            raise FileFormatError(f"{p!r} has {SPATIAL_COVARIANCE} channels but no {SAMPLE_COUNT}; "
+                                  f"pass the samples per pixel.")
+        n = arrays[SAMPLE_COUNT]
+    nn = np.asarray(n, np.float64)
+    H, W = arrays[want[0]].shape
+    nn = np.broadcast_to(nn, (H, W))
+    m = 2 * R + 1
+    out = np.empty((H, W, m, m, 3))
+    for dy in range(-R, R + 1):
+        for dx in range(-R, R + 1):
+            for k, c in enumerate(_RGB):
+                out[:, :, R + dy, R + dx, k] = arrays[_spatial_name(dy, dx, c)]
+    if not np.all(np.isfinite(out)):
+        raise FileFormatError(f"{p!r}: {SPATIAL_COVARIANCE} channels hold NaN or Inf.")
+    return out / np.maximum(nn, 1.0)[:, :, None, None, None]
 
 
 # ---------------------------------------------------------------------------- previews

@@ -76,6 +76,7 @@ _AUTO: dict[str, str] = {}
 # Salts separating the random streams of the passes of one render.
 _SALT_MAIN = 0x5EED
 _SALT_FEATURES = 0xFEA7
+_SALT_CRN = 0xC0CA
 _PAIRS = ((0, 1), (0, 2), (1, 2))   # channel pairs RG, RB, GB (PixelStats.from_sums order)
 
 
@@ -423,6 +424,99 @@ class MitsubaRenderer:
                            progress=progress, features=features, feature_spp=feature_spp,
                            cross=cross)
 
+    def render_crn(self, spp: int, *, seed: int = 0, stencil: int = 5, progress: bool = False,
+                   features: bool = True, feature_spp: int = 16):
+        """A common-random-number (CRN) render and the covariance of its neighbouring pixels.
+
+        Sample ``j`` of every pixel uses the same random sequence ``j`` (one sampler stream
+        shared by all pixels: the same sub-pixel jitter, lens position and path decisions,
+        until paths part ways), and the ``spp`` sequences are independent.  Each pixel is
+        still an unbiased estimate with independent samples, but the errors of
+        neighbouring pixels are positively correlated: a *correlated* estimate ``z`` in
+        the sense of Back et al. 2020 (§1, §3: correlated pixel estimates such as CRN
+        renders), to combine with an independent render ``y`` by
+        :func:`statmc.combine.statistical_weights` and :func:`statmc.combine.combine`.
+
+        Parameters
+        ----------
+        spp : int
+            Samples in every pixel (>= 1; >= 2 for a variance).
+        seed : int, optional
+            Seed; a CRN render is independent of :meth:`render` with the same seed.
+        stencil : int, optional
+            Odd width ``m`` of the neighbourhood whose covariances are returned.
+        progress, features, feature_spp
+            As in :meth:`render`.
+
+        Returns
+        -------
+        stats : PixelStats
+            Per-pixel statistics as :meth:`render` (``meta["crn"] = True``).
+        cov_z : (H, W, m, m, 3) float64 ndarray
+            Covariance of the pixel means, ``cov_z[p, R + v] = cov(z_p, z_{p+v})``
+            (``R = m // 2``; the convention of :func:`statmc.combine.combine_bias_variance`),
+            estimated without bias from the ``spp`` paired samples:
+            ``Σ_j (x_pj − z_p)(x_qj − z_q) / ((spp − 1) spp)``; 0 outside the image and
+            where ``spp < 2``.  The centre ``cov_z[p, R, R]`` equals ``stats.mean_var``.
+
+        Notes
+        -----
+        Needs a JIT variant (``llvm_ad_rgb``): the scalar fallback renders through
+        ``mi.render``, which seeds every pixel differently.  Costs ``spp`` wavefronts of
+        ``H·W`` samples, with the sums kept in NumPy (``(H, W, m, m, 3)`` float64).
+        """
+        spp = _check_int("spp", spp, minimum=1)
+        seed = _check_int("seed", seed, minimum=0)
+        feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
+        m = _check_int("stencil", stencil, minimum=1)
+        if m % 2 == 0:
+            raise InputError(f"`stencil` must be an odd width; got {stencil}.")
+        if not self._jit:
+            raise InputError(f"common-random-number renders need a JIT Mitsuba variant "
+                             f"(llvm_ad_rgb); this renderer runs {self.variant!r} ({_LLVM_HINT}).")
+        if self._mi.variant() != self.variant:
+            self._mi.set_variant(self.variant)
+        mi = self._mi
+        H, W, R = self.height, self.width, m // 2
+        pix = np.arange(H * W, dtype=np.uint32)
+        s1 = np.zeros((H, W, 3))
+        s2 = np.zeros((H, W, 3, 3))
+        prod = np.zeros((H, W, m, m, 3))
+        n_bad = 0
+        t0 = time.perf_counter()
+        with _progress(spp * H * W, progress, f"mitsuba {self.name} (CRN)") as bar:
+            for j in range(spp):
+                _, L, _ = self._trace(self._integrator, pix, _chunk_seed(seed, _SALT_CRN, j),
+                                      mi.Float(1.0 / math.sqrt(spp)), shared=True)
+                x = np.stack([np.asarray(L[c], np.float64) for c in range(3)], -1).reshape(H, W, 3)
+                ok = np.isfinite(x).all(-1, keepdims=True)
+                n_bad += int((~ok).sum())
+                x = np.where(ok, x, 0.0)
+                s1 += x
+                s2 += x[..., :, None] * x[..., None, :]
+                _add_neighbour_products(prod, x, R)
+                bar.update(H * W)
+        seconds = time.perf_counter() - t0
+        counts = np.full((H, W), spp, np.int64)
+        stats = PixelStats.from_sums(counts, s1, np.einsum("hwcc->hwc", s2), s2)
+        stats.meta.update({
+            "renderer": "mitsuba", "scene": self.name, "variant": self.variant, "seed": seed,
+            "samples": spp * H * W, "seconds": seconds, "crn": True,
+            "samples_per_second": spp * H * W / seconds if seconds > 0 else float("nan"),
+            "chunks": spp, "nonfinite_samples": n_bad,
+        })
+        if features:
+            t0 = time.perf_counter()
+            stats.albedo, stats.normal = self._render_features(seed, feature_spp)
+            stats.meta["feature_seconds"] = time.perf_counter() - t0
+            stats.meta["feature_spp"] = feature_spp
+        cov = np.zeros_like(prod)
+        if spp >= 2:
+            mean = s1 / spp
+            cov = (prod - spp * mean[:, :, None, None, :] * _neighbours(mean, R)) / ((spp - 1) * spp)
+            cov *= _neighbours(np.ones((H, W, 1)), R)       # 0 outside the image
+        return stats, cov
+
     # ------------------------------------------------------------------ internals
     def _check_counts(self, counts) -> np.ndarray:
         a = as_float_array("counts", counts, ndim=2)
@@ -444,12 +538,17 @@ class MitsubaRenderer:
                 return dr.ReduceMode.Expand
         return dr.ReduceMode.Auto
 
-    def _trace(self, integrator, pix: np.ndarray, chunk_seed: int, diff_scale):
-        """Trace one wavefront: samples in pixels ``pix``; returns (idx, L, aovs)."""
+    def _trace(self, integrator, pix: np.ndarray, chunk_seed: int, diff_scale,
+               shared: bool = False):
+        """Trace one wavefront: samples in pixels ``pix``; returns (idx, L, aovs).
+
+        ``shared``: one random stream for the whole wavefront (a sampler seeded for a
+        wavefront of 1, broadcast to every lane): common random numbers.
+        """
         mi, dr = self._mi, self._dr
         sensor, sampler = self._sensor, self._sampler
         idx = mi.UInt32(pix)
-        sampler.seed(dr.opaque(mi.UInt32, chunk_seed), int(pix.size))
+        sampler.seed(dr.opaque(mi.UInt32, chunk_seed), 1 if shared else int(pix.size))
         y = idx // self.width
         x = idx - y * self.width
         jitter = sampler.next_2d()
@@ -552,6 +651,29 @@ class MitsubaRenderer:
         out = np.stack([np.asarray(a) for a in acc], axis=-1).reshape(self.height, self.width, 6)
         out = (out / spp).astype(np.float32)
         return out[..., :3].copy(), out[..., 3:6].copy()
+
+
+def _neighbours(a: np.ndarray, R: int) -> np.ndarray:
+    """``out[y, x, R + dy, R + dx] = a[y + dy, x + dx]`` (0 outside), ``(H, W, m, m, C)``."""
+    H, W = a.shape[:2]
+    m = 2 * R + 1
+    out = np.zeros((H, W, m, m) + a.shape[2:], a.dtype)
+    for dy in range(-R, R + 1):
+        for dx in range(-R, R + 1):
+            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H - max(dy, 0))
+            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W - max(dx, 0))
+            out[yd, xd, R + dy, R + dx] = a[ys, xs]
+    return out
+
+
+def _add_neighbour_products(prod: np.ndarray, x: np.ndarray, R: int) -> None:
+    """``prod[y, x, R + dy, R + dx] += x[y, x] · x[y + dy, x + dx]`` inside the image."""
+    H, W = x.shape[:2]
+    for dy in range(-R, R + 1):
+        for dx in range(-R, R + 1):
+            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H - max(dy, 0))
+            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W - max(dx, 0))
+            prod[yd, xd, R + dy, R + dx] += x[yd, xd] * x[ys, xs]
 
 
 class _NoBar:

@@ -512,3 +512,50 @@ def test_partial_or_nonfinite_covariance_channels(tmp_path):
     _write_raw(tmp_path / "v.exr", no_var)
     with pytest.raises(FileFormatError, match="no Variance"):
         read_exr(tmp_path / "v.exr", require_variance=False)
+
+
+# ------------------------------------------------------------------ spatial covariance
+def _stencil_stats(rng, h=5, w=6, m=3, n=8):
+    mean = rng.random((h, w, 3))
+    cov = rng.normal(size=(h, w, m, m, 3)) * 1e-3
+    cov[:, :, m // 2, m // 2] = rng.random((h, w, 3)) * 1e-2
+    st = PixelStats.from_mean_var(mean, cov[:, :, m // 2, m // 2] * n, np.full((h, w), n))
+    return st, cov
+
+
+def test_spatial_covariance_round_trip(tmp_path):
+    """Stencil → one-sample channels (× n) → file → stencil of the means (÷ SampleCount)."""
+    rng = np.random.default_rng(3)
+    st, cov = _stencil_stats(rng)
+    p = tmp_path / "crn.exr"
+    write_exr(p, st, extra=exr.spatial_covariance_channels(cov, st.n))
+    names = read_channels(p)
+    assert "SpatialCovariance.-1+1.G" in names and "SpatialCovariance.+0+0.B" in names
+    got = exr.read_spatial_covariance(p)
+    np.testing.assert_allclose(got, cov, rtol=1e-6, atol=1e-12)
+    # the centre is the variance the file holds in Variance.*
+    np.testing.assert_allclose(got[:, :, 1, 1], read_exr(p).mean_var, rtol=1e-6, atol=1e-12)
+    # the plain statistics read as before
+    assert read_exr(p).mean.shape == (5, 6, 3)
+
+
+def test_spatial_covariance_absent_partial_and_bad(tmp_path):
+    rng = np.random.default_rng(4)
+    st, cov = _stencil_stats(rng)
+    p = tmp_path / "plain.exr"
+    write_exr(p, st)
+    assert exr.read_spatial_covariance(p) is None
+    ch = exr.spatial_covariance_channels(cov, st.n)
+    del ch["SpatialCovariance.+1-1.R"]
+    q = tmp_path / "partial.exr"
+    write_exr(q, st, extra=ch)
+    with pytest.raises(FileFormatError, match=r"partial SpatialCovariance.*\+1-1\.R"):
+        exr.read_spatial_covariance(q)
+    with pytest.raises(InputError, match="odd m"):
+        exr.spatial_covariance_channels(cov[:, :, :2, :2], st.n)
+    with pytest.raises(InputError, match=r"\(H, W\)"):
+        exr.spatial_covariance_channels(cov, st.n[:2])
+    bad = cov.copy()
+    bad[0, 0, 0, 0, 0] = np.nan
+    with pytest.raises(InputError, match="cov"):
+        exr.spatial_covariance_channels(bad, st.n)

@@ -398,3 +398,73 @@ def test_scalar_variant_renders_counts(cornell, pilot, reference):
         assert p > ALPHA, msg
     finally:
         _ensure_variant(cornell)
+
+
+# ------------------------------------------------------------------ common random numbers
+CRN_RENDERS = 48
+CRN_SPP = 4
+
+
+@pytest.fixture(scope="module")
+def crn_renders(cornell):
+    """``CRN_RENDERS`` independent CRN renders (seeds 0, 1, ...): means and 5x5 stencils."""
+    if not cornell._jit:
+        pytest.skip("CRN renders need a JIT variant")
+    out = [cornell.render_crn(CRN_SPP, seed=s, stencil=5, features=False)
+           for s in range(CRN_RENDERS)]
+    return np.array([st.mean for st, _ in out]), np.array([c for _, c in out]), out[0][0]
+
+
+def test_crn_render_is_unbiased(crn_renders, reference):
+    """Each CRN render is an unbiased image: its pixels are correlated, so the test is
+    across renders (i.i.d.): t-test of the per-render image mean minus the reference's."""
+    means, _, st = crn_renders
+    assert st.meta["crn"] and np.all(st.n == CRN_SPP)
+    d = means.mean(axis=(1, 2, 3)) - reference.mean()
+    p, msg = _ttest_zero(d, "CRN image mean − reference")
+    assert p > ALPHA, msg
+
+
+@pytest.mark.parametrize("dy,dx", [(0, 0), (0, 1), (1, 0), (-1, 2), (2, 2)])
+def test_crn_covariance_stencil_is_unbiased(crn_renders, reference, pilot, dy, dx):
+    """``cov_z[p, R+dy, R+dx]`` estimates cov(z_p, z_q), q = p + (dy, dx), without bias:
+    per render, u = mean over p of (stencil − (z_p − μ_p)(z_q − μ_q)) / (s_p s_q) has
+    expectation 0 (μ: the 2048-spp reference, whose own noise adds ~0.2 % of the
+    covariance; s²: an independent render's sample variance, a fixed scale that keeps
+    the light's pixels from drowning the rest); t-test over the i.i.d. renders."""
+    means, covs, _ = crn_renders
+    H, W = means.shape[1:3]
+    ys, yq = slice(max(-dy, 0), H - max(dy, 0)), slice(max(dy, 0), H + min(dy, 0))
+    xs, xq = slice(max(-dx, 0), W - max(dx, 0)), slice(max(dx, 0), W + min(dx, 0))
+    e = means - reference[None]
+    s = np.sqrt(np.maximum(pilot, 1e-8) / CRN_SPP)
+    scale = s[ys, xs] * s[yq, xq]
+    prod = e[:, ys, xs] * e[:, yq, xq]
+    est = covs[:, ys, xs, 2 + dy, 2 + dx]
+    u = ((est - prod) / scale).mean(axis=(1, 2, 3))
+    p, msg = _ttest_zero(u, f"stencil ({dy}, {dx}) − MC product")
+    assert p > ALPHA, msg
+    assert np.all(covs[:, :, :, 2, 2] >= 0)
+
+
+def test_crn_pixels_are_correlated_and_centre_is_the_variance(crn_renders, cornell):
+    """The point of CRN: neighbouring errors are strongly positively correlated (an
+    independent render's are not), and the stencil's centre is ``mean_var``."""
+    _, covs, st = crn_renders
+    np.testing.assert_allclose(covs[0][:, :, 2, 2], st.mean_var, rtol=1e-9, atol=1e-15)
+    v = covs[..., 2, 2, :]
+    right = covs[:, :, :-1, 2, 3]
+    ok = (v[:, :, :-1] > 0) & (v[:, :, 1:] > 0)
+    corr = right[ok] / np.sqrt(v[:, :, :-1][ok] * v[:, :, 1:][ok])
+    assert np.median(corr) > 0.5, np.median(corr)
+    # outside the image: 0
+    assert np.all(covs[:, 0, :, 0:2] == 0) and np.all(covs[:, :, -1, :, 3:] == 0)
+
+
+def test_crn_render_bad_input(cornell):
+    if not cornell._jit:
+        pytest.skip("CRN renders need a JIT variant")
+    with pytest.raises(InputError, match="stencil"):
+        cornell.render_crn(4, stencil=4)
+    with pytest.raises(InputError, match="spp"):
+        cornell.render_crn(0)
