@@ -77,6 +77,9 @@ _AUTO: dict[str, str] = {}
 _SALT_MAIN = 0x5EED
 _SALT_FEATURES = 0xFEA7
 _SALT_CRN = 0xC0CA
+
+#: Largest memory :meth:`MitsubaRenderer.render_crn` may take for its stencil arrays.
+CRN_MAX_BYTES = 4 * 2 ** 30
 _PAIRS = ((0, 1), (0, 2), (1, 2))   # channel pairs RG, RB, GB (PixelStats.from_sums order)
 
 
@@ -463,7 +466,8 @@ class MitsubaRenderer:
         -----
         Needs a JIT variant (``llvm_ad_rgb``): the scalar fallback renders through
         ``mi.render``, which seeds every pixel differently.  Costs ``spp`` wavefronts of
-        ``H·W`` samples, with the sums kept in NumPy (``(H, W, m, m, 3)`` float64).
+        ``H·W`` samples, with the sums kept in NumPy (two ``(H, W, m, m, 3)`` float64
+        arrays; more than :data:`CRN_MAX_BYTES` is refused: at 1920x1080 use m <= 7).
         """
         spp = _check_int("spp", spp, minimum=1)
         seed = _check_int("seed", seed, minimum=0)
@@ -471,6 +475,11 @@ class MitsubaRenderer:
         m = _check_int("stencil", stencil, minimum=1)
         if m % 2 == 0:
             raise InputError(f"`stencil` must be an odd width; got {stencil}.")
+        need = 2 * self.height * self.width * m * m * 3 * 8      # products + covariance
+        if need > CRN_MAX_BYTES:
+            raise InputError(f"a {m}x{m} covariance stencil at {self.width}x{self.height} needs "
+                             f"{need / 2 ** 30:.1f} GiB (limit {CRN_MAX_BYTES / 2 ** 30:.0f} GiB); "
+                             f"use a smaller `stencil`.")
         if not self._jit:
             raise InputError(f"common-random-number renders need a JIT Mitsuba variant "
                              f"(llvm_ad_rgb); this renderer runs {self.variant!r} ({_LLVM_HINT}).")

@@ -468,3 +468,5 @@ def test_crn_render_bad_input(cornell):
         cornell.render_crn(4, stencil=4)
     with pytest.raises(InputError, match="spp"):
         cornell.render_crn(0)
+    with pytest.raises(InputError, match="GiB.*smaller `stencil`"):
+        cornell.render_crn(4, stencil=401)
