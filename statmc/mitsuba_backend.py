@@ -467,7 +467,7 @@ class MitsubaRenderer:
         Needs a JIT variant (``llvm_ad_rgb``): the scalar fallback renders through
         ``mi.render``, which seeds every pixel differently.  Costs ``spp`` wavefronts of
         ``H·W`` samples, with the sums kept in NumPy (two ``(H, W, m, m, 3)`` float64
-        arrays; more than :data:`CRN_MAX_BYTES` is refused: at 1920x1080 use m <= 7).
+        arrays; more than :data:`CRN_MAX_BYTES` is refused: at 1920x1080, m <= 5).
         """
         spp = _check_int("spp", spp, minimum=1)
         seed = _check_int("seed", seed, minimum=0)
