@@ -75,13 +75,17 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
 
 def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None, seed: int = 0,
                         progress: bool = False, gamma: float = 0.2, initial_spp: int = 4,
-                        iterations: int = 8, denoiser: str | None = None) -> PixelStats:
+                        iterations: int = 8, denoiser: str | None = None,
+                        gem_bias: str | None = None, sigma: float = 1.0) -> PixelStats:
     """One render: fixed ``counts`` (uniform or a user map) or an adaptive ``sampler``.
 
     ``denoiser`` is the one the sampler optimises for: ``"oidn"`` (default), ``"gem"`` or
     ``"gaussian"`` for ``"denoising-aware"``; ``"gem"`` (default: GEM kernels chosen on the
     pilot pass and held fixed) or ``"gaussian"`` (a fixed σ = 1 Gaussian) for
-    ``"expected-error"``.
+    ``"expected-error"``.  ``gamma`` drives the ``"gem"`` sampler and the GEM pilot
+    kernels of ``"expected-error"``; the denoising-aware sampler's GEM denoiser gets
+    ``gamma`` and ``gem_bias`` (``None``/``"pooled"`` or ``"paper"``, as in
+    :func:`reconstruct_stats`), its Gaussian ``sigma``.
     """
     if sampler == "uniform":
         if counts is None:
@@ -92,12 +96,18 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
     from .adaptive import adaptive_render
     opts = {"gamma": gamma} if sampler == "gem" else {}
     if sampler == "denoising-aware":
-        opts = {"denoiser": denoiser or "oidn"}
+        name = denoiser or "oidn"
+        dopts = _denoiser_options(name, gamma, sigma, gem_bias)
+        if dopts:  # rebuilt from the current statistics at every iteration, with the options
+            from .progressive import bind_denoiser
+            opts = {"denoiser": lambda st: bind_denoiser(name, st, **dopts)}
+        else:
+            opts = {"denoiser": name}
     elif sampler == "expected-error":
         if denoiser not in (None, "gem", "gaussian"):
             raise InputError(f"the expected-error sampler needs a kernel denoiser, 'gem' or "
                              f"'gaussian'; got {denoiser!r}.")
-        opts = {"kernels": "gem"} if denoiser in (None, "gem") else {}
+        opts = {"kernels": "gem", "gem_options": {"gamma": gamma}} if denoiser in (None, "gem") else {}
     res = adaptive_render(renderer, spp, sampler=sampler, initial_spp=initial_spp,
                           iterations=iterations, seed=seed, progress=progress, **opts)
     res.stats.meta.update(seconds_sampler=res.seconds_sampler, seconds_render=res.seconds_render,
