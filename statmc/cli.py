@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import numbers
 import os
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -17,7 +19,9 @@ import numpy as np
 from . import __version__
 from .errors import InputError
 
+DESCRIPTION = "statmc: statistics of Monte Carlo rendering (render, reconstruct, denoise, combine)."
 EXIT_USAGE = 2
+INITIAL_SPP, ITERATIONS = 4, 8  # the adaptive samplers' uniform pilot pass, then passes
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -34,9 +38,115 @@ def _parse_size(text: str | None):
 
 
 def _positive_int(name: str, value) -> int:
-    if value is None or int(value) != value or value < 0:
-        raise InputError(f"{name} must be a non-negative integer; got {value!r}.")
+    """``value`` as a positive int; whole floats such as ``4.0`` are refused like on the
+    command line (a sample count is an integer)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise InputError(f"{name} must be a positive integer; got {value!r}.")
     return int(value)
+
+
+# argparse types: a bad number is refused while parsing, with a message naming what was
+# expected (argparse prefixes "argument --NAME: ").
+def _int_type(lo: int, what: str):
+    def parse(text: str) -> int:
+        try:
+            v = int(text, 10)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}; got {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"expected {what}; got {text!r}")
+        return v
+    parse.__name__ = what  # argparse names the type in some messages
+    return parse
+
+
+POSITIVE_INT = _int_type(1, "a positive integer")
+SEED = _int_type(0, "a non-negative integer seed")
+
+
+def _float_type(what: str, *, positive: bool = False):
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}; got {text!r}") from None
+        if not np.isfinite(v) or (positive and v <= 0):
+            raise argparse.ArgumentTypeError(f"expected {what}; got {text!r}")
+        return v
+    parse.__name__ = what
+    return parse
+
+
+FINITE = _float_type("a finite number")
+POSITIVE = _float_type("a finite number > 0", positive=True)
+
+
+def _gamma_type(text: str) -> float:
+    from .gem import error_rate_weight
+    v = FINITE(text)
+    try:
+        error_rate_weight(v)  # the range check of GEM's error rate
+    except InputError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("`gamma`", "GEM's error rate").rstrip(".")) from None
+    return v
+
+
+def _odd_int(text: str) -> int:
+    v = _int_type(1, "an odd positive integer")(text)
+    if v % 2 == 0:
+        raise argparse.ArgumentTypeError(f"expected an odd positive integer (a window width); got {text!r}")
+    return v
+
+
+def _nearest_existing(path: str) -> str:
+    d = os.path.abspath(path)
+    while not os.path.lexists(d):
+        d = os.path.dirname(d)
+    return d
+
+
+def _check_writable_dir(directory: str, out: str) -> None:
+    """Refuse ``--out out`` before any work when ``directory`` (created if missing) cannot be."""
+    d = _nearest_existing(directory)
+    if not os.path.isdir(d):
+        raise InputError(f"cannot write --out {out!r}: {d!r} is not a directory.")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".statmc-probe-", dir=d)
+        os.close(fd)
+        os.remove(probe)
+    except OSError as e:
+        raise InputError(f"cannot write --out {out!r}: cannot create a file in {d!r} "
+                         f"({e.strerror}).") from None
+
+
+def _check_out_file(path: str, inputs=()) -> None:
+    """Refuse, before any work, an output EXR path that is not ``*.exr`` (its PNG preview
+    would replace it), is a directory, names an input, or cannot be written."""
+    from ._atomic import check_not_input
+    if os.path.isdir(path):
+        raise InputError(f"--out {path!r} is a directory; expected an .exr file path.")
+    if not path.lower().endswith(".exr"):
+        raise InputError(f"--out must name an .exr file (a .png preview is written beside it); "
+                         f"got {path!r}.")
+    check_not_input(path, inputs)
+    check_not_input(os.path.splitext(path)[0] + ".png", inputs)
+    _check_writable_dir(os.path.dirname(os.path.abspath(path)), path)
+
+
+RENDER_OUTPUTS = ("render.exr", "render.png", "counts.exr", "counts.png", "reconstruction.exr",
+                  "reconstruction.png", "scales.exr", "scales.png", "report.json")
+
+
+def _check_out_dir(path: str, inputs=()) -> None:
+    """Refuse, before rendering, an output directory that is a file, cannot be written, or
+    would receive a file onto one of ``inputs``."""
+    from ._atomic import check_not_input
+    if os.path.lexists(path) and not os.path.isdir(path):
+        raise InputError(f"--out {path!r} exists and is not a directory; render writes a "
+                         f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...).")
+    for name in RENDER_OUTPUTS:
+        check_not_input(os.path.join(path, name), inputs)
+    _check_writable_dir(path, path)
 
 
 def load_sample_map(path: str) -> np.ndarray:
@@ -47,7 +157,8 @@ def load_sample_map(path: str) -> np.ndarray:
         try:
             m = np.load(path, allow_pickle=False)
         except (ValueError, OSError) as e:
-            raise InputError(f"cannot read sample map {path} as .npy: {e}") from None
+            why = "not a NumPy .npy array file" if "pickle" in str(e) else str(e)
+            raise InputError(f"cannot read sample map {path}: {why}.") from None
     elif path.lower().endswith(".exr"):
         from .exr import read_channels
         ch = read_channels(path)
@@ -76,6 +187,15 @@ def load_sample_map(path: str) -> np.ndarray:
     return m
 
 
+MAX_COUNT = 2**32 - 1  # the largest sample count an EXR SampleCount channel holds (statmc.exr)
+
+
+def _check_count_range(what: str, largest) -> None:
+    if largest > MAX_COUNT:
+        raise InputError(f"{what} asks for up to {largest:.4g} samples per pixel; at most "
+                         f"{MAX_COUNT} fit the SampleCount channel of the output.")
+
+
 def counts_for_render(height, width, *, spp=None, sample_map=None, seed=0) -> np.ndarray:
     """The integer count map a render uses: uniform ``spp``, or a sample map.
 
@@ -86,11 +206,16 @@ def counts_for_render(height, width, *, spp=None, sample_map=None, seed=0) -> np
     if sample_map is None:
         if spp is None:
             raise InputError("give --spp (samples per pixel) or --sample-map.")
-        return np.full((height, width), _positive_int("--spp", spp), np.int64)
+        spp = _positive_int("--spp", spp)
+        _check_count_range("--spp", spp)
+        return np.full((height, width), spp, np.int64)
     if sample_map.shape != (height, width):
         raise InputError(f"sample map is {sample_map.shape[1]}x{sample_map.shape[0]} (WxH) but the "
                          f"render is {width}x{height}; pass a matching --size.")
     if np.all(sample_map == np.round(sample_map)) and spp is None:
+        if not sample_map.any():
+            raise InputError("the sample map holds only zeros; give at least one sample.")
+        _check_count_range("the sample map", sample_map.max())
         return sample_map.astype(np.int64)
     if spp is None:
         raise InputError("a real-valued sample map needs --spp to set the budget.")
@@ -129,6 +254,8 @@ def cmd_render(args) -> int:
     from .renderers import make_renderer
 
     width, height = _parse_size(args.size)
+    inputs = [p for p in (args.sample_map, args.reference) if p]
+    _check_out_dir(args.out, inputs)
     sample_map = load_sample_map(args.sample_map) if args.sample_map else None
     if sample_map is not None and width is None:
         height, width = sample_map.shape
@@ -136,40 +263,32 @@ def cmd_render(args) -> int:
         raise InputError(f"--sample-map fixes the counts; it cannot be combined with --sampler {args.sampler}.")
     ref = read_image(args.reference) if args.reference else None
     renderer = make_renderer(args.scene, width=width, height=height)
+    if args.spp is not None:
+        _check_count_range("--spp", args.spp)
     counts = None
     if args.sampler == "uniform":
         counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
                                    sample_map=sample_map, seed=args.seed)
-    elif args.spp is None or args.spp <= 0:
-        raise InputError(f"--sampler {args.sampler} needs a positive --spp budget; got {args.spp}.")
-    if ref is not None and ref.shape[:2] != (renderer.height, renderer.width):
-        raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} but the render "
-                         f"is {renderer.width}x{renderer.height}.")
-    inputs = [p for p in (args.sample_map, args.reference) if p]
+    if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
+        raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
+                         f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
+                         f"got {args.spp}.")
+    if ref is not None and ref.shape != (renderer.height, renderer.width, 3):
+        raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} with "
+                         f"{ref.shape[2]} channel(s) but the render is {renderer.width}x"
+                         f"{renderer.height} R,G,B.")
     t0 = time.perf_counter()
     stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
                                 seed=args.seed, progress=not args.quiet, gamma=args.gamma,
-                                denoiser=args.denoiser)
+                                denoiser=args.denoiser, gem_bias=args.gem_bias,
+                                initial_spp=INITIAL_SPP, iterations=ITERATIONS)
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
                                     denoiser=args.denoiser or "oidn", seed=args.seed,
                                     gem_bias=args.gem_bias)
     seconds_rec = time.perf_counter() - t0
-    os.makedirs(args.out, exist_ok=True)
-    out = lambda name: os.path.join(args.out, name)  # noqa: E731
-    write_exr(out("render.exr"), stats, protect=inputs)
-    write_png_preview(out("render.png"), stats.mean, protect=inputs)
-    write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
-    write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
-    if args.reconstruct != "none":
-        write_exr(out("reconstruction.exr"), image, protect=inputs,
-                  extra={f"{args.reconstruct}.{k}": v for k, v in maps.items()})
-        write_png_preview(out("reconstruction.png"), image, protect=inputs)
-        if "scale" in maps:
-            write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
-            write_map_png(out("scales.png"), maps["scale"], cmap="magma",
-                          label="selected scale (0 = pixel filter)", protect=inputs)
+    # Everything is computed before the first file is written: a failure writes nothing.
     n = stats.n
     total = int(n.sum())
     report = {
@@ -188,6 +307,20 @@ def cmd_render(args) -> int:
         report["metrics"] = all_metrics(stats.mean.astype(np.float32), ref)
         if args.reconstruct != "none":
             report["metrics_reconstruction"] = all_metrics(image, ref)
+    os.makedirs(args.out, exist_ok=True)
+    out = lambda name: os.path.join(args.out, name)  # noqa: E731
+    write_exr(out("render.exr"), stats, protect=inputs)
+    write_png_preview(out("render.png"), stats.mean, protect=inputs)
+    write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
+    write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
+    if args.reconstruct != "none":
+        write_exr(out("reconstruction.exr"), image, protect=inputs,
+                  extra={f"{args.reconstruct}.{k}": v for k, v in maps.items()})
+        write_png_preview(out("reconstruction.png"), image, protect=inputs)
+        if "scale" in maps:
+            write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
+            write_map_png(out("scales.png"), maps["scale"], cmap="magma",
+                          label="selected scale (0 = pixel filter)", protect=inputs)
     _write_json(out("report.json"), report, protect=inputs)
     if not args.quiet:
         msg = f"wrote {args.out}/ ({total} samples, {seconds:.2f} s"
@@ -203,6 +336,7 @@ def cmd_render(args) -> int:
 def cmd_reconstruct(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
+    _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
@@ -212,9 +346,10 @@ def cmd_reconstruct(args) -> int:
 
 def _add_gem_options(parser, gamma_use: str = "") -> None:
     """``--gamma`` and ``--gem-bias``: the GEM selector's error rate and bias estimate."""
-    parser.add_argument("--gamma", type=float, default=0.2,
-                        help=f"GEM error-rate parameter γ (Rousselle 2011 §4.3): used by {gamma_use}"
-                             "by the final GEM reconstruction only with --gem-bias paper")
+    parser.add_argument("--gamma", type=_gamma_type, default=0.2,
+                        help=f"GEM error-rate parameter γ in (0, 0.526), default 0.2 (Rousselle "
+                             f"2011 §4.3): used {gamma_use}by the final GEM reconstruction (and "
+                             "--denoiser gem) only with --gem-bias paper")
     parser.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
                         help="bias estimate of GEM's final scale selection: pooled (default, "
                              "docs/gem.md §5d) or the paper's per-pixel Eq. 1")
@@ -230,6 +365,7 @@ def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0, gem_bias=None):
 def cmd_denoise(args) -> int:
     from .exr import read_exr
     from .stats import PixelStats
+    _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
                          gem_bias=args.gem_bias)
@@ -255,6 +391,7 @@ def cmd_denoise(args) -> int:
 def cmd_progressive(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
+    _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
@@ -266,6 +403,7 @@ def cmd_progressive(args) -> int:
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
+    _check_out_file(args.out, [args.y, args.z])
     y_stats = read_exr(args.y, spp=args.spp)
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
@@ -277,8 +415,6 @@ def cmd_combine(args) -> int:
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
-    if args.size < 1 or args.size % 2 == 0:
-        raise InputError(f"--size must be an odd window width; got {args.size}.")
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -299,10 +435,9 @@ def cmd_reference(args) -> int:
 
     width, height = _parse_size(args.size)
     spp = _positive_int("--spp", args.spp)
-    if spp == 0:
-        raise InputError("--spp must be positive for a reference.")
+    _check_out_file(args.out)
     renderer = make_renderer(args.scene, width=width, height=height)
-    per_pass = min(spp, args.pass_spp)
+    per_pass = min(spp, _positive_int("--pass-spp", args.pass_spp))
     passes = [per_pass] * (spp // per_pass) + ([spp % per_pass] if spp % per_pass else [])
     stats = None
     for k, s in enumerate(tqdm(passes, desc="reference passes", unit="pass", disable=args.quiet)):
@@ -344,18 +479,30 @@ def cmd_scenes(args) -> int:
 
 
 # ---------------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with the commands' one-line errors (exit status 2) instead of the usage block."""
+
+    def error(self, message):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
+SPP_HELP = "samples per pixel of a file without SampleCount (a positive integer)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="statmc", description=__doc__.splitlines()[0])
+    p = _Parser(prog="statmc", description=DESCRIPTION)
     p.add_argument("--version", action="version", version=f"statmc {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     r = sub.add_parser("render", help="render a scene with uniform or mapped per-pixel sample counts")
     r.add_argument("scene", help="built-in scene name (see `statmc scenes`), toy:NAME, or Mitsuba XML path")
-    r.add_argument("--spp", type=int, help="samples per pixel (the budget for a real-valued --sample-map)")
-    r.add_argument("--out", required=True, help="output directory")
+    r.add_argument("--spp", type=POSITIVE_INT,
+                   help="samples per pixel, a positive integer (the budget of an adaptive --sampler "
+                        "or of a real-valued --sample-map)")
+    r.add_argument("--out", required=True, help="output directory (created if missing)")
     r.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
     r.add_argument("--reference", help="reference EXR: metrics go into report.json")
     r.add_argument("--sampler", choices=["uniform", "gem", "expected-error", "denoising-aware"],
@@ -371,74 +518,81 @@ def build_parser() -> argparse.ArgumentParser:
                                              "oidn+combine"],
                    default="none",
                    help="reconstruction written beside the raw render")
-    _add_gem_options(r, "the adaptive --sampler gem always; ")
-    r.add_argument("-q", "--quiet", action="store_true")
+    _add_gem_options(r, "by the adaptive --sampler gem and the pilot kernels of --sampler "
+                        "expected-error always, and ")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary line")
     r.set_defaults(func=cmd_render)
 
     rc = sub.add_parser("reconstruct", help="reconstruct an image from a statistics EXR (any renderer)")
     rc.add_argument("input", help="EXR with R,G,B, Variance.* and SampleCount (or --spp)")
-    rc.add_argument("--method", choices=["gem"], default="gem")
-    rc.add_argument("--out", required=True, help="output EXR (a PNG preview goes beside it)")
-    rc.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
+    rc.add_argument("--method", choices=["gem"], default="gem", help="reconstruction (only gem)")
+    rc.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
+    rc.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     _add_gem_options(rc)
-    rc.add_argument("-q", "--quiet", action="store_true")
+    rc.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     rc.set_defaults(func=cmd_reconstruct)
 
     ref = sub.add_parser("reference", help="render a high-spp reference in passes")
-    ref.add_argument("scene")
-    ref.add_argument("--spp", type=int, required=True)
-    ref.add_argument("--out", required=True, help="output EXR path")
-    ref.add_argument("--size")
-    ref.add_argument("--seed", type=int, default=1_000_003)
-    ref.add_argument("--pass-spp", type=int, default=256, help="samples per pixel per pass")
-    ref.add_argument("-q", "--quiet", action="store_true")
+    ref.add_argument("scene", help="as for `statmc render`")
+    ref.add_argument("--spp", type=POSITIVE_INT, required=True, help="total samples per pixel")
+    ref.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
+    ref.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
+    ref.add_argument("--seed", type=SEED, default=1_000_003, help="random seed of the first pass")
+    ref.add_argument("--pass-spp", type=POSITIVE_INT, default=256,
+                     help="samples per pixel per pass (default 256)")
+    ref.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary line")
     ref.set_defaults(func=cmd_reference)
 
     m = sub.add_parser("metrics", help="error metrics of an image against a reference (JSON)")
-    m.add_argument("image")
-    m.add_argument("reference")
-    m.add_argument("--replace-nonfinite", type=float, metavar="VALUE",
+    m.add_argument("image", help="EXR image (R,G,B or Y)")
+    m.add_argument("reference", help="EXR of the same size")
+    m.add_argument("--replace-nonfinite", type=FINITE, metavar="VALUE",
                    help="replace NaN/Inf pixels by VALUE (default: refuse such files)")
     m.set_defaults(func=cmd_metrics)
 
     i = sub.add_parser("info", help="channels, size, sample counts and NaN/Inf counts of an EXR")
-    i.add_argument("file")
+    i.add_argument("file", help="EXR file")
     i.set_defaults(func=cmd_info)
 
     d = sub.add_parser("denoise", help="denoise a statistics EXR (OIDN uses its albedo/normal)")
-    d.add_argument("input")
-    d.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn")
-    d.add_argument("--out", required=True)
-    d.add_argument("--spp", type=int, help="uniform sample count for files without SampleCount")
+    d.add_argument("input", help="statistics EXR (R,G,B, Variance.*, SampleCount or --spp)")
+    d.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
+                   help="default oidn")
+    d.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
+    d.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
     _add_gem_options(d)
-    d.add_argument("--sigma", type=float, default=1.0, help="Gaussian standard deviation (pixels)")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("-q", "--quiet", action="store_true")
+    d.add_argument("--sigma", type=POSITIVE, default=1.0,
+                   help="standard deviation of --denoiser gaussian in pixels (default 1)")
+    d.add_argument("--seed", type=SEED, default=0, help="seed of --variance's random probes")
+    d.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     d.set_defaults(func=cmd_denoise)
 
     pg = sub.add_parser("progressive", help="progressive denoising (Firmino 2022): the render mixed "
                                             "with a denoiser's output by a Student-t gated α")
     pg.add_argument("input", help="statistics EXR (R,G,B, Variance.*, SampleCount or --spp)")
-    pg.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn")
-    pg.add_argument("--out", required=True)
-    pg.add_argument("--spp", type=int)
+    pg.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
+                    help="default oidn")
+    pg.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
+    pg.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     _add_gem_options(pg)
-    pg.add_argument("--seed", type=int, default=0, help="seed of MC-SURE's random probes")
-    pg.add_argument("-q", "--quiet", action="store_true")
+    pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
+    pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     pg.set_defaults(func=cmd_progressive)
 
     c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 Eq. 8)")
     c.add_argument("y", help="statistics EXR of the independent render")
     c.add_argument("z", help="correlated image (e.g. its denoised version); with --weights "
                              "statistical it needs Variance.* too (statmc denoise --variance)")
-    c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical")
-    c.add_argument("--size", type=int, default=15, help="odd window width")
-    c.add_argument("--sigma", type=float, default=3.0, help="spatial σ of --weights gaussian")
-    c.add_argument("--spp", type=int)
-    c.add_argument("--out", required=True)
-    c.add_argument("-q", "--quiet", action="store_true")
+    c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
+                   help="default statistical")
+    c.add_argument("--size", type=_odd_int, default=15, help="odd window width (default 15)")
+    c.add_argument("--sigma", type=POSITIVE, default=3.0,
+                   help="spatial σ of --weights gaussian in pixels (default 3)")
+    c.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
+    c.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
+    c.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     c.set_defaults(func=cmd_combine)
 
     s = sub.add_parser("scenes", help="list built-in scenes")
@@ -446,9 +600,31 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Library messages name keyword arguments; on the command line the same things are options.
+_CLI_WORDING = (
+    ("pass the render's uniform spp=.", "pass the render's uniform samples per pixel as --spp N."),
+    ("omit spp= to use the file's counts", "omit --spp to use the file's counts"),
+    (" Pass require_variance=False to read it with zero variance, or use read_image().", ""),
+    ("`spp`", "--spp"),
+)
+_NONFINITE_HINT = "pass nonfinite='replace' to replace them by `replace_value`."
+
+
+def _cli_message(message: str, command: str) -> str:
+    """``message`` with the library's keyword hints replaced by the command's options."""
+    for old, new in _CLI_WORDING:
+        message = message.replace(old, new)
+    fix = ("give --replace-nonfinite VALUE to replace them." if command == "metrics" else
+           "expected finite values (`statmc info FILE` counts them per channel).")
+    return message.replace(_NONFINITE_HINT, fix)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, --version (0) and argument errors (2, one line printed)
+        return e.code if isinstance(e.code, int) else EXIT_USAGE
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -457,7 +633,7 @@ def main(argv=None) -> int:
     except (ValueError, OSError, MemoryError) as e:  # InputError and FileFormatError are ValueErrors
         if args.debug:
             raise
-        print(f"statmc {args.command}: error: {e}", file=sys.stderr)
+        print(f"statmc {args.command}: error: {_cli_message(str(e), args.command)}", file=sys.stderr)
         return EXIT_USAGE
 
 

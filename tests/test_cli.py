@@ -276,9 +276,8 @@ def test_reconstruct_gem_bias_option_matches_the_library(tmp_path, toy_render):
     assert np.array_equal(imgs["pooled", 0.2], imgs["pooled", 0.05])
     assert not np.array_equal(imgs["paper", 0.2], imgs["paper", 0.05])
     assert not np.array_equal(imgs["paper", 0.2], imgs["pooled", 0.2])
-    with pytest.raises(SystemExit) as e:  # argparse refuses an unknown choice (exit 2)
-        run_cli("reconstruct", toy_render, "--gem-bias", "robust", "--out", tmp_path / "x.exr")
-    assert e.value.code == 2 and not (tmp_path / "x.exr").exists()
+    code, _, err = run_cli("reconstruct", toy_render, "--gem-bias", "robust", "--out", tmp_path / "x.exr")
+    assert code == 2 and "robust" in err and not (tmp_path / "x.exr").exists()  # argparse's choices
 
 
 def test_denoise_and_progressive_forward_gem_bias(tmp_path, toy_render):
@@ -296,3 +295,228 @@ def test_denoise_and_progressive_forward_gem_bias(tmp_path, toy_render):
         assert not np.array_equal(out[cmd, "paper", 0.05], out[cmd, "paper", 0.3])
         assert np.array_equal(out[cmd, "pooled", 0.05], out[cmd, "pooled", 0.3])
         assert not np.array_equal(out[cmd, "paper", 0.3], out[cmd, "pooled", 0.3])
+
+
+def _write_channels(path, channels):
+    import OpenEXR
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}).write(str(path))
+
+
+def _stat_channels(exr):
+    """The channels of a statistics EXR as float32 arrays, to edit and write back."""
+    from statmc.exr import read_channels
+    return {k: np.array(v, np.float32) for k, v in read_channels(exr).items()}
+
+
+def _assert_one_line_error(code, err, needle):
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], err
+    assert "Traceback" not in err
+
+
+def _files(d):
+    return sorted(p.name for p in d.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["render", "toy:mixed", "--spp", "0", "--size", "24x16", "--out", "{tmp}/x"], "--spp"),
+    (["render", "toy:mixed", "--spp", "2.5", "--size", "24x16", "--out", "{tmp}/x"], "--spp"),
+    (["render", "toy:mixed", "--spp", "4.0", "--size", "24x16", "--out", "{tmp}/x"], "--spp"),
+    (["render", "toy:mixed", "--spp", "4", "--seed", "-1", "--size", "24x16", "--out", "{tmp}/x"], "--seed"),
+    (["render", "toy:mixed", "--spp", "4", "--gamma", "nan", "--out", "{tmp}/x"], "--gamma"),
+    (["render", "toy:mixed", "--spp", "4", "--gamma", "0.9", "--out", "{tmp}/x"], "--gamma"),
+    (["render", "toy:mixed", "--spp", "2", "--sampler", "gem", "--size", "24x16", "--out", "{tmp}/x"],
+     "--spp budget of at least 4"),
+    (["render", "toy:mixed", "--spp", "10000000000", "--size", "24x16", "--out", "{tmp}/x"], "--spp"),
+    (["reference", "toy:mixed", "--spp", "8", "--pass-spp", "0", "--out", "{tmp}/x/r.exr"], "--pass-spp"),
+    (["reference", "toy:mixed", "--spp", "0", "--out", "{tmp}/x/r.exr"], "--spp"),
+    (["reconstruct", "{tmp}/in.exr", "--spp", "0", "--out", "{tmp}/x/r.exr"], "--spp"),
+    (["denoise", "{tmp}/in.exr", "--denoiser", "gaussian", "--sigma", "0", "--out", "{tmp}/x/d.exr"],
+     "--sigma"),
+    (["progressive", "{tmp}/in.exr", "--seed", "-2", "--out", "{tmp}/x/p.exr"], "--seed"),
+    (["combine", "{tmp}/in.exr", "{tmp}/in.exr", "--size", "4", "--out", "{tmp}/x/c.exr"], "--size"),
+    (["metrics", "{tmp}/in.exr", "{tmp}/in.exr", "--replace-nonfinite", "nan"], "--replace-nonfinite"),
+    (["render", "toy:mixed", "--spp", "4", "--bogus", "--out", "{tmp}/x"], "--bogus"),
+])
+def test_bad_numbers_are_refused_in_one_line_before_any_work(tmp_path, toy_render, args, needle):
+    """Regression: --spp 0 rendered an empty image, --pass-spp 0 raised ZeroDivisionError,
+    --seed -1 failed inside NumPy, and argparse's refusals printed a usage block."""
+    os.link(toy_render, tmp_path / "in.exr")
+    code, out, err = run_cli(*[a.replace("{tmp}", str(tmp_path)) for a in args])
+    _assert_one_line_error(code, err, needle)
+    assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_spp_help_and_library_agree_on_whole_numbers():
+    """--spp is a positive integer on the command line ("4.0" is refused by the parser) and in
+    counts_for_render, which used to accept 4.0 and 0."""
+    from statmc.cli import counts_for_render
+    from statmc.errors import InputError
+    assert counts_for_render(2, 3, spp=np.int64(4)).tolist() == [[4] * 3] * 2
+    for bad in (4.0, 0, -1, True, "4"):
+        with pytest.raises(InputError, match="--spp must be a positive integer"):
+            counts_for_render(2, 3, spp=bad)
+
+
+@pytest.mark.parametrize("cmd", ["reconstruct", "denoise", "progressive", "combine", "reference"])
+def test_out_paths_are_refused_before_any_work(tmp_path, toy_render, cmd):
+    """Regression: `--out x.png` wrote the EXR and then the PNG preview onto the same path
+    (the EXR was lost); an --out under a file or in an unwritable directory failed after the
+    work with an OSError naming a temporary file."""
+    inp = tmp_path / "in.exr"
+    os.link(toy_render, inp)
+    (tmp_path / "file.txt").write_text("a file, not a directory")
+    before = _files(tmp_path)
+    head = {"reference": ["reference", "toy:mixed", "--spp", 4, "--size", "24x16"],
+            "combine": ["combine", inp, inp, "--weights", "uniform"]}.get(cmd, [cmd, inp])
+    for out, needle in ((tmp_path / "x.png", ".exr"), (tmp_path / "x.txt", ".exr"),
+                        (tmp_path / "file.txt" / "x.exr", "not a directory"),
+                        (tmp_path, "directory"), ("/proc/statmc-test.exr", "cannot create a file")):
+        code, _, err = run_cli(*head, "--out", out)
+        _assert_one_line_error(code, err, needle)
+        assert "--out" in err and ".statmc-" not in err
+    if cmd != "reference":
+        code, _, err = run_cli(*head, "--out", inp)
+        _assert_one_line_error(code, err, "input file")
+    assert _files(tmp_path) == before and inp.read_bytes() == toy_render.read_bytes()
+
+
+def test_render_out_must_be_a_writable_directory(tmp_path):
+    (tmp_path / "file.txt").write_text("a file")
+    for out, needle in ((tmp_path / "file.txt", "not a directory"),
+                        (tmp_path / "file.txt" / "sub", "not a directory"),
+                        ("/proc/statmc-test", "cannot create a file")):
+        code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--size", "24x16", "--out", out)
+        _assert_one_line_error(code, err, needle)
+        assert "--out" in err
+    assert _files(tmp_path) == ["file.txt"]
+
+
+def test_render_writes_nothing_when_the_reference_does_not_fit(tmp_path, toy_ref):
+    """Regression: a one-channel reference of the right size failed in the metrics, after
+    render.exr, render.png and counts.* had been written."""
+    from statmc.exr import read_image
+    gray = tmp_path / "gray.exr"
+    _write_channels(gray, {"Y": read_image(toy_ref)[..., 0]})
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--size", "24x16", "--reference", gray,
+                           "--out", tmp_path / "o", "-q")
+    _assert_one_line_error(code, err, "1 channel")
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_file_errors_name_the_command_line_options(tmp_path, toy_render):
+    """Library hints (spp=, require_variance=False, nonfinite='replace') are worded as the
+    command's options."""
+    ch = _stat_channels(toy_render)
+    nocount = {k: v for k, v in ch.items() if k != "SampleCount"}
+    _write_channels(tmp_path / "nocount.exr", nocount)
+    _write_channels(tmp_path / "novar.exr", {k: ch[k] for k in "RGB"})
+    nan = dict(ch)
+    nan["G"] = ch["G"].copy()
+    nan["G"][1, 2] = np.nan
+    _write_channels(tmp_path / "nan.exr", nan)
+    for cmd in ("reconstruct", "denoise", "progressive"):
+        code, _, err = run_cli(cmd, tmp_path / "nocount.exr", "--out", tmp_path / "o.exr")
+        _assert_one_line_error(code, err, "--spp N")
+        assert "spp=" not in err
+        code, _, err = run_cli(cmd, toy_render, "--spp", 3, "--out", tmp_path / "o.exr")
+        _assert_one_line_error(code, err, "omit --spp")
+        code, _, err = run_cli(cmd, tmp_path / "novar.exr", "--out", tmp_path / "o.exr")
+        _assert_one_line_error(code, err, "Variance.R")
+        assert "require_variance" not in err
+        code, _, err = run_cli(cmd, tmp_path / "nan.exr", "--out", tmp_path / "o.exr")
+        _assert_one_line_error(code, err, "1 NaN")
+        assert "nonfinite=" not in err
+    code, _, err = run_cli("metrics", tmp_path / "nan.exr", toy_render)
+    _assert_one_line_error(code, err, "--replace-nonfinite VALUE")
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_sample_map_mistakes(tmp_path):
+    """An all-zero map, counts beyond what an EXR SampleCount holds (the render used to run
+    for hours), and a file that is not a .npy array are refused before rendering."""
+    np.save(tmp_path / "zeros.npy", np.zeros((16, 24)))
+    np.save(tmp_path / "huge.npy", np.full((16, 24), 1e12))
+    (tmp_path / "text.npy").write_text("not an array")
+    for name, needle in (("zeros", "only zeros"), ("huge", "4294967295"), ("text", "not a NumPy")):
+        code, _, err = run_cli("render", "toy:mixed", "--sample-map", tmp_path / f"{name}.npy",
+                               "--out", tmp_path / "o")
+        _assert_one_line_error(code, err, needle)
+    assert not (tmp_path / "o").exists()
+
+
+def test_denoising_aware_gem_sampler_gets_gem_bias_and_gamma(tmp_path, monkeypatch):
+    """Regression: `render --sampler denoising-aware --denoiser gem` built its GEM denoiser
+    without --gem-bias and --gamma.  Every GEM built inside the sampler gets both, and the
+    paper's bias places samples differently from the pooled one."""
+    import statmc.denoisers
+    from statmc.exr import read_exr
+    seen = []
+    real = statmc.denoisers.gem
+
+    def spy(*a, **kw):
+        seen.append((kw.get("bias"), kw.get("gamma")))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(statmc.denoisers, "gem", spy)
+    counts = {}
+    for bias in ("paper", "pooled"):
+        seen.clear()
+        code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--sampler",
+                               "denoising-aware", "--denoiser", "gem", "--gem-bias", bias,
+                               "--gamma", 0.1, "--out", tmp_path / bias, "-q")
+        assert code == 0, err
+        assert len(seen) >= 8 and set(seen) == {(bias, 0.1)}, seen  # one GEM per iteration
+        counts[bias] = read_exr(tmp_path / bias / "render.exr").n
+    assert counts["paper"].sum() == counts["pooled"].sum() == 8 * 24 * 16
+    assert not np.array_equal(counts["paper"], counts["pooled"])
+
+
+def test_expected_error_sampler_gem_kernels_get_gamma(tmp_path, monkeypatch):
+    """--gamma reaches the GEM pilot kernels of --sampler expected-error (it was dropped)."""
+    import statmc.analytic
+    seen = []
+    real = statmc.analytic.gem_kernels
+
+    def spy(*a, **kw):
+        seen.append(kw.get("gamma"))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(statmc.analytic, "gem_kernels", spy)
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--sampler",
+                           "expected-error", "--gamma", 0.1, "--out", tmp_path / "o", "-q")
+    assert code == 0, err
+    assert seen == [0.1]
+
+
+def _subparsers():
+    import argparse
+    from statmc.cli import build_parser
+    p = build_parser()
+    action = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices
+
+
+def test_every_command_has_help_and_every_option_is_documented():
+    """Each subcommand's --help exits 0; docs/cli.md documents every option of every command
+    in that command's section, and every option its synopsis shows exists."""
+    import re
+    docs = open(os.path.join(os.path.dirname(__file__), "..", "docs", "cli.md"), encoding="utf-8").read()
+    sections = dict(re.findall(r"^## `statmc (\w+)`\n(.*?)(?=^## |\Z)", docs, flags=re.S | re.M))
+    for name, sub in _subparsers().items():
+        code, out, err = run_cli(name, "--help")
+        assert code == 0 and out.startswith("usage: statmc " + name) and "by by" not in out, err
+        if name == "scenes":
+            continue
+        assert name in sections, f"docs/cli.md has no section for statmc {name}"
+        text = sections[name]
+        synopsis = " ".join(line for line in text.splitlines() if line.startswith("    "))
+        actions = [a for a in sub._actions if a.option_strings and "--help" not in a.option_strings]
+        opts = {o for a in actions for o in a.option_strings}
+        missing = {a.option_strings[-1] for a in actions
+                   if not any(re.search(re.escape(o) + r"(?![\w-])", text) for o in a.option_strings)}
+        assert not missing, f"statmc {name}: options not in docs/cli.md: {sorted(missing)}"
+        shown = set(re.findall(r"(--[a-z][a-z-]*)", synopsis))
+        assert shown <= opts, f"statmc {name}: docs show options that do not exist: {shown - opts}"
