@@ -269,6 +269,9 @@ def cmd_render(args) -> int:
     if args.sampler == "uniform":
         counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
                                    sample_map=sample_map, seed=args.seed)
+    if counts is not None and args.reconstruct == "gem" and counts.min() < 2:
+        raise InputError(f"--reconstruct gem needs at least 2 samples in every pixel (a variance "
+                         f"needs two); the counts have {int((counts < 2).sum())} pixels with fewer.")
     if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
         raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
                          f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
@@ -606,6 +609,7 @@ _CLI_WORDING = (
     ("omit spp= to use the file's counts", "omit --spp to use the file's counts"),
     (" Pass require_variance=False to read it with zero variance, or use read_image().", ""),
     ("`spp`", "--spp"),
+    ("leave `width`/`height` unset", "omit --size"),
 )
 _NONFINITE_HINT = "pass nonfinite='replace' to replace them by `replace_value`."
 

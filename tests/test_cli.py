@@ -444,6 +444,10 @@ def test_sample_map_mistakes(tmp_path):
         code, _, err = run_cli("render", "toy:mixed", "--sample-map", tmp_path / f"{name}.npy",
                                "--out", tmp_path / "o")
         _assert_one_line_error(code, err, needle)
+    np.save(tmp_path / "ones.npy", np.tile([0, 1, 4], (16, 8)))
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", tmp_path / "ones.npy",
+                           "--reconstruct", "gem", "--out", tmp_path / "o")
+    _assert_one_line_error(code, err, "--reconstruct gem needs at least 2 samples")
     assert not (tmp_path / "o").exists()
 
 
