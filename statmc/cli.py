@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from . import __version__
-from .errors import InputError
+from .errors import FileFormatError, InputError
 
 DESCRIPTION = "statmc: statistics of Monte Carlo rendering (render, reconstruct, denoise, combine)."
 EXIT_USAGE = 2
@@ -128,8 +128,11 @@ def _check_out_file(path: str, inputs=()) -> None:
     if not path.lower().endswith(".exr"):
         raise InputError(f"--out must name an .exr file (a .png preview is written beside it); "
                          f"got {path!r}.")
+    png = os.path.splitext(path)[0] + ".png"
+    if os.path.isdir(png):
+        raise InputError(f"the preview {png!r} of --out {path!r} is a directory; choose another --out.")
     check_not_input(path, inputs)
-    check_not_input(os.path.splitext(path)[0] + ".png", inputs)
+    check_not_input(png, inputs)
     _check_writable_dir(os.path.dirname(os.path.abspath(path)), path)
 
 
@@ -146,6 +149,9 @@ def _check_out_dir(path: str, inputs=()) -> None:
                          f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...).")
     for name in RENDER_OUTPUTS:
         check_not_input(os.path.join(path, name), inputs)
+        if os.path.isdir(os.path.join(path, name)):
+            raise InputError(f"--out {path!r} holds a directory named {name}, which render writes "
+                             "as a file; choose another --out.")
     _check_writable_dir(path, path)
 
 
@@ -411,7 +417,14 @@ def cmd_combine(args) -> int:
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
     if args.weights == "statistical":
-        z_stats = read_exr(args.z, spp=args.spp)  # needs Variance.* (e.g. `statmc denoise --variance`)
+        try:
+            z_stats = read_exr(args.z, spp=args.spp)
+        except FileFormatError as e:
+            if "Variance" not in str(e):
+                raise
+            raise FileFormatError(f"{e} --weights statistical needs Z's variance: write Z with "
+                                  "`statmc denoise --variance`, or use --weights uniform or "
+                                  "gaussian.") from None
         z = z_stats.mean.astype(np.float32)
     else:
         z = read_image(args.z)

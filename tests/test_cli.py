@@ -196,6 +196,7 @@ def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
     write_exr(plain, read_image(z))
     code, _, err = run_cli("combine", toy_render, plain, "--weights", "statistical", "--out", tmp_path / "x.exr")
     assert code == 2 and "Variance" in err and not (tmp_path / "x.exr").exists()
+    assert "statmc denoise --variance" in err and "require_variance" not in err
     small = tmp_path / "small.exr"
     write_exr(small, read_image(z)[:8, :8])
     code, _, err = run_cli("combine", toy_render, small, "--weights", "uniform", "--out", tmp_path / "x.exr")
@@ -368,12 +369,14 @@ def test_out_paths_are_refused_before_any_work(tmp_path, toy_render, cmd):
     inp = tmp_path / "in.exr"
     os.link(toy_render, inp)
     (tmp_path / "file.txt").write_text("a file, not a directory")
+    (tmp_path / "pv.png").mkdir()
     before = _files(tmp_path)
     head = {"reference": ["reference", "toy:mixed", "--spp", 4, "--size", "24x16"],
             "combine": ["combine", inp, inp, "--weights", "uniform"]}.get(cmd, [cmd, inp])
     for out, needle in ((tmp_path / "x.png", ".exr"), (tmp_path / "x.txt", ".exr"),
                         (tmp_path / "file.txt" / "x.exr", "not a directory"),
-                        (tmp_path, "directory"), ("/proc/statmc-test.exr", "cannot create a file")):
+                        (tmp_path, "directory"), ("/proc/statmc-test.exr", "cannot create a file"),
+                        (tmp_path / "pv.exr", "preview")):
         code, _, err = run_cli(*head, "--out", out)
         _assert_one_line_error(code, err, needle)
         assert "--out" in err and ".statmc-" not in err
@@ -385,7 +388,9 @@ def test_out_paths_are_refused_before_any_work(tmp_path, toy_render, cmd):
 
 def test_render_out_must_be_a_writable_directory(tmp_path):
     (tmp_path / "file.txt").write_text("a file")
+    (tmp_path / "d" / "counts.png").mkdir(parents=True)
     for out, needle in ((tmp_path / "file.txt", "not a directory"),
+                        (tmp_path / "d", "counts.png"),
                         (tmp_path / "file.txt" / "sub", "not a directory"),
                         ("/proc/statmc-test", "cannot create a file")):
         code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--size", "24x16", "--out", out)
