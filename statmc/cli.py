@@ -316,6 +316,11 @@ def cmd_render(args) -> int:
         report["metrics"] = all_metrics(stats.mean.astype(np.float32), ref)
         if args.reconstruct != "none":
             report["metrics_reconstruction"] = all_metrics(image, ref)
+    written = [n for n in RENDER_OUTPUTS if n.startswith(("render.", "counts.", "report."))
+               or (n.startswith("reconstruction.") and args.reconstruct != "none")
+               or (n.startswith("scales.") and "scale" in maps)]
+    report["files"] = written
+    stale = [n for n in RENDER_OUTPUTS if n not in written and os.path.exists(os.path.join(args.out, n))]
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
     write_exr(out("render.exr"), stats, protect=inputs)
@@ -339,6 +344,9 @@ def cmd_render(args) -> int:
             if args.reconstruct != "none":
                 msg += f", {args.reconstruct} {report['metrics_reconstruction']['relmse']:.4g}"
         print(msg)
+    if stale:
+        print(f"statmc render: note: {', '.join(stale)} in {args.out} are from an earlier render "
+              "(this one did not write them).", file=sys.stderr)
     return 0
 
 

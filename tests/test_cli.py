@@ -529,3 +529,18 @@ def test_every_command_has_help_and_every_option_is_documented():
         assert not missing, f"statmc {name}: options not in docs/cli.md: {sorted(missing)}"
         shown = set(re.findall(r"(--[a-z][a-z-]*)", synopsis))
         assert shown <= opts, f"statmc {name}: docs show options that do not exist: {shown - opts}"
+
+
+def test_render_into_a_used_directory_names_the_stale_files(tmp_path):
+    """A second render into the same --out without --reconstruct leaves the first one's
+    reconstruction behind: report.json lists this render's files and a note names the rest."""
+    out = tmp_path / "o"
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 4, "--size", "24x16", "--reconstruct", "gem",
+                           "--out", out, "-q")
+    assert code == 0 and err == "", err
+    assert "scales.exr" in json.loads((out / "report.json").read_text())["files"]
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 4, "--size", "24x16", "--out", out, "-q")
+    assert code == 0
+    files = json.loads((out / "report.json").read_text())["files"]
+    assert sorted(files) == ["counts.exr", "counts.png", "render.exr", "render.png", "report.json"]
+    assert "note" in err and "reconstruction.exr" in err and "scales.png" in err and "Traceback" not in err
