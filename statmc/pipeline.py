@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, as_int
 from .stats import PixelStats
 
 __all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
@@ -88,8 +88,8 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
     :func:`reconstruct_stats`), its Gaussian ``sigma``.
     """
     if sampler == "uniform":
-        if counts is None:
-            counts = np.full((renderer.height, renderer.width), int(spp), np.int64)
+        if counts is None:  # 2.5 used to become 2 spp without a word
+            counts = np.full((renderer.height, renderer.width), as_int("spp", spp), np.int64)
         return renderer.render(counts, seed=seed, progress=progress)
     if counts is not None:
         raise InputError(f"a sample map fixes the counts; it cannot be combined with --sampler {sampler}.")

@@ -544,3 +544,15 @@ def test_render_into_a_used_directory_names_the_stale_files(tmp_path):
     files = json.loads((out / "report.json").read_text())["files"]
     assert sorted(files) == ["counts.exr", "counts.png", "render.exr", "render.png", "report.json"]
     assert "note" in err and "reconstruction.exr" in err and "scales.png" in err and "Traceback" not in err
+
+
+def test_render_with_sampler_refuses_a_fractional_uniform_spp():
+    """render_with_sampler(r, 2.5) rendered int(2.5) = 2 spp without a word."""
+    from statmc.errors import InputError
+    from statmc.pipeline import render_with_sampler
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("mixed", width=8, height=6)
+    assert int(render_with_sampler(r, np.int64(3)).n.sum()) == 3 * 48
+    for bad in (2.5, 0, -1, "4"):
+        with pytest.raises(InputError, match="`spp` must be a positive integer"):
+            render_with_sampler(r, bad)
