@@ -316,11 +316,11 @@ def cmd_render(args) -> int:
         report["metrics"] = all_metrics(stats.mean.astype(np.float32), ref)
         if args.reconstruct != "none":
             report["metrics_reconstruction"] = all_metrics(image, ref)
-    written = [n for n in RENDER_OUTPUTS if n.startswith(("render.", "counts.", "report."))
-               or (n.startswith("reconstruction.") and args.reconstruct != "none")
-               or (n.startswith("scales.") and "scale" in maps)]
+    written = [f for f in RENDER_OUTPUTS if f.startswith(("render.", "counts.", "report."))
+               or (f.startswith("reconstruction.") and args.reconstruct != "none")
+               or (f.startswith("scales.") and "scale" in maps)]
     report["files"] = written
-    stale = [n for n in RENDER_OUTPUTS if n not in written and os.path.exists(os.path.join(args.out, n))]
+    stale = [f for f in RENDER_OUTPUTS if f not in written and os.path.exists(os.path.join(args.out, f))]
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
     write_exr(out("render.exr"), stats, protect=inputs)
@@ -459,6 +459,7 @@ def cmd_reference(args) -> int:
 
     width, height = _parse_size(args.size)
     spp = _positive_int("--spp", args.spp)
+    _check_count_range("--spp", spp)
     _check_out_file(args.out)
     renderer = make_renderer(args.scene, width=width, height=height)
     per_pass = min(spp, _positive_int("--pass-spp", args.pass_spp))
@@ -631,6 +632,8 @@ _CLI_WORDING = (
     (" Pass require_variance=False to read it with zero variance, or use read_image().", ""),
     ("`spp`", "--spp"),
     ("leave `width`/`height` unset", "omit --size"),
+    ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
+    ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),
 )
 _NONFINITE_HINT = "pass nonfinite='replace' to replace them by `replace_value`."
 

@@ -436,6 +436,13 @@ def test_file_errors_name_the_command_line_options(tmp_path, toy_render):
         assert "nonfinite=" not in err
     code, _, err = run_cli("metrics", tmp_path / "nan.exr", toy_render)
     _assert_one_line_error(code, err, "--replace-nonfinite VALUE")
+    _write_channels(tmp_path / "one.exr", dict(ch, SampleCount=np.ones_like(ch["SampleCount"])))
+    code, _, err = run_cli("reconstruct", tmp_path / "one.exr", "--out", tmp_path / "o.exr")
+    _assert_one_line_error(code, err, "sample count must be >= 2")
+    _write_channels(tmp_path / "y.exr", {"Y": ch["G"], "Variance.Y": ch["Variance.G"],
+                                         "SampleCount": ch["SampleCount"]})
+    code, _, err = run_cli("denoise", tmp_path / "y.exr", "--denoiser", "oidn", "--out", tmp_path / "o.exr")
+    _assert_one_line_error(code, err, "needs an R,G,B image")
     assert not (tmp_path / "o.exr").exists()
 
 
