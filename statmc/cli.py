@@ -228,6 +228,14 @@ def counts_for_render(height, width, *, spp=None, sample_map=None, seed=0) -> np
     return counts_from_density(sample_map, _positive_int("--spp", spp) * height * width, rng=seed)
 
 
+def _need_variance(stats, path: str, what: str) -> None:
+    """Refuse a file none of whose pixels has the 2 samples a variance estimate needs (a
+    1-spp render): ``what`` would silently treat it as noise-free."""
+    if stats.n.size and stats.n.max() < 2:
+        raise InputError(f"{what} needs pixel variances, but every pixel of {path} has fewer than "
+                         f"2 samples (SampleCount max {int(stats.n.max())}); render at least 2 spp.")
+
+
 def _write_json(path, obj, protect=()):
     from ._atomic import write_text
     write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n", protect=protect)
@@ -278,6 +286,9 @@ def cmd_render(args) -> int:
     if counts is not None and args.reconstruct == "gem" and counts.min() < 2:
         raise InputError(f"--reconstruct gem needs at least 2 samples in every pixel (a variance "
                          f"needs two); the counts have {int((counts < 2).sum())} pixels with fewer.")
+    if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.max() < 2:
+        raise InputError(f"--reconstruct {args.reconstruct} needs pixel variances, which need at "
+                         f"least 2 samples; every pixel has fewer (raise --spp).")
     if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
         raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
                          f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
@@ -384,6 +395,8 @@ def cmd_denoise(args) -> int:
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    if args.variance or args.denoiser == "gem":
+        _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
                          gem_bias=args.gem_bias)
     x = stats.mean.astype(np.float32)
@@ -410,6 +423,7 @@ def cmd_progressive(args) -> int:
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    _need_variance(stats, args.input, "progressive denoising")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
@@ -434,6 +448,8 @@ def cmd_combine(args) -> int:
                                   "`statmc denoise --variance`, or use --weights uniform or "
                                   "gaussian.") from None
         z = z_stats.mean.astype(np.float32)
+        for st, path in ((y_stats, args.y), (z_stats, args.z)):
+            _need_variance(st, path, "--weights statistical")
     else:
         z = read_image(args.z)
     if z.shape != y.shape:

@@ -563,3 +563,23 @@ def test_render_with_sampler_refuses_a_fractional_uniform_spp():
     for bad in (2.5, 0, -1, "4"):
         with pytest.raises(InputError, match="`spp` must be a positive integer"):
             render_with_sampler(r, bad)
+
+
+def test_one_spp_files_are_refused_where_a_variance_is_needed(tmp_path):
+    """A 1-spp render has no variance estimate; progressive denoising, GEM, --variance and
+    statistical weights used to treat it as noise-free and return the raw image."""
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 1, "--size", "24x16", "--out", tmp_path, "-q")
+    assert code == 0, err
+    one = tmp_path / "render.exr"
+    for args in (["progressive", one], ["denoise", one, "--denoiser", "gem"],
+                 ["denoise", one, "--denoiser", "gaussian", "--variance"],
+                 ["combine", one, one]):
+        code, _, err = run_cli(*args, "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, "fewer than 2 samples")
+    for rec in ("progressive", "oidn+combine"):
+        code, _, err = run_cli("render", "toy:mixed", "--spp", 1, "--size", "24x16", "--reconstruct", rec,
+                               "--out", tmp_path / "r")
+        _assert_one_line_error(code, err, "at least 2 samples")
+    assert not (tmp_path / "x.exr").exists() and not (tmp_path / "r").exists()
+    code, _, err = run_cli("denoise", one, "--denoiser", "gaussian", "--out", tmp_path / "x.exr", "-q")
+    assert code == 0, err  # a denoiser that needs no variance still runs
