@@ -674,6 +674,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("statmc: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `statmc metrics ... | head`: the reader left; stop quietly
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # no real stdout (in-process callers)
+            pass
+        return 141  # 128 + SIGPIPE, as a shell reports a process killed by it
     except (ValueError, OSError, MemoryError) as e:  # InputError and FileFormatError are ValueErrors
         if args.debug:
             raise

@@ -583,3 +583,12 @@ def test_one_spp_files_are_refused_where_a_variance_is_needed(tmp_path):
     assert not (tmp_path / "x.exr").exists() and not (tmp_path / "r").exists()
     code, _, err = run_cli("denoise", one, "--denoiser", "gaussian", "--out", tmp_path / "x.exr", "-q")
     assert code == 0, err  # a denoiser that needs no variance still runs
+
+
+def test_a_closed_output_pipe_ends_quietly(toy_render):
+    """`statmc info FILE | head -1` printed 'error: [Errno 32] Broken pipe' when head left."""
+    exe = os.path.join(os.path.dirname(sys.executable), "statmc")
+    p = subprocess.Popen([exe, "info", str(toy_render)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # the reader is gone before the command prints
+    err = p.stderr.read().decode()
+    assert p.wait() == 141 and err == "", err
