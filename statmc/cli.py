@@ -289,6 +289,16 @@ def cmd_render(args) -> int:
     if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.max() < 2:
         raise InputError(f"--reconstruct {args.reconstruct} needs pixel variances, which need at "
                          f"least 2 samples; every pixel has fewer (raise --spp).")
+    if args.crn:
+        if args.sampler != "uniform" or sample_map is not None:
+            raise InputError("--crn renders the same --spp in every pixel; it cannot be combined "
+                             "with an adaptive --sampler or a --sample-map.")
+        if args.spp is None or args.spp < 2:
+            raise InputError(f"--crn needs --spp >= 2 (the covariance stencil needs two samples); "
+                             f"got {args.spp}.")
+        if not hasattr(renderer, "render_crn"):
+            raise InputError(f"--crn needs a Mitsuba scene; {args.scene} is rendered by "
+                             f"{type(renderer).__name__}, which has no common random numbers.")
     if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
         raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
                          f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
@@ -298,10 +308,19 @@ def cmd_render(args) -> int:
                          f"{ref.shape[2]} channel(s) but the render is {renderer.width}x"
                          f"{renderer.height} R,G,B.")
     t0 = time.perf_counter()
-    stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
-                                seed=args.seed, progress=not args.quiet, gamma=args.gamma,
-                                denoiser=args.denoiser, gem_bias=args.gem_bias,
-                                initial_spp=INITIAL_SPP, iterations=ITERATIONS)
+    extra = {}
+    if args.crn:
+        from .exr import spatial_covariance_channels
+
+        stats, cov = renderer.render_crn(args.spp, seed=args.seed, stencil=args.stencil,
+                                         progress=not args.quiet)
+        extra = spatial_covariance_channels(cov, stats.n)
+        del cov
+    else:
+        stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
+                                    seed=args.seed, progress=not args.quiet, gamma=args.gamma,
+                                    denoiser=args.denoiser, gem_bias=args.gem_bias,
+                                    initial_spp=INITIAL_SPP, iterations=ITERATIONS)
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
@@ -315,7 +334,8 @@ def cmd_render(args) -> int:
         "scene": args.scene, "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
         "sampler": args.sampler, "reconstruct": args.reconstruct, "gamma": args.gamma,
-        "gem_bias": args.gem_bias,
+        "gem_bias": args.gem_bias, "crn": bool(args.crn),
+        "stencil": args.stencil if args.crn else None,
         "spp": total / n.size, "total_samples": total,
         "spp_min": int(n.min()), "spp_max": int(n.max()),
         "seconds": seconds, "samples_per_second": total / max(seconds, 1e-12),
@@ -334,7 +354,7 @@ def cmd_render(args) -> int:
     stale = [f for f in RENDER_OUTPUTS if f not in written and os.path.exists(os.path.join(args.out, f))]
     os.makedirs(args.out, exist_ok=True)
     out = lambda name: os.path.join(args.out, name)  # noqa: E731
-    write_exr(out("render.exr"), stats, protect=inputs)
+    write_exr(out("render.exr"), stats, protect=inputs, extra=extra)
     write_png_preview(out("render.png"), stats.mean, protect=inputs)
     write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
     write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
@@ -460,8 +480,16 @@ def cmd_combine(args) -> int:
     elif args.weights == "gaussian":
         weights = cb.gaussian_weights(h, w, 1, args.size, args.sigma)
     else:
-        weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32),
-                                         z_stats.mean_var.astype(np.float32), args.size)
+        from .exr import read_spatial_covariance
+
+        cov_z = read_spatial_covariance(args.z)       # a CRN render's stencil, if Z has one
+        if cov_z is None:
+            cov_z = z_stats.mean_var.astype(np.float32)
+        elif cov_z.shape[0:2] != (h, w) or cov_z.shape[2] < args.size:
+            raise InputError(f"{args.z} holds a {cov_z.shape[2]}x{cov_z.shape[2]} covariance "
+                             f"stencil; --size must be at most {cov_z.shape[2]} (got {args.size}).")
+        weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32), cov_z,
+                                         args.size)
     out = cb.combine(y, z, weights)
     _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet)
     return 0
@@ -561,6 +589,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="reconstruction written beside the raw render")
     _add_gem_options(r, "by the adaptive --sampler gem and the pilot kernels of --sampler "
                         "expected-error always, and ")
+    r.add_argument("--crn", action="store_true",
+                   help="common-random-number render (Mitsuba scenes, uniform --spp >= 2): sample "
+                        "j of every pixel uses the same random sequence, so neighbouring errors "
+                        "are correlated; render.exr gets the covariance stencil "
+                        "(SpatialCovariance.* channels), a correlated Z for `statmc combine`")
+    r.add_argument("--stencil", type=_odd_int, default=15,
+                   help="odd width of --crn's covariance stencil (default 15; combine's --size "
+                        "must not exceed it)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary line")
     r.set_defaults(func=cmd_render)
 
@@ -625,7 +661,8 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 Eq. 8)")
     c.add_argument("y", help="statistics EXR of the independent render")
     c.add_argument("z", help="correlated image (e.g. its denoised version); with --weights "
-                             "statistical it needs Variance.* too (statmc denoise --variance)")
+                             "statistical it needs Variance.* too (statmc denoise --variance), "
+                             "and a `statmc render --crn` file's covariance stencil is used")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=15, help="odd window width (default 15)")

@@ -592,3 +592,57 @@ def test_a_closed_output_pipe_ends_quietly(toy_render):
     p.stdout.close()  # the reader is gone before the command prints
     err = p.stderr.read().decode()
     assert p.wait() == 141 and err == "", err
+
+
+# ------------------------------------------------------------------ common random numbers
+@pytest.mark.mitsuba
+def test_render_crn_writes_the_stencil_and_combine_uses_it(tmp_path):
+    """`render --crn` stores the covariance stencil beside the statistics; `combine
+    --weights statistical` with that file as Z gives exactly the library's combination with
+    the stencil, not the one with Z's per-pixel variance alone."""
+    from statmc import combine as cb
+    from statmc.exr import read_channels, read_exr, read_image, read_spatial_covariance
+
+    y_dir, z_dir = tmp_path / "y", tmp_path / "z"
+    code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--seed", 1,
+                           "--out", y_dir, "-q")
+    assert code == 0, err
+    code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--seed", 2,
+                           "--crn", "--stencil", 5, "--out", z_dir, "-q")
+    assert code == 0, err
+    rep = json.loads((z_dir / "report.json").read_text())
+    assert rep["crn"] is True and rep["stencil"] == 5 and rep["renderer_info"]["crn"]
+    names = read_channels(z_dir / "render.exr")
+    assert sum(n.startswith("SpatialCovariance.") for n in names) == 5 * 5 * 3
+    z_stats = read_exr(z_dir / "render.exr")
+    cov = read_spatial_covariance(z_dir / "render.exr")
+    np.testing.assert_allclose(cov[:, :, 2, 2], z_stats.mean_var, rtol=1e-5, atol=1e-12)
+    right = cov[:, :-1, 2, 3, :]
+    assert np.median(right[right != 0]) > 0          # CRN: neighbouring errors correlate
+
+    out = tmp_path / "c.exr"
+    code, _, err = run_cli("combine", y_dir / "render.exr", z_dir / "render.exr", "--size", 5,
+                           "--out", out, "-q")
+    assert code == 0, err
+    y_stats = read_exr(y_dir / "render.exr")
+    y = y_stats.mean.astype(np.float32)
+    z = z_stats.mean.astype(np.float32)
+    want = cb.combine(y, z, cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32),
+                                                   cov, 5))
+    np.testing.assert_allclose(read_image(out), want, rtol=1e-5, atol=1e-6)
+    diag = cb.combine(y, z, cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32),
+                                                   z_stats.mean_var.astype(np.float32), 5))
+    assert np.max(np.abs(want - diag)) > 1e-3
+
+    # a window wider than the stencil, and --crn where it cannot work: one line, no files
+    code, _, err = run_cli("combine", y_dir / "render.exr", z_dir / "render.exr", "--size", 7,
+                           "--out", tmp_path / "c7.exr", "-q")
+    assert code != 0 and "5x5 covariance stencil; --size must be at most 5" in err
+    assert not (tmp_path / "c7.exr").exists()
+    for args, msg in ((("toy:mixed", "--spp", 4), "needs a Mitsuba scene"),
+                      (("cornell-box", "--spp", 4, "--sampler", "gem"), "cannot be combined"),
+                      (("cornell-box", "--spp", 1), "--crn needs --spp >= 2")):
+        bad = tmp_path / "bad"
+        code, _, err = run_cli("render", *args, "--size", "24x16", "--crn", "--out", bad, "-q")
+        assert code != 0 and msg in err and "Traceback" not in err, err
+        assert not bad.exists() or not any(bad.iterdir())
