@@ -466,8 +466,9 @@ class MitsubaRenderer:
         -----
         Needs a JIT variant (``llvm_ad_rgb``): the scalar fallback renders through
         ``mi.render``, which seeds every pixel differently.  Costs ``spp`` wavefronts of
-        ``H·W`` samples, with the sums kept in NumPy (two ``(H, W, m, m, 3)`` float64
-        arrays; more than :data:`CRN_MAX_BYTES` is refused: at 1920x1080, m <= 5).
+        ``H·W`` samples; the sums are kept in NumPy, the neighbour products formed by the
+        compiled kernel of :mod:`statmc._crn_kernels`.  Memory: two ``(H, W, m, m, 3)``
+        float64 arrays; more than :data:`CRN_MAX_BYTES` is refused (at 1920x1080, m <= 5).
         """
         spp = _check_int("spp", spp, minimum=1)
         seed = _check_int("seed", seed, minimum=0)
@@ -485,6 +486,8 @@ class MitsubaRenderer:
                              f"(llvm_ad_rgb); this renderer runs {self.variant!r} ({_LLVM_HINT}).")
         if self._mi.variant() != self.variant:
             self._mi.set_variant(self.variant)
+        from ._crn_kernels import add_neighbour_products
+
         mi = self._mi
         H, W, R = self.height, self.width, m // 2
         pix = np.arange(H * W, dtype=np.uint32)
@@ -503,7 +506,7 @@ class MitsubaRenderer:
                 x = np.where(ok, x, 0.0)
                 s1 += x
                 s2 += x[..., :, None] * x[..., None, :]
-                _add_neighbour_products(prod, x, R)
+                add_neighbour_products(prod, np.ascontiguousarray(x), R)
                 bar.update(H * W)
         seconds = time.perf_counter() - t0
         counts = np.full((H, W), spp, np.int64)
@@ -664,25 +667,17 @@ class MitsubaRenderer:
 
 def _neighbours(a: np.ndarray, R: int) -> np.ndarray:
     """``out[y, x, R + dy, R + dx] = a[y + dy, x + dx]`` (0 outside), ``(H, W, m, m, C)``."""
+    from ._crn_kernels import offset_slices
+
     H, W = a.shape[:2]
     m = 2 * R + 1
     out = np.zeros((H, W, m, m) + a.shape[2:], a.dtype)
     for dy in range(-R, R + 1):
+        yd, ys = offset_slices(H, dy)
         for dx in range(-R, R + 1):
-            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H - max(dy, 0))
-            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W - max(dx, 0))
+            xd, xs = offset_slices(W, dx)
             out[yd, xd, R + dy, R + dx] = a[ys, xs]
     return out
-
-
-def _add_neighbour_products(prod: np.ndarray, x: np.ndarray, R: int) -> None:
-    """``prod[y, x, R + dy, R + dx] += x[y, x] · x[y + dy, x + dx]`` inside the image."""
-    H, W = x.shape[:2]
-    for dy in range(-R, R + 1):
-        for dx in range(-R, R + 1):
-            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H - max(dy, 0))
-            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W - max(dx, 0))
-            prod[yd, xd, R + dy, R + dx] += x[yd, xd] * x[ys, xs]
 
 
 class _NoBar:
