@@ -299,6 +299,12 @@ def cmd_render(args) -> int:
         if not hasattr(renderer, "render_crn"):
             raise InputError(f"--crn needs a Mitsuba scene; {args.scene} is rendered by "
                              f"{type(renderer).__name__}, which has no common random numbers.")
+        if args.reconstruct != "none":
+            raise InputError(f"--crn cannot be combined with --reconstruct {args.reconstruct}: the "
+                             "reconstructions assume independent pixel errors, and most of a "
+                             "common-random-number render's correlated noise survives them; "
+                             "render without --crn to reconstruct, or use the --crn render as "
+                             "Z in `statmc combine`.")
     if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
         raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
                          f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
@@ -456,6 +462,10 @@ def cmd_combine(args) -> int:
     from .exr import read_exr, read_image
     _check_out_file(args.out, [args.y, args.z])
     y_stats = read_exr(args.y, spp=args.spp)
+    if any(c.startswith("SpatialCovariance.") for c in y_stats.meta.get("extra_channels", ())):
+        raise InputError(f"{args.y} is a common-random-number render (it has SpatialCovariance.* "
+                         "channels): its pixel errors are correlated, but Y must be an "
+                         "independent render (Back 2020 §3.1, Eq. 11); pass the --crn render as Z.")
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
     if args.weights == "statistical":
@@ -482,7 +492,7 @@ def cmd_combine(args) -> int:
     else:
         from .exr import read_spatial_covariance
 
-        cov_z = read_spatial_covariance(args.z)       # a CRN render's stencil, if Z has one
+        cov_z = read_spatial_covariance(args.z, z_stats.n)  # a CRN render's stencil, if any
         if cov_z is None:
             cov_z = z_stats.mean_var.astype(np.float32)
         elif cov_z.shape[0:2] != (h, w) or cov_z.shape[2] < args.size:
