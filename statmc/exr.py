@@ -559,14 +559,17 @@ def read_spatial_covariance(path, n=None):
     if missing:
         raise FileFormatError(f"{p!r} has a partial {SPATIAL_COVARIANCE} stencil ({2 * R + 1}x"
                               f"{2 * R + 1}); missing {len(missing)} channel(s), e.g. {missing[:3]}.")
+    H, W = arrays[want[0]].shape
     if n is None:
         if SAMPLE_COUNT not in arrays:
             raise FileFormatError(f"{p!r} has {SPATIAL_COVARIANCE} channels but no {SAMPLE_COUNT}; "
                                   f"pass the samples per pixel.")
-        n = arrays[SAMPLE_COUNT]
-    nn = np.asarray(n, np.float64)
-    H, W = arrays[want[0]].shape
-    nn = np.broadcast_to(nn, (H, W))
+        nn = arrays[SAMPLE_COUNT].astype(np.float64)
+    else:
+        try:
+            nn = _spp_map(n, (H, W))
+        except InputError as e:
+            raise InputError(str(e).replace("`spp`", "`n`")) from None
     m = 2 * R + 1
     out = np.empty((H, W, m, m, 3))
     for dy in range(-R, R + 1):

@@ -559,3 +559,16 @@ def test_spatial_covariance_absent_partial_and_bad(tmp_path):
     bad[0, 0, 0, 0, 0] = np.nan
     with pytest.raises(InputError, match="cov"):
         exr.spatial_covariance_channels(bad, st.n)
+
+
+def test_spatial_covariance_explicit_counts(tmp_path):
+    """``n=`` overrides SampleCount (same ÷ n convention); a bad ``n`` is an InputError
+    naming it (a (2, 2) map was a NumPy broadcast error, n=-1 was accepted)."""
+    rng = np.random.default_rng(5)
+    st, cov = _stencil_stats(rng)
+    p = tmp_path / "crn.exr"
+    write_exr(p, st, extra=exr.spatial_covariance_channels(cov, st.n))
+    np.testing.assert_allclose(exr.read_spatial_covariance(p, n=16), cov / 2, rtol=1e-6, atol=1e-12)
+    for bad in (-1, 2.5, np.ones((2, 2)), "x"):
+        with pytest.raises(InputError, match="`n` must"):
+            exr.read_spatial_covariance(p, n=bad)
