@@ -1,0 +1,75 @@
+"""The notebooks in notebooks/ run top to bottom without an error, and match their sources.
+
+Each notebook is executed by nbclient in a fresh ``python3`` kernel of this interpreter
+(ipykernel is in the ``test`` extra; jupyter_client launches the kernel with
+``sys.executable``), with notebooks/ as the working directory.  Marked ``slow`` (about a
+minute in all; deselect with ``-m "not slow"``); the Mitsuba notebook is also marked
+``mitsuba``.
+"""
+
+from __future__ import annotations
+
+import glob
+import importlib.util
+import os
+import time
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NB_DIR = os.path.join(ROOT, "notebooks")
+NOTEBOOKS = sorted(glob.glob(os.path.join(NB_DIR, "*.ipynb")))
+#: Seconds allowed for one cell (the slowest takes ~20 s on 2 busy cores).
+CELL_TIMEOUT = 300
+NEEDS_MITSUBA = {"02_classical_reconstruction.ipynb"}
+
+
+def _param(path):
+    name = os.path.basename(path)
+    marks = [pytest.mark.slow] + ([pytest.mark.mitsuba] if name in NEEDS_MITSUBA else [])
+    return pytest.param(path, id=name, marks=marks)
+
+
+def test_the_three_notebooks_exist():
+    names = [os.path.basename(p) for p in NOTEBOOKS]
+    assert names == ["01_verify_the_theorems.ipynb", "02_classical_reconstruction.ipynb",
+                     "03_learned_weights.ipynb"], names
+
+
+def _builder():
+    spec = importlib.util.spec_from_file_location("_nb_build", os.path.join(NB_DIR, "_build.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=os.path.basename)
+def test_notebook_matches_its_source(path):
+    """The committed .ipynb holds the cells of notebooks/src/<name>.py (rebuild with
+    ``.venv/bin/python notebooks/_build.py`` after editing a source)."""
+    src = os.path.join(NB_DIR, "src", os.path.basename(path)[:-6] + ".py")
+    with open(src, encoding="utf-8") as f:
+        want = [(c.cell_type, c.source) for c in _builder().build(f.read()).cells]
+    got = [(c.cell_type, c.source) for c in nbformat.read(path, as_version=4).cells]
+    assert got == want, f"{os.path.basename(path)} is out of date: run notebooks/_build.py"
+
+
+@pytest.mark.parametrize("path", [_param(p) for p in NOTEBOOKS])
+def test_notebook_runs_without_error(path, monkeypatch):
+    if os.path.basename(path) in NEEDS_MITSUBA:
+        pytest.importorskip("mitsuba")
+    # the kernel inherits the environment: numba's cache outside the tree, as the Makefile does
+    monkeypatch.setenv("NUMBA_CACHE_DIR", os.environ.get("NUMBA_CACHE_DIR",
+                                                         os.path.join(ROOT, ".cache", "numba")))
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(nb, kernel_name="python3", timeout=CELL_TIMEOUT,
+                                     resources={"metadata": {"path": NB_DIR}})
+    t0 = time.perf_counter()
+    client.execute()    # raises CellExecutionError, naming the cell, on any error
+    print(f"{os.path.basename(path)}: {time.perf_counter() - t0:.1f} s")
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+              if o.get("output_type") == "error"]
+    assert not errors
