@@ -387,11 +387,24 @@ def cmd_render(args) -> int:
     return 0
 
 
+_ASSUMES_INDEPENDENT = ("assumes independent pixel errors and leaves most of its noise; use "
+                        "it as Z in `statmc combine`")
+
+
+def _refuse_crn(stats, path, what: str) -> None:
+    """Refuse a common-random-number render (``SpatialCovariance.*`` channels) where
+    independent pixel errors are assumed (Back 2020 §3.1)."""
+    if any(c.startswith("SpatialCovariance.") for c in stats.meta.get("extra_channels", ())):
+        raise InputError(f"{path} is a common-random-number render (it has SpatialCovariance.* "
+                         f"channels): its pixel errors are correlated, but {what}.")
+
+
 def cmd_reconstruct(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"{args.method}.{k}": v for k, v in maps.items()})
@@ -421,6 +434,7 @@ def cmd_denoise(args) -> int:
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    _refuse_crn(stats, args.input, f"statmc denoise {_ASSUMES_INDEPENDENT}")
     if args.variance or args.denoiser == "gem":
         _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
@@ -449,6 +463,7 @@ def cmd_progressive(args) -> int:
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _need_variance(stats, args.input, "progressive denoising")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
@@ -462,10 +477,8 @@ def cmd_combine(args) -> int:
     from .exr import read_exr, read_image
     _check_out_file(args.out, [args.y, args.z])
     y_stats = read_exr(args.y, spp=args.spp)
-    if any(c.startswith("SpatialCovariance.") for c in y_stats.meta.get("extra_channels", ())):
-        raise InputError(f"{args.y} is a common-random-number render (it has SpatialCovariance.* "
-                         "channels): its pixel errors are correlated, but Y must be an "
-                         "independent render (Back 2020 §3.1, Eq. 11); pass the --crn render as Z.")
+    _refuse_crn(y_stats, args.y, "Y must be an independent render (Back 2020 §3.1, Eq. 11); "
+                "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
     if args.weights == "statistical":

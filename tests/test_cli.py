@@ -654,7 +654,8 @@ def test_crn_render_refused_where_independent_pixels_are_assumed(tmp_path):
     §3.1 assumes an independent Y; with the roles swapped the 'combination' was worse than Y
     alone) and for --reconstruct (GEM, OIDN, ... assume independent pixels; on a 128x128
     Cornell box at 16 spp OIDN took an independent render's relMSE 0.016 -> 0.0028 but a
-    CRN render's only 0.014 -> 0.014).  One line, nothing written."""
+    CRN render's only 0.014 -> 0.014), also as the input of reconstruct, denoise and
+    progressive.  One line, nothing written."""
     y_dir, z_dir = tmp_path / "y", tmp_path / "z"
     code, _, err = run_cli("render", "cornell-box", "--size", "12x8", "--spp", 2, "--seed", 1,
                            "--out", y_dir, "-q")
@@ -679,3 +680,10 @@ def test_crn_render_refused_where_independent_pixels_are_assumed(tmp_path):
                                "--reconstruct", method, "--out", bad, "-q")
         assert code != 0 and f"--crn cannot be combined with --reconstruct {method}" in err, err
         assert "Traceback" not in err and not bad.exists()
+    # the same for the commands that reconstruct or denoise a file
+    for cmd, opts in (("reconstruct", ()), ("denoise", ()), ("denoise", ("--variance",)),
+                      ("progressive", ())):
+        out = tmp_path / f"{cmd}.exr"
+        code, _, err = run_cli(cmd, z_dir / "render.exr", *opts, "--out", out, "-q")
+        assert code != 0 and f"but statmc {cmd} assumes independent pixel errors" in err, err
+        assert "Traceback" not in err and not out.exists()
