@@ -522,11 +522,18 @@ class MitsubaRenderer:
             stats.albedo, stats.normal = self._render_features(seed, feature_spp)
             stats.meta["feature_seconds"] = time.perf_counter() - t0
             stats.meta["feature_spp"] = feature_spp
-        cov = np.zeros_like(prod)
+        # in place: peak memory stays at the two arrays counted above (prod and a gather)
+        cov = prod
         if spp >= 2:
             mean = s1 / spp
-            cov = (prod - spp * mean[:, :, None, None, :] * _neighbours(mean, R)) / ((spp - 1) * spp)
+            nb = _neighbours(mean, R)
+            nb *= spp * mean[:, :, None, None, :]
+            cov -= nb
+            del nb
+            cov /= (spp - 1) * spp
             cov *= _neighbours(np.ones((H, W, 1)), R)       # 0 outside the image
+        else:
+            cov.fill(0.0)
         return stats, cov
 
     # ------------------------------------------------------------------ internals

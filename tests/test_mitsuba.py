@@ -494,3 +494,23 @@ def test_crn_neighbour_products_kernel_matches_numpy_reference():
                         inside = 0 <= y + dy < h and 0 <= x + dx < w
                         want = img[y + dy, x + dx] if inside else 0.0
                         np.testing.assert_array_equal(nb[y, x, R + dy, R + dx], want)
+
+
+def test_crn_render_memory_is_the_two_arrays_it_checks(cornell):
+    """The ``CRN_MAX_BYTES`` check counts two ``(H, W, m, m, 3)`` float64 arrays; the
+    stencil is formed in place, so the peak NumPy allocation stays there (forming it by
+    temporaries took twice as much: 4 arrays)."""
+    import tracemalloc
+
+    if not cornell._jit:
+        pytest.skip("CRN renders need a JIT variant")
+    m = 15
+    need = 2 * cornell.height * cornell.width * m * m * 3 * 8
+    cornell.render_crn(2, seed=5, stencil=1, features=False)    # compile/load the kernel first
+    tracemalloc.start()
+    try:
+        cornell.render_crn(2, seed=5, stencil=m, features=False)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.25 * need, (peak, need)
