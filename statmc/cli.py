@@ -289,7 +289,10 @@ def cmd_render(args) -> int:
     if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.max() < 2:
         raise InputError(f"--reconstruct {args.reconstruct} needs pixel variances, which need at "
                          f"least 2 samples; every pixel has fewer (raise --spp).")
+    if args.stencil is not None and not args.crn:
+        raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
     if args.crn:
+        args.stencil = args.stencil or 15
         if args.sampler != "uniform" or sample_map is not None:
             raise InputError("--crn renders the same --spp in every pixel; it cannot be combined "
                              "with an adaptive --sampler or a --sample-map.")
@@ -617,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "j of every pixel uses the same random sequence, so neighbouring errors "
                         "are correlated; render.exr gets the covariance stencil "
                         "(SpatialCovariance.* channels), a correlated Z for `statmc combine`")
-    r.add_argument("--stencil", type=_odd_int, default=15,
+    r.add_argument("--stencil", type=_odd_int, default=None,
                    help="odd width of --crn's covariance stencil (default 15; combine's --size "
                         "must not exceed it)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary line")

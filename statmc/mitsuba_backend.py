@@ -532,6 +532,7 @@ class MitsubaRenderer:
             del nb
             cov /= (spp - 1) * spp
             cov *= _neighbours(np.ones((H, W, 1)), R)       # 0 outside the image
+            cov[:, :, R, R] = stats.mean_var                  # the centre: M2 clipped at 0
         else:
             cov.fill(0.0)
         return stats, cov

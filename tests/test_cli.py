@@ -639,6 +639,10 @@ def test_render_crn_writes_the_stencil_and_combine_uses_it(tmp_path):
                            "--out", tmp_path / "c7.exr", "-q")
     assert code != 0 and "5x5 covariance stencil; --size must be at most 5" in err
     assert not (tmp_path / "c7.exr").exists()
+    code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--stencil", 5,
+                           "--out", tmp_path / "nocrn", "-q")
+    assert code != 0 and "--stencil" in err and "needs --crn" in err
+    assert not (tmp_path / "nocrn").exists()
     for args, msg in ((("toy:mixed", "--spp", 4), "needs a Mitsuba scene"),
                       (("cornell-box", "--spp", 4, "--sampler", "gem"), "cannot be combined"),
                       (("cornell-box", "--spp", 1), "--crn needs --spp >= 2")):
