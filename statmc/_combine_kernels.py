@@ -293,6 +293,7 @@ def combine_numba(w, ys, zs, out):
 BIAS_ESTIMATE, BIAS_ZERO, BIAS_ARRAY = 0, 1, 2
 METHOD_COHERENT, METHOD_DIAGONAL = 0, 1
 MAX_ACTIVE_SET_ITER = 20   # the NumPy path's ``max_iter``
+BIAS_TILE = 128            # columns per task of :func:`_bias_planes` (inputs stay in L2)
 
 
 @njit(cache=True, fastmath=False, nogil=True, inline="always")
@@ -314,76 +315,147 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
     ``Var δ = P_c + P_t − 2 cov(z_c, z_t) + 2 cov(y_c, z_t) + 2 cov(y_t, z_c)`` with the
     per-pixel ``P = var_y + var_z − 2 cov(y, z)`` (:func:`_self_term`), the NumPy
     ``_delta_var`` regrouped.
+
+    One task per (tile of ``BIAS_TILE`` columns, tap), so a task's input rows stay in
+    cache.  The inner loops run over contiguous ``(x, c)`` rows (1-D views indexed from 0,
+    which LLVM vectorises); the stencil terms of the taps within the stencil are formed
+    first, in the same order.  The box counts are products of the row and column counts
+    of valid centres (sums of ones before).  Every sum keeps its order, so the planes are
+    bit for bit those of the plain per-pixel loop.
     """
     B, H, W, C = ys.shape
     r = k // 2
+    kk = k * k
     Rz = cov_z.shape[3] // 2
     Rx = cov_yz.shape[3] // 2
     q0 = max(0, y0 - patch)
     q1 = min(H, y1 + patch)
     nq = q1 - q0
-    for j in prange(k * k):
+    nt = (W + BIAS_TILE - 1) // BIAS_TILE
+    pc = patch * C
+    for t in prange(nt * kk):
+        tile = t // kk
+        j = t % kk
         oy = j // k - r
         ox = j % k - r
+        c0 = tile * BIAS_TILE                 # output columns c0 .. c1 - 1
+        c1 = min(W, c0 + BIAS_TILE)
         if oy == 0 and ox == 0:
-            s2[j] = 0.0
+            s2[j, :, c0:c1] = 0.0
             continue
+        e0 = c0 - patch                  # q columns e0 .. e1 - 1 (zero outside the image)
+        e1 = c1 + patch
+        ne = e1 - e0
         inz = abs(oy) <= Rz and abs(ox) <= Rz
         inx = has_yz and abs(oy) <= Rx and abs(ox) <= Rx
-        q = np.zeros((nq, W, C))
-        val = np.zeros((nq, W))
+        ya = max(0, -oy)
+        yb = min(H, H - oy)
+        xa = max(0, -ox, e0)             # valid centres inside the q columns
+        xb = min(W, W - ox, e1)
+        sh = ox * C
+        q = np.empty((nq, ne * C))
+        hq = np.empty((nq, (c1 - c0) * C))
+        dvr = np.empty(ne * C)
         for yy in range(q0, q1):
-            ty = yy + oy
-            if ty < 0 or ty >= H:
+            qf = q[yy - q0]
+            qf[:] = 0.0
+            if yy < ya or yy >= yb or xa >= xb:
                 continue
-            for xx in range(max(0, -ox), min(W, W - ox)):
-                tx = xx + ox
-                val[yy - q0, xx] = 1.0
-                for c in range(C):
-                    acc = 0.0
-                    for b in range(B):
-                        bp = b if P.shape[0] > 1 else 0
-                        dv = P[bp, yy, xx, c] + P[bp, ty, tx, c]
-                        if inz:
-                            dv -= 2.0 * cov_z[b if cov_z.shape[0] > 1 else 0, yy, xx,
-                                              Rz + oy, Rz + ox, c]
-                        if inx:
-                            bx = b if cov_yz.shape[0] > 1 else 0
-                            dv += 2.0 * (cov_yz[bx, yy, xx, Rx + oy, Rx + ox, c]
-                                         + cov_yz[bx, ty, tx, Rx - oy, Rx - ox, c])
-                        d = (zs[b, yy, xx, c] - zs[b, ty, tx, c]) - (ys[b, yy, xx, c] - ys[b, ty, tx, c])
-                        acc += d * d - dv
-                    q[yy - q0, xx, c] = acc / B
-        # separable box sums over the window clipped to the image (zero padding)
-        hq = np.zeros((nq, W, C))
-        hv = np.zeros((nq, W))
+            ty = yy + oy
+            lo = xa * C
+            hi = xb * C
+            qo = -e0 * C                 # q index of image index i is i + qo
+            for b in range(B):
+                bp = b if P.shape[0] > 1 else 0
+                Pc = P[bp, yy].reshape(W * C)
+                Pt = P[bp, ty].reshape(W * C)
+                zc = zs[b, yy].reshape(W * C)
+                zt = zs[b, ty].reshape(W * C)
+                yc = ys[b, yy].reshape(W * C)
+                yt = ys[b, ty].reshape(W * C)
+                if inz or inx:
+                    # stencil rows (a valid dummy view where the offset is beyond it)
+                    bz = b if cov_z.shape[0] > 1 else 0
+                    bx = b if cov_yz.shape[0] > 1 else 0
+                    czr = cov_z[bz, yy, :, Rz + oy, Rz + ox, :] if inz else cov_z[0, 0, :, 0, 0, :]
+                    cxc = cov_yz[bx, yy, :, Rx + oy, Rx + ox, :] if inx else cov_yz[0, 0, :, 0, 0, :]
+                    cxt = cov_yz[bx, ty, :, Rx - oy, Rx - ox, :] if inx else cov_yz[0, 0, :, 0, 0, :]
+                    for xx in range(xa, xb):
+                        tx = xx + ox
+                        for c in range(C):
+                            dv = Pc[xx * C + c] + Pt[tx * C + c]
+                            if inz:
+                                dv -= 2.0 * czr[xx, c]
+                            if inx:
+                                dv += 2.0 * (cxc[xx, c] + cxt[tx, c])
+                            dvr[(xx - e0) * C + c] = dv
+                n = hi - lo
+                a_zc = zc[lo:hi]
+                a_zt = zt[lo + sh:hi + sh]
+                a_yc = yc[lo:hi]
+                a_yt = yt[lo + sh:hi + sh]
+                a_q = qf[lo + qo:hi + qo]
+                if inz or inx:
+                    a_dv = dvr[lo + qo:hi + qo]
+                    for i in range(n):
+                        d = (a_zc[i] - a_zt[i]) - (a_yc[i] - a_yt[i])
+                        a_q[i] += d * d - a_dv[i]
+                else:
+                    a_pc = Pc[lo:hi]
+                    a_pt = Pt[lo + sh:hi + sh]
+                    for i in range(n):
+                        d = (a_zc[i] - a_zt[i]) - (a_yc[i] - a_yt[i])
+                        a_q[i] += d * d - (a_pc[i] + a_pt[i])
+            a_q = qf[lo + qo:hi + qo]
+            fb = np.float64(B)
+            for i in range(hi - lo):
+                a_q[i] /= fb
+        nc = (c1 - c0) * C
         for yy in range(nq):
-            for xx in range(W):
-                for u in range(max(0, xx - patch), min(W, xx + patch + 1)):
-                    hv[yy, xx] += val[yy, u]
-                    for c in range(C):
-                        hq[yy, xx, c] += q[yy, u, c]
+            qf = q[yy]
+            hf = hq[yy]
+            hf[:] = 0.0
+            for u in range(2 * patch + 1):
+                a_q = qf[u * C:u * C + nc]
+                for i in range(nc):
+                    hf[i] += a_q[i]
+        num = np.empty(nc)
         for yy in range(y0, y1):
-            for xx in range(W):
-                den = 0.0
-                for u in range(max(q0, yy - patch), min(q1, yy + patch + 1)):
-                    den += hv[u - q0, xx]
-                # leave-centre-out: drop c (always in its box) and c − o (in the box when
-                # |o| <= patch), the two centres whose δ involves y_c
-                dl = 0.0
-                py = yy - oy
-                px = xx - ox
-                inb = loo and abs(oy) <= patch and abs(ox) <= patch and 0 <= py < H and 0 <= px < W
+            ua = max(q0, yy - patch)
+            ub = min(q1, yy + patch + 1)
+            num[:] = 0.0
+            for u in range(ua, ub):
+                hf = hq[u - q0]
+                for i in range(nc):
+                    num[i] += hf[i]
+            ny = max(0, min(yb, yy + patch + 1) - max(ya, yy - patch))
+            rowok = ya <= yy < yb
+            py = yy - oy
+            inby = loo and abs(oy) <= patch and abs(ox) <= patch and 0 <= py < H
+            out = s2[j, yy - y0].reshape(W * C)[c0 * C:c1 * C]
+            qc = q[yy - q0][pc:pc + nc]
+            qp = q[py - q0] if inby else q[yy - q0]
+            xa0 = max(0, -ox)
+            xb0 = min(W, W - ox)
+            for xi in range(c1 - c0):
+                xx = c0 + xi
+                nx = max(0, min(xb0, xx + patch + 1) - max(xa0, xx - patch))
+                den = np.float64(ny * nx)
                 if loo:
-                    dl = val[yy - q0, xx] + (val[py - q0, px] if inb else 0.0)
-                for c in range(C):
-                    num = 0.0
-                    for u in range(max(q0, yy - patch), min(q1, yy + patch + 1)):
-                        num += hq[u - q0, xx, c]
-                    if loo:
-                        num -= q[yy - q0, xx, c] + (q[py - q0, px, c] if inb else 0.0)
-                    m = num / (den - dl) if den - dl > 0.0 else 0.0
-                    s2[j, yy - y0, xx, c] = m if m > 0.0 else 0.0
+                    px = xx - ox
+                    inb = inby and 0 <= px < W
+                    dl = (1.0 if rowok and xa0 <= xx < xb0 else 0.0) + (1.0 if inb else 0.0)
+                    dd = den - dl
+                    for c in range(C):
+                        nm = num[xi * C + c]
+                        nm -= qc[xi * C + c] + (qp[(px - e0) * C + c] if inb else 0.0)
+                        m = nm / dd if dd > 0.0 else 0.0
+                        out[xi * C + c] = m if m > 0.0 else 0.0
+                else:
+                    dd = den - 0.0
+                    for c in range(C):
+                        m = num[xi * C + c] / dd if dd > 0.0 else 0.0
+                        out[xi * C + c] = m if m > 0.0 else 0.0
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -434,6 +506,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
         b2 = np.empty((n, C))
         valid = np.zeros(n, np.bool_)
         act = np.zeros(n, np.bool_)
+        nzu = np.zeros(n, np.bool_)
         a = np.zeros(n)
         U = np.empty((n, C))
         G = np.empty((C, C))
@@ -441,6 +514,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
         rhs = np.empty(C)
         rhs0 = np.empty(C)
         sol = np.empty(C)
+        cz0 = np.empty(C)
         for x in range(W):
             top = 0.0
             for b in range(B):
@@ -448,44 +522,49 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                 bp = b if P.shape[0] > 1 else 0
                 bz = b if cov_z.shape[0] > 1 else 0
                 bx = b if cov_yz.shape[0] > 1 else 0
-                for j in range(kk):
-                    i = b * kk + j
-                    oy = j // k - r
-                    ox = j % k - r
+                for c in range(C):
+                    cz0[c] = cov_z[bz, y, x, Rz, Rz, c]
+                for dy in range(k):
+                    oy = dy - r
                     ty = y + oy
-                    tx = x + ox
-                    ok = 0 <= ty < H and 0 <= tx < W
-                    valid[i] = ok
-                    if not ok:
-                        continue
-                    centre = oy == 0 and ox == 0
-                    inz = abs(oy) <= Rz and abs(ox) <= Rz
-                    inx = has_yz and abs(oy) <= Rx and abs(ox) <= Rx
-                    vm = 0.0
-                    bm = 0.0
-                    for c in range(C):
-                        if centre:
-                            q = var_y[bv, y, x, c]
-                        else:
-                            q = P[bp, ty, tx, c] + cov_z[bz, y, x, Rz, Rz, c]
-                            if inz:
-                                q -= 2.0 * cov_z[bz, y, x, Rz + oy, Rz + ox, c]
-                            if inx:
-                                q += 2.0 * cov_yz[bx, ty, tx, Rx - oy, Rx - ox, c]
-                        vm += q
-                        if bias_mode == 0:
-                            e2 = s2[j, y - y0, x, c]
-                        elif bias_mode == 1 or centre:
-                            e2 = 0.0
-                        else:
-                            e = _im(zb, b, y, x, c) - _im(zb, b, ty, tx, c)
-                            e2 = e * e
-                        b2[i, c] = e2
-                        bm += e2
-                    v[i] = vm / C
-                    t = v[i] + bm / C
-                    if t > top:
-                        top = t
+                    rowok = 0 <= ty < H
+                    for dx in range(k):
+                        j = dy * k + dx
+                        i = b * kk + j
+                        ox = dx - r
+                        tx = x + ox
+                        ok = rowok and 0 <= tx < W
+                        valid[i] = ok
+                        if not ok:
+                            continue
+                        centre = oy == 0 and ox == 0
+                        inz = abs(oy) <= Rz and abs(ox) <= Rz
+                        inx = has_yz and abs(oy) <= Rx and abs(ox) <= Rx
+                        vm = 0.0
+                        bm = 0.0
+                        for c in range(C):
+                            if centre:
+                                q = var_y[bv, y, x, c]
+                            else:
+                                q = P[bp, ty, tx, c] + cz0[c]
+                                if inz:
+                                    q -= 2.0 * cov_z[bz, y, x, Rz + oy, Rz + ox, c]
+                                if inx:
+                                    q += 2.0 * cov_yz[bx, ty, tx, Rx - oy, Rx - ox, c]
+                            vm += q
+                            if bias_mode == 0:
+                                e2 = s2[j, y - y0, x, c]
+                            elif bias_mode == 1 or centre:
+                                e2 = 0.0
+                            else:
+                                e = _im(zb, b, y, x, c) - _im(zb, b, ty, tx, c)
+                                e2 = e * e
+                            b2[i, c] = e2
+                            bm += e2
+                        v[i] = vm / C
+                        t = v[i] + bm / C
+                        if t > top:
+                            top = t
             floor = max(1e-12 * top, 1e-300)
             vmin = np.inf
             for i in range(n):
@@ -512,34 +591,52 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
             else:
                 # coherent: min aᵀ(D + U Uᵀ)a, Σa = 1, a ≥ 0 (Woodbury + active set);
                 # G = I + Σ_active d_i U_i U_iᵀ and rhs = Σ_active d_i U_i are updated by
-                # removing the dropped taps instead of being summed again
+                # removing the dropped taps instead of being summed again.  Taps without
+                # bias (U_i = 0, most of them) skip the sqrt and the updates, which would
+                # add exact zeros, and get a_i = d_i (1 − 0) = d_i: bit for bit the same.
                 for c in range(C):
                     rhs0[c] = 0.0
                     for d in range(C):
                         G0[c, d] = 1.0 if c == d else 0.0
+                cv = C * vmin
                 for i in range(n):
                     act[i] = valid[i]
+                    nzu[i] = False
                     if valid[i]:
                         di[i] = vmin / v[i]
                         for c in range(C):
-                            U[i, c] = np.sqrt(b2[i, c] / (C * vmin))
-                        for c in range(C):
-                            rhs0[c] += U[i, c] * di[i]
-                            for d in range(C):
-                                G0[c, d] += U[i, c] * di[i] * U[i, d]
+                            e2 = b2[i, c]
+                            if e2 != 0.0:
+                                U[i, c] = np.sqrt(e2 / cv)
+                                nzu[i] = True
+                            else:
+                                U[i, c] = 0.0
+                        if not np.isfinite(di[i]):
+                            nzu[i] = True        # 0 · inf must stay nan, as in the sum
+                        if nzu[i]:
+                            for c in range(C):
+                                rhs0[c] += U[i, c] * di[i]
+                                for d in range(C):
+                                    G0[c, d] += U[i, c] * di[i] * U[i, d]
                 for it in range(MAX_ACTIVE_SET_ITER):
                     for c in range(C):
                         rhs[c] = rhs0[c]
                         for d in range(C):
                             G[c, d] = G0[c, d]
                     _solve_small(G, rhs, sol)
+                    fin = True
+                    for c in range(C):
+                        fin = fin and np.isfinite(sol[c])
                     neg = False
                     for i in range(n):
                         if act[i]:
-                            s = 0.0
-                            for c in range(C):
-                                s += U[i, c] * sol[c]
-                            a[i] = di[i] * (1.0 - s)
+                            if nzu[i] or not fin:
+                                s = 0.0
+                                for c in range(C):
+                                    s += U[i, c] * sol[c]
+                                a[i] = di[i] * (1.0 - s)
+                            else:
+                                a[i] = di[i]
                         else:
                             a[i] = 0.0
                     for i in range(n):
@@ -557,10 +654,11 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                 if act[i] and a[i] > 0.0:
                     tot += a[i]
             for b in range(B):
-                for j in range(kk):
-                    i = b * kk + j
-                    w = a[i] / tot if (act[i] and a[i] > 0.0) else 0.0
-                    out[y, x, b, j // k, j % k] = np.float32(w)
+                for dy in range(k):
+                    for dx in range(k):
+                        i = b * kk + dy * k + dx
+                        w = a[i] / tot if (act[i] and a[i] > 0.0) else 0.0
+                        out[y, x, b, dy, dx] = np.float32(w)
 
 
 def _self_term(var_y, cov_z, cov_yz, has_yz):
