@@ -84,7 +84,6 @@ def _renormalised_gaussian(H, W, k, sigma):
 def _dense_operator(K, H, W):
     """The (HW x HW) matrix of ``apply_kernels(K, .)`` (zero outside)."""
     k = K.shape[2]
-    r = k // 2
     A = np.zeros((H * W, H * W))
     for y in range(H):
         for x in range(W):
@@ -797,3 +796,27 @@ def test_combine_denoised_bad_input():
         denoiser_moments(f, y, y, probes=0)
     with pytest.raises(InputError, match="denoiser"):
         denoiser_moments("oidn", y, y)
+
+
+def test_neighbour_products_kernel_equals_numpy_reference_to_the_bit():
+    """``statmc._stencil_kernels``: the compiled ``prod[p, R+v] += a_p · b_{p+v}`` equals the
+    NumPy reference exactly (same operations, no fused multiply-add), borders and offsets
+    wider than the image included, for a = b (CRN renders) and a ≠ b (denoiser_moments)."""
+    from statmc import _stencil_kernels as sk
+
+    rng = np.random.default_rng(11)
+    for h, w, R in ((7, 5, 0), (7, 5, 2), (6, 9, 3), (3, 4, 4), (1, 1, 1)):
+        a = rng.normal(size=(h, w, 3))
+        b = rng.normal(size=(h, w, 3))
+        start = rng.normal(size=(h, w, 2 * R + 1, 2 * R + 1, 3))
+        for x, y in ((a, a), (a, b)):
+            fast = start.copy()
+            sk.add_neighbour_products(fast, x, y, R)
+            ref = sk.add_neighbour_products_numpy(start.copy(), x, y, R)
+            np.testing.assert_array_equal(fast, ref)
+            # and by the definition, one element at a time
+            for yy, xx, dy, dx in ((0, 0, R, R), (h - 1, w - 1, -R, -R), (h // 2, w // 2, 0, R)):
+                inside = 0 <= yy + dy < h and 0 <= xx + dx < w
+                want = start[yy, xx, R + dy, R + dx] + (x[yy, xx] * y[yy + dy, xx + dx]
+                                                        if inside else 0.0)
+                np.testing.assert_array_equal(fast[yy, xx, R + dy, R + dx], want)
