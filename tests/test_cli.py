@@ -595,6 +595,17 @@ def test_a_closed_output_pipe_ends_quietly(toy_render):
 
 
 # ------------------------------------------------------------------ common random numbers
+def _render_y_and_crn_z(tmp_path, size, spp, stencil):
+    """An independent render (seed 1) in ``tmp_path/y`` and a CRN render (seed 2) with a
+    ``stencil``-wide covariance stencil in ``tmp_path/z``."""
+    y_dir, z_dir = tmp_path / "y", tmp_path / "z"
+    for d, seed, extra in ((y_dir, 1, ()), (z_dir, 2, ("--crn", "--stencil", stencil))):
+        code, _, err = run_cli("render", "cornell-box", "--size", size, "--spp", spp,
+                               "--seed", seed, *extra, "--out", d, "-q")
+        assert code == 0, err
+    return y_dir, z_dir
+
+
 @pytest.mark.mitsuba
 def test_render_crn_writes_the_stencil_and_combine_uses_it(tmp_path):
     """`render --crn` stores the covariance stencil beside the statistics; `combine
@@ -603,13 +614,7 @@ def test_render_crn_writes_the_stencil_and_combine_uses_it(tmp_path):
     from statmc import combine as cb
     from statmc.exr import read_channels, read_exr, read_image, read_spatial_covariance
 
-    y_dir, z_dir = tmp_path / "y", tmp_path / "z"
-    code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--seed", 1,
-                           "--out", y_dir, "-q")
-    assert code == 0, err
-    code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--seed", 2,
-                           "--crn", "--stencil", 5, "--out", z_dir, "-q")
-    assert code == 0, err
+    y_dir, z_dir = _render_y_and_crn_z(tmp_path, "24x16", 4, 5)
     rep = json.loads((z_dir / "report.json").read_text())
     assert rep["crn"] is True and rep["stencil"] == 5 and rep["renderer_info"]["crn"]
     names = read_channels(z_dir / "render.exr")
@@ -660,13 +665,7 @@ def test_crn_render_refused_where_independent_pixels_are_assumed(tmp_path):
     Cornell box at 16 spp OIDN took an independent render's relMSE 0.016 -> 0.0028 but a
     CRN render's only 0.014 -> 0.014), also as the input of reconstruct, denoise and
     progressive.  One line, nothing written."""
-    y_dir, z_dir = tmp_path / "y", tmp_path / "z"
-    code, _, err = run_cli("render", "cornell-box", "--size", "12x8", "--spp", 2, "--seed", 1,
-                           "--out", y_dir, "-q")
-    assert code == 0, err
-    code, _, err = run_cli("render", "cornell-box", "--size", "12x8", "--spp", 2, "--seed", 2,
-                           "--crn", "--stencil", 3, "--out", z_dir, "-q")
-    assert code == 0, err
+    y_dir, z_dir = _render_y_and_crn_z(tmp_path, "12x8", 2, 3)
     for weights in ("statistical", "uniform"):
         for y, z in ((z_dir, y_dir), (z_dir, z_dir)):
             out = tmp_path / f"c-{weights}.exr"
