@@ -1,12 +1,15 @@
-"""Private numba kernel for common-random-number renders: neighbour products of one pass.
+"""Private numba kernel for covariance stencils: neighbour products of two images.
 
-Only :meth:`statmc.mitsuba_backend.MitsubaRenderer.render_crn` calls it; the caller owns
-the arrays (float64, C-contiguous).  :func:`add_neighbour_products_numpy` is the plain
-NumPy reference the tests compare against.
-
-``prod[y, x, R + dy, R + dx, c] += img[y, x, c] · img[y + dy, x + dx, c]`` for every
-offset ``|dy|, |dx| <= R`` whose neighbour lies inside the image (the others are left
-as they are): the sums behind the covariance stencil of a CRN render.
+``prod[y, x, R + dy, R + dx, c] += a[y, x, c] · b[y + dy, x + dx, c]`` for every offset
+``|dy|, |dx| <= R`` whose neighbour lies inside the image (the others are left as they
+are).  Summed over samples or probes, these are the sums behind a covariance stencil
+``cov(a_p, b_{p+v})`` in the convention of :func:`statmc.combine.combine_bias_variance`.
+Callers: :meth:`statmc.mitsuba_backend.MitsubaRenderer.render_crn` (``a = b`` = one pass
+of a common-random-number render) and :func:`statmc.combine.denoiser_moments`
+(``J v`` with itself and with the probe ``v``).  Callers own the arrays (float64,
+C-contiguous, same shape).  :func:`add_neighbour_products_numpy` is the plain NumPy
+reference the tests compare against; both do one multiply and one add per element in the
+same order (no fused multiply-add), so they agree to the bit.
 """
 
 from __future__ import annotations
@@ -14,10 +17,10 @@ from __future__ import annotations
 from numba import njit, prange
 
 
-@njit(parallel=True, cache=True, fastmath={"nsz", "contract"})
-def add_neighbour_products(prod, img, R):
+@njit(parallel=True, cache=True)
+def add_neighbour_products(prod, a, b, R):
     """Compiled; rows of the output in parallel (each row writes only its own slots)."""
-    H, W, C = img.shape
+    H, W, C = a.shape
     for y in prange(H):
         for dy in range(-R, R + 1):
             yy = y + dy
@@ -28,7 +31,7 @@ def add_neighbour_products(prod, img, R):
                 hi = min(R, W - 1 - x)
                 for dx in range(lo, hi + 1):
                     for c in range(C):
-                        prod[y, x, R + dy, R + dx, c] += img[y, x, c] * img[yy, x + dx, c]
+                        prod[y, x, R + dy, R + dx, c] += a[y, x, c] * b[yy, x + dx, c]
 
 
 def offset_slices(n: int, d: int):
@@ -39,14 +42,14 @@ def offset_slices(n: int, d: int):
     return slice(lo, hi), slice(lo + d, hi + d)
 
 
-def add_neighbour_products_numpy(prod, img, R):
+def add_neighbour_products_numpy(prod, a, b, R):
     """NumPy reference of :func:`add_neighbour_products` (shifted slices per offset)."""
-    H, W = img.shape[:2]
+    H, W = a.shape[:2]
     for dy in range(-R, R + 1):
         yd, ys = offset_slices(H, dy)
         for dx in range(-R, R + 1):
             xd, xs = offset_slices(W, dx)
-            prod[yd, xd, R + dy, R + dx] += img[yd, xd] * img[ys, xs]
+            prod[yd, xd, R + dy, R + dx] += a[yd, xd] * b[ys, xs]
     return prod
 
 

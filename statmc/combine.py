@@ -47,6 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _combine_kernels as _ck
+from ._stencil_kernels import add_neighbour_products
 from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 
 __all__ = [
@@ -1098,13 +1099,10 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
         h = _probe_step(xx, v, eps)
         if h is None:
             continue                      # no noise (or a black image): zero moments
-        jv = (_denoise(denoiser, xx + h * v) - z) / h
+        jv = np.ascontiguousarray((_denoise(denoiser, xx + h * v) - z) / h)
         V[i], JV[i] = v, jv
-        for vy in range(-R, R + 1):
-            for vx in range(-R, R + 1):
-                s = _shift(jv, vy, vx)
-                cov_z[:, :, R + vy, R + vx] += jv * s
-                cov_yz[:, :, R + vy, R + vx] += v * s
+        add_neighbour_products(cov_z, jv, jv, R)      # cov_z[p, R+u] += (Jv)_p (Jv)_{p+u}
+        add_neighbour_products(cov_yz, v, jv, R)      # cov_yz[p, R+u] += v_p (Jv)_{p+u}
     cov_z /= probes
     cov_yz /= probes
     if extra_output:

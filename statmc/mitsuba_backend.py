@@ -467,7 +467,7 @@ class MitsubaRenderer:
         Needs a JIT variant (``llvm_ad_rgb``): the scalar fallback renders through
         ``mi.render``, which seeds every pixel differently.  Costs ``spp`` wavefronts of
         ``H·W`` samples; the sums are kept in NumPy, the neighbour products formed by the
-        compiled kernel of :mod:`statmc._crn_kernels`.  Memory: two ``(H, W, m, m, 3)``
+        compiled kernel of :mod:`statmc._stencil_kernels`.  Memory: two ``(H, W, m, m, 3)``
         float64 arrays; more than :data:`CRN_MAX_BYTES` is refused (at 1920x1080, m <= 5).
         """
         spp = _check_int("spp", spp, minimum=1)
@@ -486,7 +486,7 @@ class MitsubaRenderer:
                              f"(llvm_ad_rgb); this renderer runs {self.variant!r} ({_LLVM_HINT}).")
         if self._mi.variant() != self.variant:
             self._mi.set_variant(self.variant)
-        from ._crn_kernels import add_neighbour_products
+        from ._stencil_kernels import add_neighbour_products
 
         mi = self._mi
         H, W, R = self.height, self.width, m // 2
@@ -506,7 +506,8 @@ class MitsubaRenderer:
                 x = np.where(ok, x, 0.0)
                 s1 += x
                 s2 += x[..., :, None] * x[..., None, :]
-                add_neighbour_products(prod, np.ascontiguousarray(x), R)
+                x = np.ascontiguousarray(x)
+                add_neighbour_products(prod, x, x, R)
                 bar.update(H * W)
         seconds = time.perf_counter() - t0
         counts = np.full((H, W), spp, np.int64)
@@ -675,7 +676,7 @@ class MitsubaRenderer:
 
 def _neighbours(a: np.ndarray, R: int) -> np.ndarray:
     """``out[y, x, R + dy, R + dx] = a[y + dy, x + dx]`` (0 outside), ``(H, W, m, m, C)``."""
-    from ._crn_kernels import offset_slices
+    from ._stencil_kernels import offset_slices
 
     H, W = a.shape[:2]
     m = 2 * R + 1
