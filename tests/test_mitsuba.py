@@ -472,20 +472,13 @@ def test_crn_render_bad_input(cornell):
         cornell.render_crn(4, stencil=401)
 
 
-def test_crn_neighbour_products_kernel_matches_numpy_reference():
-    """The compiled neighbour products equal the NumPy reference, borders included, for
-    several radii and a non-square image (no Mitsuba needed)."""
-    from statmc import _crn_kernels as ck
-
+def test_crn_neighbour_gather_matches_a_direct_loop():
+    """The neighbour gather behind the stencil's mean products, borders and offsets wider
+    than the image included (no Mitsuba needed; the product kernel is tested in
+    test_combine.py)."""
     rng = np.random.default_rng(11)
     for h, w, R in ((7, 5, 0), (7, 5, 2), (6, 9, 3), (3, 4, 4)):
         img = rng.normal(size=(h, w, 3))
-        start = rng.normal(size=(h, w, 2 * R + 1, 2 * R + 1, 3))
-        fast = start.copy()
-        ck.add_neighbour_products(fast, img, R)
-        ref = ck.add_neighbour_products_numpy(start.copy(), img, R)
-        np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
-        # the neighbour gather behind the stencil's mean products, by a direct loop
         nb = mb._neighbours(img, R)
         for y in range(h):
             for x in range(w):
@@ -514,3 +507,22 @@ def test_crn_render_memory_is_the_two_arrays_it_checks(cornell):
     finally:
         tracemalloc.stop()
     assert peak < 1.25 * need, (peak, need)
+
+
+def test_crn_render_draws_other_numbers_than_render_with_the_same_seed(cornell):
+    """A CRN render is independent of :meth:`render` with the same seed: its streams are
+    salted apart.  A render with one sample in one lit pixel traces it in lane 0, the lane
+    whose stream a one-lane (CRN) wavefront would share under the same salt; the values
+    must differ.  Different seeds of render_crn differ too."""
+    if not cornell._jit:
+        pytest.skip("CRN renders need a JIT variant")
+    H, W = cornell.height, cornell.width
+    counts = np.zeros((H, W), np.int64)
+    counts[H // 2, W // 2] = 1
+    for seed in (0, 7):
+        one = cornell.render(counts, seed=seed, features=False).mean[H // 2, W // 2]
+        crn, _ = cornell.render_crn(1, seed=seed, stencil=1, features=False)
+        assert np.any(one != 0) and not np.array_equal(one, crn.mean[H // 2, W // 2])
+    a, _ = cornell.render_crn(1, seed=1, stencil=1, features=False)
+    b, _ = cornell.render_crn(1, seed=2, stencil=1, features=False)
+    assert not np.array_equal(a.mean, b.mean)
