@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._stencil_kernels import shift_slices as _shift_slices
 from ._threads import serial_below
 from llvmlite import ir
 from numba import njit, prange, types
@@ -68,16 +69,6 @@ def _fmuladd(typingctx, a, b, c):
 
 
 # =========================================================================== NumPy reference
-def _shift_slices(H, W, oy, ox):
-    """Slices ``(dst, src)`` with ``dst[p] <- src[p + (oy, ox)]`` where both are inside."""
-    ny = max(0, H - abs(oy))
-    nx = max(0, W - abs(ox))
-    y0, x0 = max(0, -oy), max(0, -ox)
-    dst = (slice(y0, y0 + ny), slice(x0, x0 + nx))
-    src = (slice(y0 + oy, y0 + oy + ny), slice(x0 + ox, x0 + ox + nx))
-    return dst, src
-
-
 def combine_numpy(w, ys, zs):
     """Reference: Eq. 14 of Back et al. 2020 term by term, ``(H, W, C)`` float64.
 

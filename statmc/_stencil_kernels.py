@@ -34,23 +34,25 @@ def add_neighbour_products(prod, a, b, R):
                         prod[y, x, R + dy, R + dx, c] += a[y, x, c] * b[yy, x + dx, c]
 
 
-def offset_slices(n: int, d: int):
-    """``(dst, src)`` slices of the indices ``i`` with ``0 <= i + d < n`` and of ``i + d``
-    (empty when ``|d| >= n``)."""
-    lo, hi = max(0, -d), max(0, min(n, n - d))
-    hi = max(hi, lo)
-    return slice(lo, hi), slice(lo + d, hi + d)
+def shift_slices(H, W, oy, ox):
+    """Slices ``(dst, src)`` with ``dst[p] <- src[p + (oy, ox)]`` where both are inside an
+    ``H x W`` image (empty when the offset is at least the image size)."""
+    ny = max(0, H - abs(oy))
+    nx = max(0, W - abs(ox))
+    y0, x0 = max(0, -oy), max(0, -ox)
+    dst = (slice(y0, y0 + ny), slice(x0, x0 + nx))
+    src = (slice(y0 + oy, y0 + oy + ny), slice(x0 + ox, x0 + ox + nx))
+    return dst, src
 
 
 def add_neighbour_products_numpy(prod, a, b, R):
     """NumPy reference of :func:`add_neighbour_products` (shifted slices per offset)."""
     H, W = a.shape[:2]
     for dy in range(-R, R + 1):
-        yd, ys = offset_slices(H, dy)
         for dx in range(-R, R + 1):
-            xd, xs = offset_slices(W, dx)
-            prod[yd, xd, R + dy, R + dx] += a[yd, xd] * b[ys, xs]
+            dst, src = shift_slices(H, W, dy, dx)
+            prod[dst + (R + dy, R + dx)] += a[dst] * b[src]
     return prod
 
 
-__all__ = ["add_neighbour_products", "add_neighbour_products_numpy", "offset_slices"]
+__all__ = ["add_neighbour_products", "add_neighbour_products_numpy", "shift_slices"]

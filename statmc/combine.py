@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _combine_kernels as _ck
-from ._stencil_kernels import add_neighbour_products
+from ._stencil_kernels import add_neighbour_products, shift_slices
 from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 
 __all__ = [
@@ -323,7 +323,7 @@ def _shift(a, oy, ox):
     """``out[p] = a[p + (oy, ox)]`` where that pixel exists, else 0 (leading axes H, W)."""
     H, W = a.shape[:2]
     out = np.zeros_like(a)
-    dst, src = _ck._shift_slices(H, W, oy, ox)
+    dst, src = shift_slices(H, W, oy, ox)
     out[dst] = a[src]
     return out
 

@@ -531,8 +531,7 @@ class MitsubaRenderer:
             nb *= spp * mean[:, :, None, None, :]
             cov -= nb
             del nb
-            cov /= (spp - 1) * spp
-            cov *= _neighbours(np.ones((H, W, 1)), R)       # 0 outside the image
+            cov /= (spp - 1) * spp          # 0 outside the image: prod and nb are 0 there
             cov[:, :, R, R] = stats.mean_var                  # the centre: M2 clipped at 0
         else:
             cov.fill(0.0)
@@ -676,16 +675,15 @@ class MitsubaRenderer:
 
 def _neighbours(a: np.ndarray, R: int) -> np.ndarray:
     """``out[y, x, R + dy, R + dx] = a[y + dy, x + dx]`` (0 outside), ``(H, W, m, m, C)``."""
-    from ._stencil_kernels import offset_slices
+    from ._stencil_kernels import shift_slices
 
     H, W = a.shape[:2]
     m = 2 * R + 1
     out = np.zeros((H, W, m, m) + a.shape[2:], a.dtype)
     for dy in range(-R, R + 1):
-        yd, ys = offset_slices(H, dy)
         for dx in range(-R, R + 1):
-            xd, xs = offset_slices(W, dx)
-            out[yd, xd, R + dy, R + dx] = a[ys, xs]
+            dst, src = shift_slices(H, W, dy, dx)
+            out[dst + (R + dy, R + dx)] = a[src]
     return out
 
 
