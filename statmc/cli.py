@@ -394,10 +394,17 @@ _ASSUMES_INDEPENDENT = ("assumes independent pixel errors and leaves most of its
                         "it as Z in `statmc combine`")
 
 
+def _is_crn(stats) -> bool:
+    """Whether a file read by ``read_exr`` is a common-random-number render: it has the
+    ``SpatialCovariance.*`` channels of ``statmc render --crn``."""
+    from .exr import SPATIAL_COVARIANCE
+    return any(c.startswith(SPATIAL_COVARIANCE + ".") for c in stats.meta.get("extra_channels", ()))
+
+
 def _refuse_crn(stats, path, what: str) -> None:
-    """Refuse a common-random-number render (``SpatialCovariance.*`` channels) where
-    independent pixel errors are assumed (Back 2020 §3.1)."""
-    if any(c.startswith("SpatialCovariance.") for c in stats.meta.get("extra_channels", ())):
+    """Refuse a common-random-number render where independent pixel errors are assumed
+    (Back 2020 §3.1)."""
+    if _is_crn(stats):
         raise InputError(f"{path} is a common-random-number render (it has SpatialCovariance.* "
                          f"channels): its pixel errors are correlated, but {what}.")
 
@@ -508,10 +515,10 @@ def cmd_combine(args) -> int:
     else:
         from .exr import read_spatial_covariance
 
-        cov_z = read_spatial_covariance(args.z, z_stats.n)  # a CRN render's stencil, if any
-        if cov_z is None:
-            cov_z = z_stats.mean_var.astype(np.float32)
-        elif cov_z.shape[0:2] != (h, w) or cov_z.shape[2] < args.size:
+        cov_z = z_stats.mean_var.astype(np.float32)
+        if _is_crn(z_stats):                       # a CRN render's stencil (a second read)
+            cov_z = read_spatial_covariance(args.z, z_stats.n)
+        if cov_z.ndim == 5 and cov_z.shape[2] < args.size:
             raise InputError(f"{args.z} holds a {cov_z.shape[2]}x{cov_z.shape[2]} covariance "
                              f"stencil; --size must be at most {cov_z.shape[2]} (got {args.size}).")
         weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32), cov_z,
