@@ -44,7 +44,7 @@ from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pa
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
     "estimate_mse", "difference_variance", "pooled_selector", "select", "select_scales",
-    "reconstruct", "sampling_map",
+    "reconstruct", "sampling_map", "SelectedFilter", "selected_filter",
     "DEFAULT_GAMMA", "RELMSE_EPS", "BIAS_MODES", "POOLED_FINAL_SIGMAS", "BIAS_POOL_SIGMA",
 ]
 
@@ -813,6 +813,119 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
     bias, sig, map_scale = _resolve_mode(final, bias, sigmas, map_scale)
     return _core(m, v, vsum, nn, gamma, sig, final, True, DEFAULT_TRUNCATE,
                  keep_bank=False, map_scale=map_scale, bias=bias)["image"]
+
+
+class SelectedFilter:
+    """GEM's reconstruction as a fixed linear filter: the kernel it selected, exposed.
+
+    Pixel ``p`` of the output is the border-renormalised Gaussian of σ =
+    ``sigmas[scales[p]]`` (the pixel itself for σ = 0) applied to the input — the
+    per-pixel filter that :func:`select` chose from the full sample (Rousselle et al.
+    2011 [1]_, §4, §6: the output is the selected scale of the filter bank).  Applied to
+    the render it reproduces :func:`reconstruct`; applied to anything else (a sample bin,
+    a probe vector) it is a *linear* map that does not select again.  This is what
+    Back et al. 2020 (§4.4, "Network Input") do for denoisers that expose their weights:
+    compute the kernel from all samples, then share it among the ``B`` bins,
+    ``z_{c,b} = Σ_i w̄_i y_{i,b}``; :func:`statmc.combine.combine_bins` uses it so.  Its
+    linearity also makes the moments of :func:`statmc.combine.denoiser_moments` exact
+    in expectation (first order is exact).
+
+    Parameters
+    ----------
+    scales : (H, W) int array
+        Selected index into ``sigmas`` per pixel (``select(...)["scales"]``).
+    sigmas : sequence of float
+        The bank's Gaussian σ (0 = the pixel filter), increasing.
+    truncate : float
+        Kernel cut-off in σ (the bank's).
+    """
+
+    def __init__(self, scales, sigmas, *, truncate: float = DEFAULT_TRUNCATE):
+        sig = _check_sigmas(sigmas)
+        sc = np.asarray(scales)
+        if sc.ndim != 2 or not np.issubdtype(sc.dtype, np.integer):
+            raise InputError(f"`scales` must be an (H, W) integer array; got shape {sc.shape} "
+                             f"of {sc.dtype}.")
+        if sc.size and (sc.min() < 0 or sc.max() >= len(sig)):
+            raise InputError(f"`scales` must index `sigmas` (0 … {len(sig) - 1}); got values "
+                             f"{int(sc.min())} … {int(sc.max())}.")
+        self.scales = np.ascontiguousarray(sc, dtype=np.intp)
+        self.sigmas = tuple(sig)
+        self.truncate = float(as_number("truncate", truncate, lo=0.0, lo_open=True))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.scales.shape
+
+    def __call__(self, image) -> np.ndarray:
+        """Filter ``image`` ``(H, W, C)`` or ``(H, W)`` with the selected kernels (same
+        dtype for float32/float64 input)."""
+        a = np.asarray(image)
+        dt = a.dtype if a.dtype in (np.float32, np.float64) else np.float64
+        x3 = as_float_array("image", a, ndim=(2, 3), dtype=dt)
+        check_finite("image", x3)
+        if x3.shape[:2] != self.scales.shape:
+            raise InputError(f"`image` has {x3.shape[0]}x{x3.shape[1]} pixels but the filter "
+                             f"was selected on {self.scales.shape[0]}x{self.scales.shape[1]}.")
+        x, c = _rows(x3)
+        used = np.zeros(len(self.sigmas), bool)
+        used[np.unique(self.scales)] = True
+        vals = np.zeros((len(self.sigmas),) + x.shape, dt)
+        for k, s in enumerate(self.sigmas):
+            if not used[k]:
+                continue
+            if s == 0.0:
+                vals[k] = x
+            else:
+                _run(x, c, None, 0, s, self.truncate, out_x=vals[k])
+        out = np.empty_like(x)
+        _k.gather(vals, c, self.scales, out)
+        return out.reshape(x3.shape)
+
+    def reference(self, image) -> np.ndarray:
+        """Plain NumPy/SciPy version of ``__call__`` (tests compare the two): each scale
+        by :func:`scipy.ndimage.correlate1d` with the border-renormalised kernel."""
+        from scipy.ndimage import correlate1d
+
+        x = np.asarray(image, np.float64)
+        h, w = x.shape[:2]
+        out = np.empty_like(x)
+        for k, s in enumerate(self.sigmas):
+            sel = self.scales == k
+            if not sel.any():
+                continue
+            if s == 0.0:
+                out[sel] = x[sel]
+                continue
+            g = gaussian_kernel_1d(s, truncate=self.truncate)
+            f = correlate1d(correlate1d(x, g, axis=0, mode="constant"), g, axis=1,
+                            mode="constant")
+            norm = np.outer(correlate1d(np.ones(h), g, mode="constant"),
+                            correlate1d(np.ones(w), g, mode="constant"))
+            f = f / norm.reshape(norm.shape + (1,) * (x.ndim - 2))
+            out[sel] = f[sel]
+        return out
+
+
+def selected_filter(mean, mean_var, **options):
+    """GEM on the render and the kernel it selected: ``(image, SelectedFilter)``.
+
+    ``options`` are those of :func:`select` (``gamma``, ``final``, ``n``, ``sigmas``,
+    ``map_scale``, ``bias``).  ``filter(mean)`` equals ``image`` (Rousselle et al.
+    2011 §6: the output is the selected scale of the bank).
+    """
+    m, v, vsum, nn = _check_inputs(mean, mean_var, options.pop("n", None))
+    gamma = options.pop("gamma", DEFAULT_GAMMA)
+    final = options.pop("final", True)
+    bias, sig, map_scale = _resolve_mode(final, options.pop("bias", None),
+                                         options.pop("sigmas", None),
+                                         options.pop("map_scale", None))
+    if options:
+        raise InputError(f"unknown option(s) {sorted(options)}; expected gamma, final, n, "
+                         "sigmas, map_scale, bias.")
+    out = _core(m, v, vsum, nn, gamma, sig, final, True, DEFAULT_TRUNCATE, keep_bank=False,
+                map_scale=map_scale, bias=bias)
+    return out["image"], SelectedFilter(out["scales"], sig)
 
 
 def _allocate(gain, budget, batch):
