@@ -137,7 +137,7 @@ def _check_out_file(path: str, inputs=()) -> None:
 
 
 RENDER_OUTPUTS = ("render.exr", "render.png", "counts.exr", "counts.png", "reconstruction.exr",
-                  "reconstruction.png", "scales.exr", "scales.png", "report.json")
+                  "reconstruction.png", "scales.exr", "scales.png", "bins.exr", "report.json")
 
 
 def _check_out_dir(path: str, inputs=()) -> None:
@@ -263,7 +263,8 @@ def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
     from .metrics import all_metrics
-    from .pipeline import reconstruct_stats, render_with_sampler
+    from .pipeline import (BIN_RECONSTRUCTIONS, reconstruct_bins, reconstruct_stats, render_bins,
+                           render_with_sampler)
     from .plots import write_map_png
     from .renderers import make_renderer
 
@@ -291,6 +292,22 @@ def cmd_render(args) -> int:
                          f"least 2 samples; every pixel has fewer (raise --spp).")
     if args.stencil is not None and not args.crn:
         raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
+    binned = args.reconstruct in BIN_RECONSTRUCTIONS
+    if args.bins is not None and not binned:
+        raise InputError(f"--bins is the number of sample bins of --reconstruct "
+                         f"{' / '.join(BIN_RECONSTRUCTIONS)}; it needs one of them.")
+    if binned:
+        args.bins = args.bins or 4
+        if args.sampler != "uniform" or sample_map is not None:
+            raise InputError(f"--reconstruct {args.reconstruct} splits a uniform render into "
+                             "equal bins; it cannot be combined with an adaptive --sampler or "
+                             "a --sample-map.")
+        if args.bins < 2:
+            raise InputError(f"--bins must be at least 2; got {args.bins}.")
+        if args.spp is None or args.spp % args.bins or args.spp < 2 * args.bins:
+            raise InputError(f"--reconstruct {args.reconstruct} needs --spp to be a multiple of "
+                             f"--bins {args.bins} with at least 2 samples per bin; got --spp "
+                             f"{args.spp}.")
     if args.crn:
         args.stencil = args.stencil or 15
         if args.sampler != "uniform" or sample_map is not None:
@@ -318,6 +335,7 @@ def cmd_render(args) -> int:
                          f"{renderer.height} R,G,B.")
     t0 = time.perf_counter()
     extra = {}
+    bins = None
     if args.crn:
         from .exr import spatial_covariance_channels
 
@@ -325,6 +343,12 @@ def cmd_render(args) -> int:
                                          progress=not args.quiet)
         extra = spatial_covariance_channels(cov, stats.n)
         del cov
+    elif binned:
+        bins = render_bins(renderer, args.spp, args.bins, seed=args.seed,
+                           progress=not args.quiet)
+        stats = bins[0]
+        for b in bins[1:]:
+            stats = stats.merge(b)
     else:
         stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
                                     seed=args.seed, progress=not args.quiet, gamma=args.gamma,
@@ -332,9 +356,19 @@ def cmd_render(args) -> int:
                                     initial_spp=INITIAL_SPP, iterations=ITERATIONS)
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
-    image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
-                                    denoiser=args.denoiser or "oidn", seed=args.seed,
-                                    gem_bias=args.gem_bias)
+    bin_data = None
+    if binned:
+        from .exr import bin_channels
+
+        image, maps, (ys, zs) = reconstruct_bins(bins, args.reconstruct, gamma=args.gamma,
+                                                 seed=args.seed, gem_bias=args.gem_bias,
+                                                 return_bins=True)
+        bin_data = bin_channels(ys, zs)
+        del bins, ys, zs
+    else:
+        image, maps = reconstruct_stats(stats, args.reconstruct, gamma=args.gamma,
+                                        denoiser=args.denoiser or "oidn", seed=args.seed,
+                                        gem_bias=args.gem_bias)
     seconds_rec = time.perf_counter() - t0
     # Everything is computed before the first file is written: a failure writes nothing.
     n = stats.n
@@ -343,7 +377,7 @@ def cmd_render(args) -> int:
         "scene": args.scene, "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
         "sampler": args.sampler, "reconstruct": args.reconstruct, "gamma": args.gamma,
-        "gem_bias": args.gem_bias, "crn": bool(args.crn),
+        "gem_bias": args.gem_bias, "crn": bool(args.crn), "bins": args.bins,
         "stencil": args.stencil if args.crn else None,
         "spp": total / n.size, "total_samples": total,
         "spp_min": int(n.min()), "spp_max": int(n.max()),
@@ -358,7 +392,8 @@ def cmd_render(args) -> int:
             report["metrics_reconstruction"] = all_metrics(image, ref)
     written = [f for f in RENDER_OUTPUTS if f.startswith(("render.", "counts.", "report."))
                or (f.startswith("reconstruction.") and args.reconstruct != "none")
-               or (f.startswith("scales.") and "scale" in maps)]
+               or (f.startswith("scales.") and "scale" in maps)
+               or (f == "bins.exr" and bin_data is not None)]
     report["files"] = written
     stale = [f for f in RENDER_OUTPUTS if f not in written and os.path.exists(os.path.join(args.out, f))]
     os.makedirs(args.out, exist_ok=True)
@@ -375,6 +410,9 @@ def cmd_render(args) -> int:
             write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
             write_map_png(out("scales.png"), maps["scale"], cmap="magma",
                           label="selected scale (0 = pixel filter)", protect=inputs)
+        if bin_data is not None:
+            write_exr(out("bins.exr"), stats.mean.astype(np.float32), protect=inputs,
+                      extra=bin_data)
     _write_json(out("report.json"), report, protect=inputs)
     if not args.quiet:
         msg = f"wrote {args.out}/ ({total} samples, {seconds:.2f} s"
@@ -617,9 +655,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="denoiser of --sampler denoising-aware and --reconstruct progressive "
                         "(default oidn), of --sampler expected-error (default gem)")
     r.add_argument("--reconstruct", choices=["none", "gem", "gaussian", "oidn", "progressive",
-                                             "oidn+combine"],
+                                             "oidn+combine", "gem+bins", "oidn+bins"],
                    default="none",
-                   help="reconstruction written beside the raw render")
+                   help="reconstruction written beside the raw render; gem+bins / oidn+bins "
+                        "render --bins sample bins and combine them with their per-bin "
+                        "denoised images (Back 2020 Eq. 14; GEM's full-sample kernel shared "
+                        "by the bins, or OIDN on each bin)")
+    r.add_argument("--bins", type=POSITIVE_INT, default=None,
+                   help="number of sample bins of --reconstruct gem+bins / oidn+bins (default "
+                        "4, the paper's; --spp must be a multiple of it)")
     _add_gem_options(r, "by the adaptive --sampler gem and the pilot kernels of --sampler "
                         "expected-error always, and ")
     r.add_argument("--crn", action="store_true",

@@ -54,7 +54,7 @@ __all__ = [
     "combine", "combine_multi", "combine_boosting",
     "uniform_weights", "gaussian_weights", "statistical_weights",
     "combine_bias_variance", "filter_covariance", "buffer_moments",
-    "denoiser_moments", "combine_denoised",
+    "denoiser_moments", "combine_denoised", "combine_bins",
 ]
 
 _BIAS_MODES = ("estimate", "zero")
@@ -1308,4 +1308,88 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
             out = z + np.einsum("hwcj,hwj->hwc", rho, lam)
     if extra_output:
         return out, {"denoised": z, "combined": np.stack(betas), "mix": lam}
+    return out
+
+
+def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
+                 probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, rng=None,
+                 extra_output=False):
+    """Multi-buffer combination (Eq. 14 of Back et al. 2020 [1]_) of ``B`` sample bins
+    and their per-bin denoised images, with classical statistical weights.
+
+    §4.4 and "Network Input" of [1]_: the samples of each pixel are split into ``B``
+    disjoint bins, ``ys[b]`` is the mean of bin ``b`` and ``z_b = denoiser(ys[b])``.  A
+    denoiser that exposes its kernel is computed once from *all* samples and the kernel
+    is shared by the bins, ``z_{c,b} = Σ_i w̄_i y_{i,b}`` — pass
+    :class:`statmc.gem.SelectedFilter` (GEM's selection on the full render,
+    :func:`statmc.gem.selected_filter`); any other callable (OIDN) is applied to each
+    bin, as the paper does for denoisers without explicit weights.
+
+    1. **Moments** of one bin's ``z_b`` by :func:`denoiser_moments` at the full-sample
+       mean ``ȳ`` with per-bin variance ``B · mean_var`` (the bins have equal sample
+       counts): ``cov(z_b)``, ``cov(y_b, z_b)`` are ``B`` times those of ``f(ȳ)`` —
+       exact in expectation for a linear (shared) kernel, first order at ``ȳ`` for a
+       black box.  Box-smoothed over ``(2 smooth + 1)²`` pixels.
+    2. **Weights** :func:`statistical_weights` (``"coherent"``, per bin, tap biases
+       estimated from the bins' ``δ``) with ``var(y_b) = B ·`` ``mean_var`` box-smoothed
+       over 5x5 (zero-variance pixels next to lights otherwise take all the weight).
+    3. **Output** Eq. 14, :func:`combine_multi`.
+
+    Parameters
+    ----------
+    ys : (B, H, W, C) ndarray, ``B >= 2``
+        Bin means (equal sample counts per bin).
+    mean_var : (H, W, C) ndarray
+        Variance of the mean of the full-sample mean ``ys.mean(0)``
+        (``PixelStats.mean_var`` of the merged render).
+    denoiser : callable ``f(color) -> color``
+        Applied to each bin; a :class:`statmc.gem.SelectedFilter` shares GEM's kernel.
+    size, stencil, probes, smooth, patch, rng
+        As in :func:`combine_denoised`.
+    extra_output : bool
+        Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}``.
+
+    Returns
+    -------
+    out : (H, W, C) float64 ndarray
+
+    Notes
+    -----
+    With these moment-based weights every bin gets the same moments, so the weights
+    differ between bins only through the tap biases; with a shared *linear* kernel and
+    equal weights Eq. 14 is then Eq. 8 on the bin means (``docs/combine.md``, "Sample
+    bins").  The paper's gain from bins — down-weighting the one bin whose centre holds
+    an outlier — needs per-bin weights; taking them from per-bin sample variances was
+    1.2–1.5x worse than GEM on the Mitsuba scenes (a bin that drew few bright samples
+    has a low mean *and* a low variance, so inverse-variance weighting is biased low),
+    so it is not offered.  There is no SURE mix with ``z`` here (as there is in
+    :func:`combine_denoised`): ``β̂`` is returned as it is.
+    """
+    yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
+    check_finite("ys", yb)
+    B = yb.shape[0]
+    if B < 2:
+        raise InputError(f"`ys` must hold B >= 2 sample bins (B, H, W, C); got B = {B}.")
+    mv = as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64)
+    if mv.shape != yb.shape[1:]:
+        raise InputError(f"`mean_var` must have the shape of one bin {yb.shape[1:]} (the "
+                         f"variance of the mean of the full render); got {mv.shape}.")
+    check_finite("mean_var", mv)
+    check_nonnegative("mean_var", mv)
+    if not callable(denoiser):
+        raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
+    k = _check_size(size)
+    for name, v in (("smooth", smooth), ("patch", patch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
+    _, cov_z, cov_yz = denoiser_moments(denoiser, yb.mean(axis=0), mv, size=stencil,
+                                        probes=probes, rng=rng)
+    cov_z = B * _box(cov_z, smooth)
+    cov_yz = B * _box(cov_yz, smooth)
+    var_y = B * np.maximum(_box(mv, 2), 0.0)
+    w = statistical_weights(yb, zs, var_y, cov_z, k, cov_yz=cov_yz, patch=int(patch))
+    out = combine_multi(yb, zs, w)
+    if extra_output:
+        return out, {"denoised": zs, "weights": w}
     return out

@@ -35,7 +35,7 @@ from .stats import PixelStats
 
 __all__ = ["read_exr", "read_image", "read_channels", "exr_info", "write_exr",
            "write_png_preview", "to_display", "SAMPLE_COUNT", "spatial_covariance_channels",
-           "read_spatial_covariance", "SPATIAL_COVARIANCE"]
+           "read_spatial_covariance", "SPATIAL_COVARIANCE", "bin_channels", "read_bins", "BIN"]
 
 SAMPLE_COUNT = "SampleCount"
 _RGB = ("R", "G", "B")
@@ -47,6 +47,8 @@ _MAX_F32_COUNT = 2 ** 24         # integers above this are not all representable
 _TONEMAPS = ("srgb", "reinhard", "aces")
 #: Prefix of the neighbour-covariance channels ``SpatialCovariance.<dy><dx>.<R|G|B>``.
 SPATIAL_COVARIANCE = "SpatialCovariance"
+#: Prefix of the sample-bin channels ``Bin<b>.<C>`` and ``Bin<b>.Denoised.<C>``.
+BIN = "Bin"
 
 
 # ---------------------------------------------------------------------------- reading
@@ -579,6 +581,68 @@ def read_spatial_covariance(path, n=None):
     if not np.all(np.isfinite(out)):
         raise FileFormatError(f"{p!r}: {SPATIAL_COVARIANCE} channels hold NaN or Inf.")
     return out / np.maximum(nn, 1.0)[:, :, None, None, None]
+
+
+# ------------------------------------------------------------------ sample bins
+def _bin_name(b: int, c: str, denoised: bool) -> str:
+    return f"{BIN}{b}.{'Denoised.' if denoised else ''}{c}"
+
+
+def bin_channels(ys, zs=None) -> dict:
+    """Channels holding ``B`` sample bins (Back et al. 2020 §4.4), for
+    ``write_exr(..., extra=)``: ``Bin<b>.<R|G|B>`` the mean of bin ``b``'s samples and,
+    with ``zs``, ``Bin<b>.Denoised.<R|G|B>`` its correlated (denoised) image — the
+    inputs ``ys``, ``zs`` ``(B, H, W, 3)`` of :func:`statmc.combine.combine_multi`."""
+    y = as_float_array("ys", ys, ndim=4)
+    check_finite("ys", y)
+    if y.shape[0] < 1 or y.shape[3] != 3:
+        raise InputError(f"`ys` must be (B, H, W, 3); got {y.shape}.")
+    out = {_bin_name(b, c, False): y[b, :, :, k] for b in range(y.shape[0])
+           for k, c in enumerate(_RGB)}
+    if zs is not None:
+        z = as_float_array("zs", zs, ndim=4)
+        check_finite("zs", z)
+        if z.shape != y.shape:
+            raise InputError(f"`zs` must have the shape of `ys` {y.shape}; got {z.shape}.")
+        out.update({_bin_name(b, c, True): z[b, :, :, k] for b in range(z.shape[0])
+                    for k, c in enumerate(_RGB)})
+    return out
+
+
+def read_bins(path):
+    """The sample bins of an EXR file written with :func:`bin_channels`:
+    ``(ys, zs)``, each ``(B, H, W, 3)`` float32 (``zs`` is ``None`` without
+    ``Bin<b>.Denoised.*`` channels), or ``None`` if the file has no bins.  A gap in the
+    bin numbers or a missing channel raises :class:`~statmc.errors.FileFormatError`."""
+    import re
+
+    p = _name(path)
+    _, arrays, _ = _open(p)
+    pat = re.compile(rf"^{BIN}(\d+)\.(Denoised\.)?([RGB])$")
+    found = set()
+    for name in arrays:
+        mt = pat.match(name)
+        if mt:
+            found.add((int(mt.group(1)), bool(mt.group(2))))
+    if not found:
+        return None
+    B = max(b for b, _ in found) + 1
+    has_z = any(d for _, d in found)
+    want = [_bin_name(b, c, d) for d in ((False, True) if has_z else (False,))
+            for b in range(B) for c in _RGB]
+    missing = [w for w in want if w not in arrays]
+    if missing:
+        raise FileFormatError(f"{p!r} has {BIN}* channels for {B} bins but misses "
+                              f"{len(missing)}, e.g. {missing[:3]}.")
+
+    def stack(d):
+        a = np.stack([np.stack([arrays[_bin_name(b, c, d)] for c in _RGB], axis=-1)
+                      for b in range(B)]).astype(np.float32)
+        if not np.all(np.isfinite(a)):
+            raise FileFormatError(f"{p!r}: {BIN}* channels hold NaN or Inf.")
+        return a
+
+    return stack(False), (stack(True) if has_z else None)
 
 
 # ---------------------------------------------------------------------------- previews

@@ -8,9 +8,17 @@ import numpy as np
 from .errors import InputError, as_int
 from .stats import PixelStats
 
-__all__ = ["RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler"]
+__all__ = ["RECONSTRUCTIONS", "BIN_RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler",
+           "render_bins", "reconstruct_bins", "bin_seed"]
 
 RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combine", "combine")
+#: Reconstructions from ``B`` sample bins (:func:`reconstruct_bins`): the multi-buffer
+#: combination kernel (Back 2020 Eq. 14) with GEM's full-sample kernel shared by the bins,
+#: or OIDN applied to each bin.
+BIN_RECONSTRUCTIONS = ("gem+bins", "oidn+bins")
+#: Salt of the bin seeds, so bin ``b`` of seed ``s`` draws other numbers than ``render``
+#: with any seed.
+_SALT_BINS = 0xB1B5
 
 
 def _denoiser_options(name, gamma, sigma, gem_bias=None) -> dict:
@@ -65,12 +73,94 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         from .combine import combine_denoised
         from .progressive import bind_denoiser
         name = "oidn" if method == "oidn+combine" else denoiser
-        opts = _denoiser_options(name, gamma, sigma, gem_bias)
-        img, info = combine_denoised(stats.mean, stats.mean_var, bind_denoiser(name, stats, **opts),
-                                     rng=seed, extra_output=True)
+        if name == "gem":
+            # GEM exposes its kernel: select once on the render, then combine with that
+            # fixed linear filter (exact moments; Back 2020 §4.4 "Network Input").
+            f = _gem_kernel(stats, gamma, gem_bias)
+        else:
+            f = bind_denoiser(name, stats, **_denoiser_options(name, gamma, sigma, gem_bias))
+        img, info = combine_denoised(stats.mean, stats.mean_var, f, rng=seed, extra_output=True)
         lam = np.asarray(info["mix"], np.float32)
         return img.astype(np.float32), {"mix": lam.sum(axis=-1)}
     raise InputError(f"unknown reconstruction {method!r}; expected one of {RECONSTRUCTIONS}.")
+
+
+def _gem_kernel(stats, gamma, gem_bias):
+    """GEM's selection on ``stats`` as a fixed linear filter (:class:`statmc.gem.SelectedFilter`)."""
+    from .gem import selected_filter
+    _, f = selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
+                           gamma=gamma, n=stats.n, bias=gem_bias)
+    return f
+
+
+def bin_seed(seed: int, b: int) -> int:
+    """Seed of sample bin ``b`` of a binned render with ``seed`` (distinct per bin)."""
+    ss = np.random.SeedSequence([int(seed), int(b), _SALT_BINS])
+    return int(ss.generate_state(1, np.uint32)[0] >> 1)
+
+
+def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
+                progress: bool = False) -> list[PixelStats]:
+    """``bins`` independent uniform renders of ``spp // bins`` samples each: the sample
+    bins of Back 2020 §4.4 (each pixel's samples split into disjoint subsets).
+
+    ``spp`` must be a multiple of ``bins``.  Merge them (``PixelStats.merge``) for the
+    full render.  Bin ``b`` uses :func:`bin_seed` ``(seed, b)``.
+    """
+    spp = as_int("spp", spp, lo=1)
+    bins = as_int("bins", bins, lo=2)
+    if spp % bins:
+        raise InputError(f"--spp {spp} must be a multiple of --bins {bins} (every bin gets "
+                         f"the same number of samples).")
+    counts = np.full((renderer.height, renderer.width), spp // bins, np.int64)
+    out = []
+    for b in range(bins):
+        if progress:
+            print(f"  bin {b + 1}/{bins}: {spp // bins} spp", flush=True)
+        out.append(renderer.render(counts, seed=bin_seed(seed, b), progress=progress))
+    return out
+
+
+def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed: int = 0,
+                     gem_bias: str | None = None, return_bins: bool = False):
+    """Reconstruct from sample bins (a list of ``B >= 2`` :class:`PixelStats` with equal
+    counts, e.g. :func:`render_bins`) by :func:`statmc.combine.combine_bins`.
+
+    ``"gem+bins"``: GEM selects its kernels on the merged render and the kernel is shared
+    by the bins (Back 2020 §4.4); ``"oidn+bins"``: OIDN (with the merged render's albedo
+    and normal) applied to each bin.  Returns ``(image (H, W, C) float32, maps)`` as
+    :func:`reconstruct_stats` (``"gem+bins"``: the selected ``"scale"`` and ``"sigma"``);
+    with ``return_bins`` also ``(ys, zs)``, the bin means and their denoised images
+    ``(B, H, W, C)``.
+    """
+    from .combine import combine_bins
+    if method not in BIN_RECONSTRUCTIONS:
+        raise InputError(f"unknown bin reconstruction {method!r}; expected one of "
+                         f"{BIN_RECONSTRUCTIONS}.")
+    bins = list(bins)
+    if len(bins) < 2 or not all(isinstance(b, PixelStats) for b in bins):
+        raise InputError("`bins` must be a list of at least 2 PixelStats.")
+    n0 = bins[0].n
+    for i, b in enumerate(bins[1:], 1):
+        if b.shape != bins[0].shape or not np.array_equal(b.n, n0):
+            raise InputError(f"bin {i} has other sample counts or shape than bin 0; the bins "
+                             "must be equal-count subsets of every pixel's samples.")
+    full = bins[0]
+    for b in bins[1:]:
+        full = full.merge(b)
+    ys = np.stack([b.mean for b in bins])
+    maps = {}
+    if method == "gem+bins":
+        f = _gem_kernel(full, gamma, gem_bias)
+        sig = np.asarray(f.sigmas, np.float32)
+        maps = {"scale": f.scales.astype(np.float32), "sigma": sig[f.scales]}
+    else:
+        from .progressive import bind_denoiser
+        f = bind_denoiser("oidn", full)
+    img, info = combine_bins(ys, full.mean_var, f, rng=seed, extra_output=True)
+    if return_bins:
+        return img.astype(np.float32), maps, (ys, info["denoised"])
+    return img.astype(np.float32), maps
 
 
 def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None, seed: int = 0,

@@ -820,3 +820,127 @@ def test_neighbour_products_kernel_equals_numpy_reference_to_the_bit():
                 want = start[yy, xx, R + dy, R + dx] + (x[yy, xx] * y[yy + dy, xx + dx]
                                                         if inside else 0.0)
                 np.testing.assert_array_equal(fast[yy, xx, R + dy, R + dx], want)
+
+
+# --------------------------------------------------------------------------- sample bins
+def _bins_and_kernel(seed=0, B=4, spp=16, scene="edges"):
+    """``B`` bins of a toy render, the merged render and GEM's full-sample kernel."""
+    from statmc import gem
+    r = ToyRenderer(scene, width=40, height=32)
+    bins = [r.render_uniform(spp // B, seed=100 * seed + b) for b in range(B)]
+    full = bins[0]
+    for b in bins[1:]:
+        full = full.merge(b)
+    _, f = gem.selected_filter(full.mean.astype(np.float32), full.mean_var.astype(np.float32))
+    return bins, full, f
+
+
+def test_combine_bins_with_a_shared_linear_kernel_is_eq8_on_the_bin_means():
+    """Back 2020 §4.4 shares the full-sample kernel among the bins, z_b = K y_b.  The
+    classical weights give every bin the same moments and the same (bin-averaged) tap
+    biases, so they are equal across bins, and then Eq. 14 is Eq. 8 on the bin means:
+    Σ_b w (y_b + z_{c,b} − z_{i,b}) = B w (ȳ + (Kȳ)_c − (Kȳ)_i).  Fails if combine_bins
+    let the weights differ between bins or did not share the kernel."""
+    from statmc.combine import combine_bins
+    bins, full, f = _bins_and_kernel()
+    ys = np.stack([b.mean for b in bins])
+    out, info = combine_bins(ys, full.mean_var, f, size=7, rng=0, extra_output=True)
+    w = info["weights"]
+    for b in range(1, len(bins)):
+        np.testing.assert_array_equal(w[:, :, b], w[:, :, 0])
+    ybar = ys.mean(axis=0)
+    np.testing.assert_allclose(info["denoised"].mean(axis=0), f(ybar.astype(np.float32)),
+                               rtol=1e-5, atol=1e-6)
+    want = combine(ybar, f(ybar.astype(np.float32)).astype(np.float64), w[:, :, 0])
+    np.testing.assert_allclose(out, want, rtol=1e-4, atol=1e-5)
+    assert np.max(np.abs(out - ybar)) > 1e-3 and np.max(np.abs(out - want)) < 1e-4
+
+
+def test_combine_bins_gives_the_weights_per_bin_moments(monkeypatch):
+    """The moments of one bin are B times those of the full-sample mean: var(y_b) =
+    B·mean_var (box-smoothed), cov(z_b) = B·cov(Kȳ) — checked against the exact
+    covariance of the linear kernel, A diag(B·mean_var) Aᵀ with A from unit impulses."""
+    import statmc.combine as cbm
+    bins, full, f = _bins_and_kernel(seed=1)
+    B = len(bins)
+    ys = np.stack([b.mean for b in bins])
+    seen = {}
+    real = cbm.statistical_weights
+
+    def spy(y, z, var_y, cov_z, size, **kw):
+        seen.update(var_y=var_y, cov_z=cov_z)
+        return real(y, z, var_y, cov_z, size, **kw)
+
+    monkeypatch.setattr(cbm, "statistical_weights", spy)
+    cbm.combine_bins(ys, full.mean_var, f, size=3, stencil=3, probes=400, smooth=0, rng=2)
+    np.testing.assert_allclose(seen["var_y"], B * cbm._box(full.mean_var, 2), rtol=1e-12)
+    H, W, C = full.mean.shape
+    A = np.zeros((H * W, H * W))
+    for q in range(H * W):
+        e = np.zeros((H, W), np.float32)
+        e.flat[q] = 1.0
+        A[:, q] = f(e).ravel()
+    c = 1
+    S = A @ np.diag(B * full.mean_var[..., c].ravel()) @ A.T
+    # horizontal neighbour covariance of z_b at interior pixels, probe estimate vs exact
+    pix = [(y, x) for y in range(4, H - 4, 5) for x in range(4, W - 4, 5)]
+    est = np.array([seen["cov_z"][y, x, 1, 2, c] for y, x in pix])
+    exact = np.array([S[y * W + x, y * W + x + 1] for y, x in pix])
+    var0 = np.array([S[y * W + x, y * W + x] for y, x in pix])
+    # 400 ±σ probes: relative error of a covariance entry ~ sqrt(2/400) of the variance
+    assert np.all(np.abs(est - exact) < 5 * np.sqrt(2 / 400) * var0 + 1e-12)
+    assert np.corrcoef(est, exact)[0, 1] > 0.9
+    # without the factor B the estimate would sit at 1/4 of the exact values
+    assert np.median(est / np.where(exact != 0, exact, np.nan)) == pytest.approx(1, abs=0.25)
+
+
+def test_combine_bins_refuses_bad_input():
+    from statmc.combine import combine_bins
+    bins, full, f = _bins_and_kernel(seed=2)
+    ys = np.stack([b.mean for b in bins])
+    with pytest.raises(InputError, match="B >= 2"):
+        combine_bins(ys[:1], full.mean_var, f)
+    with pytest.raises(InputError, match="shape of one bin"):
+        combine_bins(ys, full.mean_var[:-1], f)
+    with pytest.raises(InputError, match="callable"):
+        combine_bins(ys, full.mean_var, None)
+    bad = ys.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(InputError, match="ys"):
+        combine_bins(bad, full.mean_var, f)
+    with pytest.raises(InputError, match="mean_var"):
+        combine_bins(ys, -full.mean_var - 1, f)
+
+
+def test_pipeline_combine_with_gem_uses_gems_exposed_kernel():
+    """`reconstruct_stats(..., "combine", denoiser="gem")` selects GEM's kernels once on
+    the render and combines with that fixed linear filter (its moments are then exact),
+    not with GEM as a black box that selects again on every probe."""
+    from statmc import gem
+    from statmc.pipeline import reconstruct_stats
+    from statmc.progressive import bind_denoiser
+    stats = ToyRenderer("edges", width=40, height=32).render_uniform(8, seed=4)
+    img, _ = reconstruct_stats(stats, "combine", denoiser="gem", seed=5)
+    _, f = gem.selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
+                               n=stats.n)
+    want = combine_denoised(stats.mean, stats.mean_var, f, rng=5)
+    np.testing.assert_allclose(img, want, rtol=1e-5, atol=1e-6)
+    black_box = combine_denoised(stats.mean, stats.mean_var, bind_denoiser("gem", stats), rng=5)
+    assert np.max(np.abs(black_box - want)) > 1e-4
+
+
+def test_render_bins_and_reconstruct_bins_check_their_input():
+    from statmc.pipeline import bin_seed, reconstruct_bins, render_bins
+    r = ToyRenderer("edges", width=16, height=12)
+    assert len({bin_seed(s, b) for s in range(4) for b in range(4)}) == 16
+    with pytest.raises(InputError, match="multiple of --bins"):
+        render_bins(r, 6, 4)
+    bins = render_bins(r, 8, 4, seed=1)
+    assert [int(b.n.max()) for b in bins] == [2] * 4
+    assert not np.array_equal(bins[0].mean, bins[1].mean)
+    with pytest.raises(InputError, match="other sample counts"):
+        reconstruct_bins([bins[0], bins[1].merge(bins[2])])
+    with pytest.raises(InputError, match="at least 2"):
+        reconstruct_bins(bins[:1])
+    with pytest.raises(InputError, match="unknown bin reconstruction"):
+        reconstruct_bins(bins, "gem")

@@ -572,3 +572,36 @@ def test_spatial_covariance_explicit_counts(tmp_path):
     for bad in (-1, 2.5, np.ones((2, 2)), "x"):
         with pytest.raises(InputError, match="`n` must"):
             exr.read_spatial_covariance(p, n=bad)
+
+
+def test_bin_channels_round_trip_and_partial_bins_are_refused(tmp_path):
+    """`Bin<b>.<C>` / `Bin<b>.Denoised.<C>` hold the inputs of combine_multi."""
+    from statmc.errors import FileFormatError
+    from statmc.exr import bin_channels, read_bins, read_channels, write_exr
+
+    rng = np.random.default_rng(0)
+    ys = rng.random((3, 5, 7, 3)).astype(np.float32)
+    zs = rng.random((3, 5, 7, 3)).astype(np.float32)
+    p = tmp_path / "b.exr"
+    write_exr(p, ys.mean(axis=0), extra=bin_channels(ys, zs))
+    y2, z2 = read_bins(p)
+    np.testing.assert_array_equal(y2, ys)
+    np.testing.assert_array_equal(z2, zs)
+    assert "Bin2.Denoised.G" in read_channels(p)
+    q = tmp_path / "y.exr"
+    write_exr(q, ys.mean(axis=0), extra=bin_channels(ys))
+    y3, z3 = read_bins(q)
+    np.testing.assert_array_equal(y3, ys)
+    assert z3 is None
+    assert read_bins(tmp_path / "b.exr") is not None
+    ch = bin_channels(ys, zs)
+    del ch["Bin1.R"]
+    r = tmp_path / "partial.exr"
+    write_exr(r, ys.mean(axis=0), extra=ch)
+    with pytest.raises(FileFormatError, match="Bin1.R"):
+        read_bins(r)
+    plain = tmp_path / "plain.exr"
+    write_exr(plain, ys.mean(axis=0))
+    assert read_bins(plain) is None
+    with pytest.raises(InputError, match="zs"):
+        bin_channels(ys, zs[:2])

@@ -1,0 +1,109 @@
+"""Sample bins and GEM's exposed kernel in the combination kernel (issue 5, Back 2020 §4.4).
+
+Per scene, spp and seed, one uniform render is made as ``B = 4`` sample bins
+(:func:`statmc.pipeline.render_bins`); the merged bins are the full render, so every method
+below sees the same samples (equal budget).  Printed: relMSE (ε = 0.01, cached high-spp
+reference) of
+
+* ``gem``: GEM's final reconstruction of the full render;
+* ``combine, GEM black box``: :func:`statmc.combine.combine_denoised` with GEM as a black
+  box (it selects again on every probe; the pipeline's ``"combine"`` before session 5);
+* ``combine, GEM kernel``: the same with GEM's full-sample kernel as a fixed linear filter
+  (:func:`statmc.gem.selected_filter`; the pipeline's ``"combine"`` with ``denoiser="gem"``);
+* ``gem+bins``: Eq. 14 on the bins with that kernel shared by the bins
+  (:func:`statmc.pipeline.reconstruct_bins`);
+* ``oidn``, ``oidn+combine`` and ``oidn+bins`` (OIDN applied to each bin);
+
+and the ratios to ``gem`` and ``oidn`` (mean over seeds, per-seed range).
+
+Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_bins_combine.py``
+(``--scenes``, ``--spp``, ``--seeds``, ``--json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from statmc import metrics
+from statmc.combine import combine_denoised
+from statmc.demo import cached_reference
+from statmc.exr import read_exr
+from statmc.pipeline import reconstruct_bins, reconstruct_stats, render_bins
+from statmc.progressive import bind_denoiser
+from statmc.renderers import make_renderer
+
+REF_SPP = {"glass-caustic": 32768}
+SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
+BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "gem",
+        "gem+bins": "gem", "oidn": "oidn", "oidn+combine": "oidn", "oidn+bins": "oidn"}
+
+
+def cell(r, ref, spp, seed, bins):
+    """relMSE of every method on one binned render, and the seconds each took."""
+    bl = render_bins(r, spp, bins, seed=9000 + seed)
+    full = bl[0]
+    for b in bl[1:]:
+        full = full.merge(b)
+    out, sec = {}, {}
+
+    def run(name, fn):
+        t0 = time.perf_counter()
+        img = fn()
+        sec[name] = time.perf_counter() - t0
+        out[name] = metrics.relmse(np.asarray(img, np.float64), ref)
+
+    run("gem", lambda: reconstruct_stats(full, "gem")[0])
+    run("combine, GEM black box", lambda: combine_denoised(
+        full.mean, full.mean_var, bind_denoiser("gem", full), rng=seed))
+    run("combine, GEM kernel", lambda: reconstruct_stats(full, "combine", denoiser="gem",
+                                                         seed=seed)[0])
+    run("gem+bins", lambda: reconstruct_bins(bl, "gem+bins", seed=seed)[0])
+    run("oidn", lambda: reconstruct_stats(full, "oidn")[0])
+    run("oidn+combine", lambda: reconstruct_stats(full, "oidn+combine", seed=seed)[0])
+    run("oidn+bins", lambda: reconstruct_bins(bl, "oidn+bins", seed=seed)[0])
+    return out, sec
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="*", default=list(SCENES))
+    ap.add_argument("--spp", type=int, nargs="*", default=[16, 64])
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--bins", type=int, default=4)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    rows = []
+    for scene in a.scenes:
+        r = make_renderer(scene)
+        _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
+        ref = read_exr(path).mean
+        for spp in a.spp:
+            res, secs = {}, {}
+            for s in range(a.seeds):
+                out, sec = cell(r, ref, spp, s, a.bins)
+                for key, v in out.items():
+                    res.setdefault(key, []).append(v)
+                    secs.setdefault(key, []).append(sec[key])
+            print(f"{scene} {spp} spp ({a.seeds} seeds, {r.width}x{r.height}, B = {a.bins})",
+                  flush=True)
+            for key, v in res.items():
+                v = np.array(v)
+                base = np.array(res[BASE[key]])
+                ratio = v / base
+                print(f"  {key:24s} relMSE {v.mean():.4g}   / {BASE[key]:4s} "
+                      f"{v.mean() / base.mean():.3f} (per seed {ratio.min():.3f}–{ratio.max():.3f})"
+                      f"   {np.mean(secs[key]):.2f} s", flush=True)
+                rows.append({"scene": scene, "spp": spp, "method": key, "relmse": v.tolist(),
+                             "ratio": float(v.mean() / base.mean()), "base": BASE[key],
+                             "seconds": float(np.mean(secs[key]))})
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
