@@ -30,13 +30,11 @@ import numpy as np
 
 from statmc import metrics
 from statmc.combine import combine_denoised
-from statmc.demo import cached_reference
-from statmc.exr import read_exr
 from statmc.pipeline import reconstruct_bins, reconstruct_stats, render_bins
 from statmc.progressive import bind_denoiser
-from statmc.renderers import make_renderer
 
-REF_SPP = {"glass-caustic": 32768}
+from _scenes import scene_reference  # noqa: E402  (bench/ is the script's directory)
+
 SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
 BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "gem",
         "gem+bins": "gem", "oidn": "oidn", "oidn+combine": "oidn", "oidn+bins": "oidn"}
@@ -78,9 +76,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     rows = []
     for scene in a.scenes:
-        r = make_renderer(scene)
-        _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
-        ref = read_exr(path).mean
+        r, ref = scene_reference(scene)
+        ref = ref.mean
         for spp in a.spp:
             res, secs = {}, {}
             for s in range(a.seeds):

@@ -89,12 +89,10 @@ from scipy import stats as sst
 
 from statmc import metrics
 from statmc.adaptive import adaptive_render, get_sampler
-from statmc.demo import cached_reference
-from statmc.exr import read_exr
 from statmc.pipeline import reconstruct_stats
-from statmc.renderers import make_renderer
 
-REF_SPP = {"glass-caustic": 32768}
+from _scenes import scene_reference  # noqa: E402  (bench/ is the script's directory)
+
 EPS = 0.01
 
 
@@ -114,9 +112,7 @@ def _reference(scene):
         r = ToyRenderer(scene[4:], width=128, height=96)
         t = r.true_mean()
         return r, PixelStats.from_mean_var(t, np.zeros_like(t), np.full(t.shape[:2], 2))
-    r = make_renderer(scene)
-    _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
-    return r, read_exr(path)
+    return scene_reference(scene)
 
 
 # --------------------------------------------------------------------------- variants

@@ -30,11 +30,9 @@ import numpy as np
 
 from statmc import combine as cb
 from statmc import metrics
-from statmc.demo import cached_reference
-from statmc.exr import read_exr
-from statmc.renderers import make_renderer
 
-REF_SPP = {"glass-caustic": 32768}
+from _scenes import scene_reference  # noqa: E402  (bench/ is the script's directory)
+
 SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
 
 
@@ -66,9 +64,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     rows = []
     for scene in a.scenes:
-        r = make_renderer(scene)
-        _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
-        ref = read_exr(path).mean
+        r, ref = scene_reference(scene)
+        ref = ref.mean
         for spp in a.spp:
             res, tc, tw = {}, [], []
             for s in range(a.seeds):

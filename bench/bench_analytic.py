@@ -153,7 +153,7 @@ def bench_sampler(reps=400):
             d = apply_kernels(kern, y)
             acc.append(((d - x_g) ** 2 / (x_g ** 2 + 0.01)).mean())
     per_u, per_o = np.array(per_u), np.array(per_o)
-    print(f"  [estimates only: 64 spp pilot, blurred mean/variance, unconditional objective, +64 spp]")
+    print("  [estimates only: 64 spp pilot, blurred mean/variance, unconditional objective, +64 spp]")
     print(f"    measured    : uniform {per_u.mean():.5f}±{per_u.std(ddof=1) / np.sqrt(per_u.size):.5f}"
           f"   optimised {per_o.mean():.5f}±{per_o.std(ddof=1) / np.sqrt(per_o.size):.5f}"
           f"   ratio {per_o.mean() / per_u.mean():.3f}   ({per_u.size} pilot+future renders each)")

@@ -224,24 +224,22 @@ def weights_speed():
         print(f"  (OIDN unavailable: {e})")
 
 
-REF_SPP = {"glass-caustic": 32768}       # the cached references (out/cache)
 QUALITY_SCENES = ("toy:mixed", "cornell-box", "glossy-spheres", "glass-caustic", "textured-dof")
 QUALITY_SPPS = (4, 16, 64, 256, 1024)
 
 
 def _scene(scene):
-    from statmc.demo import cached_reference
-    from statmc.exr import read_exr
     from statmc.renderers import make_renderer
     from statmc.scenes import DEFAULT_SIZES
+
+    from _scenes import scene_reference
 
     if scene.startswith("toy:"):
         r = ToyRenderer(scene[4:], width=128, height=128)
         return r, r.true_mean()
     w, h = DEFAULT_SIZES[scene]
-    r = make_renderer(scene, width=w, height=h)
-    _, path = cached_reference(r, REF_SPP.get(scene, 65536), "out/cache")
-    return r, read_exr(path).mean
+    r, ref = scene_reference(scene, make_renderer(scene, width=w, height=h))
+    return r, ref.mean
 
 
 def quality_table(seeds=(0,), out="out/combine/quality.md"):
