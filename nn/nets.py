@@ -1,0 +1,306 @@
+"""Tiny convolutional networks whose outputs plug into statmc's statistical kernels.
+
+All four share one body — 3×3 conv, ReLU, 3×3 conv, ReLU, 1×1 conv, ``width`` features
+(a few thousand parameters at the default ``width=16``) — and differ in the head that
+turns its output into something a statmc kernel accepts:
+
+=====================  ==========================  ==================================================
+network                output (torch, NCHW)        plugs into (NumPy, channel-last)
+=====================  ==========================  ==================================================
+:class:`KernelNet`     ``(N, k·k, H, W)`` softmax   :func:`statmc.analytic.apply_kernels`,
+                       kernels                      :func:`statmc.analytic.expected_kernel_loss`
+                                                    (``(H, W, k, k)``; Salehi 2022 §A.1)
+:class:`CombinerNet`   ``(N, B, k·k, H, W)``        :func:`statmc.combine.combine` /
+                       positive weights             :func:`~statmc.combine.combine_multi`
+                                                    (``(H, W, B, k, k)``; Back 2020 Eq. 8, 14, §4.2)
+:class:`MixNet`        ``(N, 1, H, W)`` α ∈ [0, 1]  :func:`statmc.progressive.progressive_denoise`
+                                                    ``(alpha=...)`` (``(H, W)``; Firmino 2022 §4.3)
+:class:`SamplingNet`   ``(N, 1, H, W)`` logits      :func:`statmc.sampling.counts_from_density`
+                                                    (``(H, W)`` counts; Salehi 2022 Eq. 11)
+=====================  ==========================  ==================================================
+
+Every network reads the planes of :func:`statmc.nn.features.pixel_features` (its
+``channels`` argument is the ``C`` of the render), so ``net(pixel_features(stats, ...))``
+is the torch path used in training, and one method per network (``kernels``, ``weights``,
+``alpha``, ``counts``) is the NumPy path that hands statmc a channel-last array.
+
+These are untrained plumbing: the architectures are far smaller than the papers' (Back
+2020: six 5×5 layers of 100 features; Firmino 2022: six layers of 48 features with residual
+blocks; Salehi 2022: a 5-scale U-net with a global summary module), and nothing here
+claims that a learned version beats the classical one (docs/nn.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from statmc.errors import InputError
+from statmc.sampling import counts_from_density
+
+from .features import feature_channels, pixel_features
+from .layout import kernels_to_numpy, weights_to_numpy
+from .ops import apply_kernels
+
+__all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS"]
+
+#: ε of f_act (Eq. 19 of Firmino 2022): 1e-6, "to avoid the singularity" (§4.3).
+F_ACT_EPS = 1e-6
+
+
+def _int(name, v, lo, odd=False):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo or (odd and v % 2 == 0):
+        want = f"an odd int >= {lo}" if odd else f"an int >= {lo}"
+        raise InputError(f"`{name}` must be {want}; got {v!r}.")
+    return int(v)
+
+
+class _Net(torch.nn.Module):
+    """The shared body; ``seed`` makes the initial weights reproducible without touching
+    torch's global random state."""
+
+    def __init__(self, in_channels, out_channels, width, seed):
+        super().__init__()
+        width = _int("width", width, 1)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+            raise InputError(f"`seed` must be an int or None; got {seed!r}.")
+        self.in_channels = in_channels
+        with torch.random.fork_rng(devices=[]):
+            if seed is not None:
+                torch.manual_seed(int(seed))
+            self.body = torch.nn.Sequential(
+                torch.nn.Conv2d(in_channels, width, 3, padding=1), torch.nn.ReLU(),
+                torch.nn.Conv2d(width, width, 3, padding=1), torch.nn.ReLU(),
+                torch.nn.Conv2d(width, out_channels, 1))
+
+    def _body(self, features):
+        if not isinstance(features, torch.Tensor) or features.ndim != 4 \
+                or features.shape[1] != self.in_channels:
+            got = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
+            raise InputError(f"`features` must be an (N, {self.in_channels}, H, W) tensor "
+                             f"(statmc.nn.pixel_features with this network's settings); got {got}.")
+        return self.body(features.to(self._dtype))
+
+    @property
+    def _dtype(self):
+        return next(self.parameters()).dtype
+
+    def n_parameters(self) -> int:
+        """Number of trainable parameters."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+
+class KernelNet(_Net):
+    """Per-pixel normalised ``k x k`` kernels (a kernel-predicting network).
+
+    Parameters
+    ----------
+    channels : int
+        ``C`` of the render (inputs: ``pixel_features(stats)``, ``2C + 6`` planes).
+    k : int
+        Odd kernel side (default 5).
+    width : int
+        Features of the hidden layers.
+    seed : int or None
+        Seed of the initial weights (default 0).
+
+    Notes
+    -----
+    The output is the linear kernel denoiser ``D(X)_p = Σ_q K_pq X_q`` of §A.1 of Salehi
+    et al. 2022 with positive weights summing to 1 (a softmax over the taps) — GEM's
+    per-pixel choice among Gaussians (Rousselle 2011) is a classical kernel of the same
+    kind.  Kernels predicted from a pilot render and then frozen satisfy Lemma A.1, so
+    :func:`statmc.analytic.expected_kernel_loss` gives their exact expected error after
+    more samples.  Taps outside the image are dropped, not renormalised (the convention of
+    :func:`statmc.analytic.apply_kernels`), so border pixels lose the weight of their
+    outside taps.
+    """
+
+    def __init__(self, channels: int = 3, *, k: int = 5, width: int = 16, seed=0):
+        self.k = _int("k", k, 1, odd=True)
+        super().__init__(feature_channels(_int("channels", channels, 1)), self.k * self.k,
+                         width, seed)
+
+    def forward(self, features):
+        """``(N, 2C + 6, H, W)`` features -> ``(N, k·k, H, W)`` kernels, softmax over taps."""
+        return torch.softmax(self._body(features), dim=1)
+
+    def denoise(self, features, image):
+        """``apply_kernels(self(features), image)`` on ``(N, C, H, W)`` images (differentiable)."""
+        return apply_kernels(self(features), image.to(self._dtype))
+
+    def kernels(self, stats) -> np.ndarray:
+        """The kernels for a render as statmc's ``(H, W, k, k)`` float64 array."""
+        with torch.no_grad():
+            return kernels_to_numpy(self(pixel_features(stats, dtype=self._dtype)))
+
+
+class CombinerNet(_Net):
+    """Weights of the combination kernel of Back et al. 2020 (Eq. 8, Eq. 14), as in their §4.2.
+
+    Parameters
+    ----------
+    channels : int
+        ``C`` of the render.
+    buffers : int
+        ``B``: 1 for Eq. 8 (inputs ``pixel_features(stats, extra=z)``, ``4C + 6`` planes),
+        ``B > 1`` for Eq. 14 on sample bins (inputs ``pixel_features(stats,
+        extra=concatenate([ys, zs]))``, ``2C + 6 + 4BC`` planes: the paper feeds the ``B``
+        pairs ``(y_b, z_b)`` and the G-buffers, §4.2, §4.4).
+    k : int
+        Odd window side (default 5; the paper uses 15).
+    width : int
+    seed : int or None
+
+    Notes
+    -----
+    The last layer emits ``B·k·k`` values per pixel (the paper's ``B × (|Ω_c| + 1)``,
+    §4.4); a softmax over all of them gives positive weights, so every pixel's ``W_c``
+    over the taps inside the image is positive, as :func:`statmc.combine.combine` needs.
+    Eq. 8 and Eq. 14 are invariant to a common scale of a pixel's weights, so the
+    normalisation costs nothing; taking it jointly over the bins lets a bin be
+    down-weighted as a whole (an outlier bin, §4.4).
+    """
+
+    def __init__(self, channels: int = 3, *, buffers: int = 1, k: int = 5, width: int = 16,
+                 seed=0):
+        self.k = _int("k", k, 1, odd=True)
+        self.buffers = _int("buffers", buffers, 1)
+        extra = 1 if self.buffers == 1 else 2 * self.buffers
+        super().__init__(feature_channels(_int("channels", channels, 1), extra=extra),
+                         self.buffers * self.k * self.k, width, seed)
+
+    def forward(self, features):
+        """Features -> ``(N, B, k·k, H, W)`` positive weights (softmax over ``B·k·k``)."""
+        out = torch.softmax(self._body(features), dim=1)
+        N, _, H, W = out.shape
+        return out.view(N, self.buffers, self.k * self.k, H, W)
+
+    def features(self, stats, zs, ys=None) -> torch.Tensor:
+        """This network's inputs: ``z`` for ``B = 1``; ``ys`` and ``zs`` ``(B, H, W, C)`` for ``B > 1``."""
+        if self.buffers == 1:
+            if ys is not None:
+                raise InputError("`ys` is for B > 1 bins; with buffers=1 the independent "
+                                 "image is `stats.mean` and only `zs` (z) is given.")
+            return pixel_features(stats, extra=zs, dtype=self._dtype)
+        if ys is None or np.ndim(ys) != 4 or np.ndim(zs) != 4 \
+                or np.shape(ys)[0] != self.buffers or np.shape(zs) != np.shape(ys):
+            raise InputError(f"`ys` and `zs` must both be ({self.buffers}, H, W, C) bin stacks "
+                             f"for buffers={self.buffers}; got {np.shape(ys) if ys is not None else None} "
+                             f"and {np.shape(zs)}.")
+        return pixel_features(stats, extra=np.concatenate([ys, zs]), dtype=self._dtype)
+
+    def weights(self, stats, zs, ys=None) -> np.ndarray:
+        """The weights as statmc's ``(H, W, B, k, k)`` float64 array (see :meth:`features`)."""
+        with torch.no_grad():
+            return weights_to_numpy(self(self.features(stats, zs, ys)))
+
+
+class MixNet(_Net):
+    """Per-pixel mixing parameter α for progressive denoising (Firmino et al. 2022, §4.3).
+
+    Parameters
+    ----------
+    channels : int
+        ``C`` of the render (inputs ``pixel_features(stats, extra=y)``, ``4C + 6`` planes,
+        ``y`` the denoised image).
+    width : int
+    activation : {"sigmoid", "f_act"}
+        ``"sigmoid"``: one output per pixel, ``α = sigmoid(o)``.  ``"f_act"``: three
+        outputs ``(x1, x2, x3)`` and ``α = clamp((x1 − x2) / max(x3, ε), 0, 1)``, Eq. 19
+        of Firmino 2022 (ε = 1e-6; the paper does not clamp, but the gate and
+        ``z = x + α(y − x)`` are meant for α in [0, 1], and the clamp makes that so; its
+        gradient is 0 outside).
+    seed : int or None
+
+    Notes
+    -----
+    ``z = x + α (y − x)`` (§4 of Firmino 2022; the network is their ``h`` of Eq. 3).  Pass the α of :meth:`alpha` to
+    :func:`statmc.progressive.progressive_denoise` ``(alpha=...)``: it goes through the
+    same Student-t confidence gate (Eq. 12–18) as the classical α of Eq. 9, which keeps
+    the mix convergent whatever the network predicts.
+    """
+
+    _ACTIVATIONS = ("sigmoid", "f_act")
+
+    def __init__(self, channels: int = 3, *, width: int = 16, activation: str = "sigmoid",
+                 seed=0):
+        if activation not in self._ACTIVATIONS:
+            raise InputError(f"`activation` must be 'sigmoid' or 'f_act'; got {activation!r}.")
+        self.activation = activation
+        super().__init__(feature_channels(_int("channels", channels, 1), extra=1),
+                         1 if activation == "sigmoid" else 3, width, seed)
+
+    def forward(self, features):
+        """Features -> ``(N, 1, H, W)`` α in [0, 1]."""
+        o = self._body(features)
+        if self.activation == "sigmoid":
+            return torch.sigmoid(o)
+        x1, x2, x3 = o[:, 0:1], o[:, 1:2], o[:, 2:3]
+        return torch.clamp((x1 - x2) / torch.clamp(x3, min=F_ACT_EPS), 0.0, 1.0)
+
+    def mix(self, features, x, y):
+        """``x + α (y − x)`` on ``(N, C, H, W)`` tensors (differentiable; ungated)."""
+        x = x.to(self._dtype)
+        return x + self(features) * (y.to(self._dtype) - x)
+
+    def alpha(self, stats, y) -> np.ndarray:
+        """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map."""
+        with torch.no_grad():
+            a = self(pixel_features(stats, extra=y, dtype=self._dtype))
+        return a[0, 0].numpy().astype(np.float64)
+
+
+class SamplingNet(_Net):
+    """Per-pixel sampling logits whose softmax is a sampling density (Salehi et al. 2022 Eq. 11).
+
+    Parameters
+    ----------
+    channels : int
+        ``C`` of the render (inputs ``pixel_features(stats, budget=budget)``, ``2C + 8``
+        planes, with the current counts and the mean budget per pixel).
+    width : int
+    seed : int or None
+
+    Notes
+    -----
+    Eq. 11: ``S = B_{t+1} · softmax(Φ(X_t, S̄_t, B̄_{t+1}))``, the softmax over the pixels
+    of the image.  :meth:`sample_map` is that real-valued map (differentiable; the paper
+    trains through it with analytic future renders); :meth:`counts` rounds it to integer
+    counts that sum to the budget exactly with :func:`statmc.sampling.counts_from_density`
+    (systematic rounding, unbiased).  The paper's global summary module is not included.
+    """
+
+    def __init__(self, channels: int = 3, *, width: int = 16, seed=0):
+        super().__init__(feature_channels(_int("channels", channels, 1), budget=True), 1,
+                         width, seed)
+
+    def forward(self, features):
+        """Features -> ``(N, 1, H, W)`` logits ``Φ``."""
+        return self._body(features)
+
+    def density(self, features):
+        """``softmax(Φ)`` over each image's pixels: ``(N, 1, H, W)``, each image sums to 1."""
+        logits = self(features)
+        N, _, H, W = logits.shape
+        return torch.softmax(logits.reshape(N, H * W), dim=1).view(N, 1, H, W)
+
+    def sample_map(self, features, budget):
+        """Eq. 11: ``budget · softmax(Φ)``, real-valued ``(N, 1, H, W)`` (differentiable)."""
+        return float(budget) * self.density(features)
+
+    def counts(self, stats, budget: int, *, rng=None) -> np.ndarray:
+        """Integer ``(H, W)`` counts, summing to ``budget`` exactly, for the next iteration.
+
+        Parameters
+        ----------
+        stats : PixelStats
+            The render so far (``X_t``, and ``S̄_t = stats.n``).
+        budget : int
+            ``B_{t+1}``, the total samples to hand out.
+        rng : numpy Generator or int, optional
+            Randomness of the rounding (:func:`statmc.sampling.counts_from_density`).
+        """
+        with torch.no_grad():
+            d = self.density(pixel_features(stats, budget=budget, dtype=self._dtype))
+        return counts_from_density(d[0, 0].numpy().astype(np.float64), budget, rng=rng)

@@ -1,0 +1,186 @@
+"""Differentiable torch twins of the statmc kernels the networks feed.
+
+Each function equals its statmc counterpart on the same numbers (tests/test_nn.py checks
+this in float64 on random inputs, borders included, and runs ``torch.autograd.gradcheck``):
+
+=====================  ===========================================  ==========================
+function               statmc counterpart                            formula
+=====================  ===========================================  ==========================
+:func:`apply_kernels`  :func:`statmc.analytic.apply_kernels`          ``D(X)_p = Σ_q K_pq X_q``
+                                                                     (§A.1 of Salehi 2022 [2]_)
+:func:`combine`        :func:`statmc.combine.combine`                Eq. 8 of Back 2020 [1]_
+:func:`combine_multi`  :func:`statmc.combine.combine_multi`          Eq. 14 of Back 2020 [1]_
+=====================  ===========================================  ==========================
+
+Layout (see :mod:`statmc.nn.layout` for the conversions): images ``(N, C, H, W)``;
+kernels ``(N, k·k, H, W)`` with tap ``t = dy·k + dx`` reading the neighbour
+``(y + dy − r, x + dx − r)``, ``r = k // 2``, odd ``k``; combination weights
+``(N, B, k·k, H, W)``; sample bins ``(N, B, C, H, W)``.  Taps outside the image are dropped
+(they read zeros), exactly as in statmc: :func:`apply_kernels` does not renormalise, the
+combination kernels divide by ``W_c``, the sum of the weights of the taps *inside* the
+image (the border renormalisation of docs/combine.md).  Weights must be finite everywhere,
+outside taps included (``0 · inf`` is NaN in torch); :mod:`statmc.nn.nets` produces
+softmax weights, which are.
+
+Each function has a thin :class:`torch.nn.Module` (:class:`ApplyKernels`,
+:class:`Combine`, :class:`CombineMulti`) whose ``forward`` calls it.
+
+References
+----------
+.. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
+   Correlated Pixel Estimates". ACM Trans. Graph. 39(6), 242, 2020.
+   https://doi.org/10.1145/3414685.3417847
+.. [2] F. Salehi, M. Manzi, G. Roethlin, R. Weber, C. Schroers, M. Papas. "Deep Adaptive
+   Sampling and Reconstruction using Analytic Distributions". ACM Trans. Graph. 41(6),
+   259, 2022. https://doi.org/10.1145/3550454.3555515
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from statmc.errors import InputError
+
+__all__ = ["apply_kernels", "combine", "combine_multi", "ApplyKernels", "Combine",
+           "CombineMulti", "kernel_size"]
+
+
+def _check(name, t, ndim, what):
+    if not isinstance(t, torch.Tensor):
+        raise InputError(f"`{name}` must be a torch.Tensor {what}; got {type(t).__name__}.")
+    if t.ndim != ndim:
+        raise InputError(f"`{name}` must be {what}; got shape {tuple(t.shape)}.")
+    if not t.is_floating_point():
+        raise InputError(f"`{name}` must be a floating-point tensor; got {t.dtype}.")
+
+
+def kernel_size(taps: int, name: str = "kernels") -> int:
+    """Odd window side ``k`` of a tap axis of length ``k·k`` (``InputError`` otherwise)."""
+    k = int(round(taps ** 0.5))
+    if k * k != taps or k % 2 == 0:
+        raise InputError(f"`{name}` must hold k·k taps with odd k on its tap axis (9, 25, 49, "
+                         f"...); got {taps}.")
+    return k
+
+
+def _same_grid(name, t, ref_name, ref, dims):
+    if tuple(t.shape[i] for i in dims) != tuple(ref.shape[i] for i in dims):
+        raise InputError(f"`{name}` {tuple(t.shape)} does not match `{ref_name}` "
+                         f"{tuple(ref.shape)} on axes {dims} (batch and H, W must agree).")
+
+
+def _apply(kernels, image, k):
+    """``(M, k·k, H, W)`` kernels on ``(M, C, H, W)`` images, zero outside the image."""
+    M, C, H, W = image.shape
+    patches = F.unfold(image, k, padding=k // 2).view(M, C, k * k, H, W)
+    return (patches * kernels[:, None]).sum(dim=2)
+
+
+def apply_kernels(kernels, image):
+    """Apply per-pixel kernels to images (torch twin of :func:`statmc.analytic.apply_kernels`).
+
+    Parameters
+    ----------
+    kernels : (N, k·k, H, W) tensor
+        One ``k x k`` kernel per output pixel, odd ``k``, tap ``dy·k + dx``.
+    image : (N, C, H, W) tensor
+
+    Returns
+    -------
+    out : (N, C, H, W) tensor
+        ``out[n, c, y, x] = Σ_{dy,dx} K[n, dy·k+dx, y, x] · image[n, c, y+dy−r, x+dx−r]``,
+        taps outside the image dropped, no renormalisation: the kernel denoiser
+        ``D(X)_p = Σ_q K_pq X_q`` of §A.1 of [2]_ (Lemma A.1 needs ``K`` independent of
+        the samples it is applied to).
+    """
+    _check("kernels", kernels, 4, "(N, k·k, H, W)")
+    _check("image", image, 4, "(N, C, H, W)")
+    _same_grid("kernels", kernels, "image", image, (0, 2, 3))
+    return _apply(kernels, image, kernel_size(kernels.shape[1]))
+
+
+def combine(y, z, weights):
+    """Combination kernel, Eq. 8 of [1]_ (torch twin of :func:`statmc.combine.combine`).
+
+    Parameters
+    ----------
+    y : (N, C, H, W) tensor
+        Independent pixel estimates (a render).
+    z : (N, C, H, W) tensor
+        Correlated estimates of the same picture (e.g. the denoised ``y``).
+    weights : (N, k·k, H, W) tensor
+        Per-pixel window weights, the centre tap ``(r, r)`` is ``w_c``; finite, with a
+        nonzero sum over the taps inside the image (positive weights, e.g. a softmax).
+
+    Returns
+    -------
+    out : (N, C, H, W) tensor
+        ``β̂_c = (w_c y_c + Σ_i w_i y_i + Σ_i w_i (z_c − z_i)) / W_c``,
+        ``W_c = w_c + Σ_i w_i`` over the taps inside the image, computed in the boosting
+        form ``z + apply_kernels(w, y − z) / apply_kernels(w, 1)`` (Eq. 15, algebraically
+        Eq. 8).
+    """
+    _check("y", y, 4, "(N, C, H, W)")
+    _check("z", z, 4, "(N, C, H, W)")
+    _check("weights", weights, 4, "(N, k·k, H, W)")
+    if z.shape != y.shape:
+        raise InputError(f"`z` must have the shape of `y` {tuple(y.shape)}; got {tuple(z.shape)}.")
+    _same_grid("weights", weights, "y", y, (0, 2, 3))
+    k = kernel_size(weights.shape[1], "weights")
+    ones = torch.ones_like(y[:, :1])
+    return z + _apply(weights, y - z, k) / _apply(weights, ones, k)
+
+
+def combine_multi(ys, zs, weights):
+    """Multi-buffer combination kernel, Eq. 14 of [1]_ (twin of :func:`statmc.combine.combine_multi`).
+
+    Parameters
+    ----------
+    ys : (N, B, C, H, W) tensor
+        Independent estimates per sample bin.
+    zs : (N, B, C, H, W) tensor
+        Correlated estimates per bin (e.g. ``zs[:, b] = denoise(ys[:, b])``).
+    weights : (N, B, k·k, H, W) tensor
+        Weights ``w_{i,b}`` per bin and tap, finite.
+
+    Returns
+    -------
+    out : (N, C, H, W) tensor
+        ``β̂_c = Σ_b [w_{c,b} y_{c,b} + Σ_i w_{i,b} y_{i,b} + Σ_i w_{i,b}(z_{c,b} − z_{i,b})] / W_c``,
+        ``W_c = Σ_b (w_{c,b} + Σ_i w_{i,b})`` over the taps inside the image; evaluated as
+        ``Σ_b [apply(w_b, y_b − z_b) + apply(w_b, 1) z_b] / Σ_b apply(w_b, 1)``.
+    """
+    _check("ys", ys, 5, "(N, B, C, H, W)")
+    _check("zs", zs, 5, "(N, B, C, H, W)")
+    _check("weights", weights, 5, "(N, B, k·k, H, W)")
+    if zs.shape != ys.shape:
+        raise InputError(f"`zs` must have the shape of `ys` {tuple(ys.shape)}; got {tuple(zs.shape)}.")
+    _same_grid("weights", weights, "ys", ys, (0, 1, 3, 4))
+    N, B, C, H, W = ys.shape
+    k = kernel_size(weights.shape[2], "weights")
+    w = weights.reshape(N * B, k * k, H, W)
+    diff = _apply(w, (ys - zs).reshape(N * B, C, H, W), k).view(N, B, C, H, W)
+    wsum = _apply(w, torch.ones_like(ys[:, :, :1]).reshape(N * B, 1, H, W), k).view(N, B, 1, H, W)
+    return (diff + wsum * zs).sum(dim=1) / wsum.sum(dim=1)
+
+
+class ApplyKernels(torch.nn.Module):
+    """Module form of :func:`apply_kernels`: ``forward(kernels, image)``."""
+
+    def forward(self, kernels, image):
+        return apply_kernels(kernels, image)
+
+
+class Combine(torch.nn.Module):
+    """Module form of :func:`combine` (Eq. 8 of [1]_): ``forward(y, z, weights)``."""
+
+    def forward(self, y, z, weights):
+        return combine(y, z, weights)
+
+
+class CombineMulti(torch.nn.Module):
+    """Module form of :func:`combine_multi` (Eq. 14 of [1]_): ``forward(ys, zs, weights)``."""
+
+    def forward(self, ys, zs, weights):
+        return combine_multi(ys, zs, weights)

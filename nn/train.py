@@ -1,0 +1,100 @@
+"""A small training helper: relMSE loss, Adam, fixed seed.
+
+Enough to fit the tiny networks of :mod:`statmc.nn.nets` for a few dozen steps on the
+toy renderer's exact truth (:mod:`statmc.toy`), on the CPU in seconds.  It is not a
+training framework: no data loading, no checkpoints, no schedules.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from statmc.errors import InputError, as_number
+
+__all__ = ["relmse_loss", "train", "RELMSE_EPS"]
+
+#: ε of relMSE: 0.01 (Rousselle et al. 2011 §7), as in :func:`statmc.metrics.relmse`.
+RELMSE_EPS = 0.01
+
+
+def relmse_loss(x, ref, eps: float = RELMSE_EPS):
+    """Relative MSE ``mean((x − r)² / (r² + ε))`` of tensors (differentiable).
+
+    Parameters
+    ----------
+    x, ref : tensors of the same shape
+    eps : float
+        ε = 0.01 of §7 of Rousselle et al. 2011 (the value of :func:`statmc.metrics.relmse`,
+        which this equals on the same numbers in any layout: the mean is over all entries).
+
+    Returns
+    -------
+    0-d tensor
+
+    References
+    ----------
+    F. Rousselle, C. Knaus, M. Zwicker. "Adaptive Sampling and Reconstruction using Greedy
+    Error Minimization". ACM Trans. Graph. 30(6), 159, 2011.
+    https://doi.org/10.1145/2070781.2024193
+    """
+    if not isinstance(x, torch.Tensor) or not isinstance(ref, torch.Tensor):
+        raise InputError(f"`x` and `ref` must be torch tensors; got {type(x).__name__} and "
+                         f"{type(ref).__name__}.")
+    if x.shape != ref.shape:
+        raise InputError(f"`ref` must have the shape of `x` {tuple(x.shape)}; got {tuple(ref.shape)}.")
+    eps = as_number("eps", eps, lo=0.0)
+    return torch.mean((x - ref) ** 2 / (ref * ref + eps))
+
+
+def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dict:
+    """Fit ``model`` with Adam: ``steps`` times ``loss = loss_fn(model, step)``, backward, step.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+    loss_fn : callable ``(model, step) -> 0-d tensor``
+        Builds one step's loss, e.g. ``relmse_loss(net.denoise(features, image), truth)``
+        on a fresh render per step.
+    steps : int
+    lr : float
+        Adam's learning rate (default 3e-3: the rate that fitted the notebook's kernel
+        network in a few dozen steps).
+    seed : int
+        Seeds torch's random state inside the run (restored afterwards), for any
+        randomness in ``loss_fn`` or the model; the run is then reproducible.
+
+    Returns
+    -------
+    dict
+        ``losses`` (list of floats, one per step), and the run's configuration ``steps``,
+        ``lr``, ``seed``, ``optimizer`` and ``seconds`` (wall clock).
+    """
+    if not isinstance(model, torch.nn.Module):
+        raise InputError(f"`model` must be a torch.nn.Module; got {type(model).__name__}.")
+    if not callable(loss_fn):
+        raise InputError(f"`loss_fn` must be callable as loss_fn(model, step); got {loss_fn!r}.")
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise InputError(f"`steps` must be an int >= 0; got {steps!r}.")
+    lr = as_number("lr", lr, lo=0.0, lo_open=True)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise InputError(f"`seed` must be an int; got {seed!r}.")
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    losses = []
+    t0 = time.perf_counter()
+    model.train()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        for step in range(int(steps)):
+            loss = loss_fn(model, step)
+            if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
+                raise InputError(f"`loss_fn` must return a scalar tensor; got {loss!r} at step {step}.")
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+    model.eval()
+    return {"losses": losses, "steps": int(steps), "lr": lr, "seed": int(seed),
+            "optimizer": "Adam", "seconds": time.perf_counter() - t0}
