@@ -1,0 +1,318 @@
+"""statmc.nn: torch twins equal the statmc kernels, the networks' outputs plug into statmc,
+and a few dozen training steps on the toy renderer's exact truth reduce held-out error."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import statmc.nn as snn  # noqa: E402
+from statmc import analytic, combine as cb, metrics, progressive  # noqa: E402
+from statmc.errors import InputError  # noqa: E402
+from statmc.stats import PixelStats  # noqa: E402
+from statmc.toy import ToyRenderer  # noqa: E402
+
+torch.set_num_threads(1)
+F64 = torch.float64
+
+
+def _nchw(a):
+    """(..., H, W, C) numpy -> (1, ..., C, H, W) float64 tensor (test-side layout helper)."""
+    a = np.asarray(a, np.float64)
+    return torch.from_numpy(np.ascontiguousarray(np.moveaxis(a, -1, -3)[None]))
+
+
+# ============================================================================ ops vs statmc
+@pytest.mark.parametrize("H, W, C, k", [(7, 9, 3, 5), (5, 6, 1, 7), (4, 4, 2, 9), (6, 5, 3, 1),
+                                        (1, 8, 3, 3)])
+def test_apply_kernels_equals_statmc(H, W, C, k):
+    """Signed random kernels, k up to larger than the image: every pixel is a border pixel."""
+    rng = np.random.default_rng(H * 100 + k)
+    K = rng.normal(size=(H, W, k, k))
+    img = rng.normal(size=(H, W, C))
+    want = analytic.apply_kernels(K, img)
+    got = snn.tensor_to_image(snn.apply_kernels(snn.kernels_from_numpy(K, dtype=F64),
+                                                snn.image_to_tensor(img, dtype=F64)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+
+
+def test_apply_kernels_batch_matches_per_image():
+    rng = np.random.default_rng(1)
+    K = torch.from_numpy(rng.normal(size=(3, 9, 5, 6)))
+    img = torch.from_numpy(rng.normal(size=(3, 2, 5, 6)))
+    out = snn.apply_kernels(K, img)
+    for n in range(3):
+        want = analytic.apply_kernels(snn.kernels_to_numpy(K[n:n + 1]),
+                                      snn.tensor_to_image(img[n:n + 1]))
+        np.testing.assert_allclose(snn.tensor_to_image(out[n:n + 1]), want, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("H, W, C, k", [(7, 9, 3, 5), (5, 6, 1, 7), (3, 4, 2, 9), (6, 8, 3, 3)])
+def test_combine_equals_statmc_eq8(H, W, C, k):
+    """Positive random weights with a wide spread; borders renormalised over the inside taps."""
+    rng = np.random.default_rng(7 + H + k)
+    w = np.exp(rng.normal(scale=2.0, size=(H, W, k, k)))
+    y, z = rng.normal(size=(H, W, C)), rng.normal(size=(H, W, C)) + 3.0
+    want = cb.combine(y, z, w)
+    got = snn.tensor_to_image(snn.combine(_nchw(y), _nchw(z), snn.kernels_from_numpy(w, dtype=F64)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("B, H, W, C, k", [(3, 7, 9, 3, 5), (2, 5, 4, 1, 7), (4, 6, 6, 2, 3)])
+def test_combine_multi_equals_statmc_eq14(B, H, W, C, k):
+    rng = np.random.default_rng(B * 10 + k)
+    w = np.exp(rng.normal(scale=2.0, size=(H, W, B, k, k)))
+    ys, zs = rng.normal(size=(B, H, W, C)), rng.normal(size=(B, H, W, C))
+    want = cb.combine_multi(ys, zs, w)
+    got = snn.tensor_to_image(snn.combine_multi(_nchw(ys), _nchw(zs),
+                                                snn.weights_from_numpy(w, dtype=F64)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_combine_multi_with_one_bin_is_combine():
+    rng = np.random.default_rng(3)
+    y, z = torch.from_numpy(rng.normal(size=(2, 3, 6, 7))), torch.from_numpy(rng.normal(size=(2, 3, 6, 7)))
+    w = torch.from_numpy(rng.uniform(0.1, 1.0, size=(2, 25, 6, 7)))
+    torch.testing.assert_close(snn.combine_multi(y[:, None], z[:, None], w[:, None]),
+                               snn.combine(y, z, w), rtol=0, atol=1e-13)
+
+
+def test_gradcheck_ops():
+    rng = np.random.default_rng(4)
+    t = lambda *s, lo=None: torch.tensor(rng.uniform(0.2, 1.0, s) if lo else rng.normal(size=s),  # noqa: E731
+                                         dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(snn.apply_kernels, (t(1, 9, 4, 5), t(1, 2, 4, 5)))
+    assert torch.autograd.gradcheck(snn.combine, (t(1, 2, 4, 5), t(1, 2, 4, 5), t(1, 9, 4, 5, lo=1)))
+    assert torch.autograd.gradcheck(snn.combine_multi,
+                                    (t(1, 2, 2, 3, 4), t(1, 2, 2, 3, 4), t(1, 2, 9, 3, 4, lo=1)))
+
+
+def test_modules_equal_functions():
+    rng = np.random.default_rng(5)
+    y, z = torch.from_numpy(rng.normal(size=(1, 3, 5, 6))), torch.from_numpy(rng.normal(size=(1, 3, 5, 6)))
+    w = torch.from_numpy(rng.uniform(0.1, 1, size=(1, 9, 5, 6)))
+    torch.testing.assert_close(snn.ApplyKernels()(w, y), snn.apply_kernels(w, y), rtol=0, atol=0)
+    torch.testing.assert_close(snn.Combine()(y, z, w), snn.combine(y, z, w), rtol=0, atol=0)
+    torch.testing.assert_close(snn.CombineMulti()(y[:, None], z[:, None], w[:, None]),
+                               snn.combine_multi(y[:, None], z[:, None], w[:, None]), rtol=0, atol=0)
+
+
+def test_layout_round_trips():
+    rng = np.random.default_rng(6)
+    img, K, w = rng.normal(size=(4, 5, 3)), rng.normal(size=(4, 5, 3, 3)), rng.normal(size=(4, 5, 2, 3, 3))
+    np.testing.assert_array_equal(snn.tensor_to_image(snn.image_to_tensor(img, dtype=F64)), img)
+    np.testing.assert_array_equal(snn.kernels_to_numpy(snn.kernels_from_numpy(K, dtype=F64)), K)
+    np.testing.assert_array_equal(snn.weights_to_numpy(snn.weights_from_numpy(w, dtype=F64)), w)
+    assert snn.image_to_tensor(img[..., 0]).shape == (1, 1, 4, 5)
+    # tap dy*k + dx of pixel (y, x) is K[y, x, dy, dx]
+    assert snn.kernels_from_numpy(K, dtype=F64)[0, 1 * 3 + 2, 3, 4] == K[3, 4, 1, 2]
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: snn.apply_kernels(torch.ones(1, 8, 4, 4), torch.ones(1, 3, 4, 4)), "kernels"),
+    (lambda: snn.apply_kernels(torch.ones(1, 9, 4, 4), torch.ones(1, 3, 4, 5)), "kernels"),
+    (lambda: snn.apply_kernels(np.ones((1, 9, 4, 4)), torch.ones(1, 3, 4, 4)), "kernels"),
+    (lambda: snn.combine(torch.ones(1, 3, 4, 4), torch.ones(1, 2, 4, 4), torch.ones(1, 9, 4, 4)), "z"),
+    (lambda: snn.combine_multi(torch.ones(1, 2, 3, 4, 4), torch.ones(1, 2, 3, 4, 4),
+                               torch.ones(1, 3, 9, 4, 4)), "weights"),
+    (lambda: snn.kernels_from_numpy(np.ones((4, 4, 4, 4))), "kernels"),
+    (lambda: snn.tensor_to_image(torch.ones(2, 3, 4, 4)), "t"),
+    (lambda: snn.KernelNet(k=4), "k"),
+    (lambda: snn.MixNet(activation="relu"), "activation"),
+    (lambda: snn.KernelNet()(torch.ones(1, 5, 4, 4)), "features"),
+    (lambda: snn.pixel_features(np.ones((4, 4, 3))), "stats"),
+    (lambda: snn.relmse_loss(torch.ones(3), torch.ones(4)), "ref"),
+    (lambda: snn.train(snn.KernelNet(), lambda m, s: None, -1), "steps"),
+])
+def test_bad_input_names_the_parameter(call, name):
+    with pytest.raises(InputError, match=f"`{name}`"):
+        call()
+
+
+# ============================================================================ features
+def _render(scene="mixed", size=24, spp=8, seed=0):
+    return ToyRenderer(scene, width=size, height=size).render_uniform(spp, seed=seed)
+
+
+def test_pixel_features_planes():
+    st = _render(size=12)
+    y = st.mean * 0.9 + 0.05
+    f = snn.pixel_features(st, extra=y, budget=1000, dtype=F64)[0].numpy().transpose(1, 2, 0)
+    assert f.shape[2] == snn.feature_channels(3, extra=1, budget=True) == 20
+    x = st.mean
+    np.testing.assert_allclose(f[..., 0:3], np.log1p(np.maximum(x, 0)), rtol=1e-14)
+    np.testing.assert_allclose(f[..., 3:6], np.log(st.mean_var / (x * x + 0.01) + 1e-4) / 10, rtol=1e-14)
+    np.testing.assert_allclose(f[..., 6:9], st.albedo, rtol=1e-7)
+    np.testing.assert_allclose(f[..., 9:12], st.normal, rtol=1e-7)
+    np.testing.assert_allclose(f[..., 12:15], np.log1p(np.maximum(y, 0)), rtol=1e-14)
+    np.testing.assert_allclose(f[..., 15:18], np.abs(y - x) / (np.abs(x) + 0.1), rtol=1e-14)
+    np.testing.assert_allclose(f[..., 18], np.log1p(st.n), rtol=1e-14)
+    np.testing.assert_allclose(f[..., 19], np.log1p(1000 / 144), rtol=1e-14)
+    bare = PixelStats(st.n, st.mean, st.m2)          # no feature buffers: zero planes
+    assert not snn.pixel_features(bare)[0, 6:12].any()
+
+
+# ============================================================================ networks
+def test_kernel_net_gives_normalised_kernels_for_statmc():
+    st = _render()
+    net = snn.KernelNet()
+    K = net.kernels(st)
+    assert K.shape == (24, 24, 5, 5) and (K > 0).all()
+    np.testing.assert_allclose(K.sum(axis=(2, 3)), 1.0, atol=1e-6)
+    with torch.no_grad():
+        torch_out = snn.tensor_to_image(net.denoise(snn.pixel_features(st), snn.image_to_tensor(st.mean)))
+    np.testing.assert_allclose(analytic.apply_kernels(K, st.mean), torch_out, atol=1e-5)
+    assert 1000 < net.n_parameters() < 10_000
+
+
+@pytest.mark.parametrize("buffers", [1, 3])
+def test_combiner_net_weights_feed_statmc_combine(buffers):
+    st = _render()
+    rng = np.random.default_rng(buffers)
+    net = snn.CombinerNet(buffers=buffers, width=8)
+    if buffers == 1:
+        z = st.mean + rng.normal(scale=0.01, size=st.mean.shape)
+        w = net.weights(st, z)
+        out = cb.combine(st.mean, z, w)
+        ys, zs = st.mean[None], z[None]
+    else:
+        ys = st.mean + rng.normal(scale=0.1, size=(buffers,) + st.mean.shape)
+        zs = ys * 0.5
+        w = net.weights(st, zs, ys)
+        out = cb.combine_multi(ys, zs, w)
+    assert w.shape == (24, 24, buffers, 5, 5) and (w > 0).all()
+    np.testing.assert_allclose(w.sum(axis=(2, 3, 4)), 1.0, atol=1e-5)
+    want = snn.combine_multi(_nchw(ys), _nchw(zs), snn.weights_from_numpy(w, dtype=F64))
+    np.testing.assert_allclose(out, snn.tensor_to_image(want), atol=1e-12)
+
+
+def test_mix_net_alpha_goes_through_progressive_denoise():
+    from statmc import denoisers
+    st = _render(spp=16)
+    f = denoisers.gaussian(1.5)
+    y = f(st.mean)
+    net = snn.MixNet()
+    a = net.alpha(st, y)
+    assert a.shape == (24, 24) and (a >= 0).all() and (a <= 1).all()
+    ungated, info = progressive.progressive_denoise(st, f, alpha=a, gate=False, rng=0,
+                                                    extra_output=True)
+    y = info["denoised"]                          # the y that progressive_denoise mixed
+    np.testing.assert_allclose(ungated, st.mean + a[..., None] * (y - st.mean), atol=1e-12)
+    with torch.no_grad():
+        mixed = net.mix(snn.pixel_features(st, extra=y), snn.image_to_tensor(st.mean),
+                        snn.image_to_tensor(y))
+    np.testing.assert_allclose(snn.tensor_to_image(mixed), ungated, atol=1e-5)
+    gated, info = progressive.progressive_denoise(st, f, alpha=a, rng=0, extra_output=True)
+    assert gated.shape == st.mean.shape
+    assert (info["alpha_gated"] <= a[..., None] + 1e-12).all()   # the gate only shrinks α (Eq. 18)
+
+
+def test_mix_net_f_act_is_eq19_clamped():
+    net = snn.MixNet(activation="f_act", width=4)
+    feats = torch.randn(1, net.in_channels, 6, 7, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        o = net.body(feats)
+        want = torch.clamp((o[:, 0:1] - o[:, 1:2]) / torch.clamp(o[:, 2:3], min=1e-6), 0, 1)
+        torch.testing.assert_close(net(feats), want, rtol=0, atol=0)
+
+
+def test_sampling_net_counts_meet_the_budget_exactly():
+    st = _render(size=20)
+    net = snn.SamplingNet()
+    budget = 20 * 20 * 8 + 17
+    feats = snn.pixel_features(st, budget=budget)
+    with torch.no_grad():
+        logits = net(feats)
+        dens = net.density(feats)
+        smap = net.sample_map(feats, budget)
+    torch.testing.assert_close(dens.flatten(), torch.softmax(logits.flatten(), 0))   # Eq. 11
+    torch.testing.assert_close(smap, budget * dens)
+    assert abs(float(dens.sum()) - 1) < 1e-5
+    target = budget * dens[0, 0].numpy().astype(np.float64)
+    for seed in range(3):
+        c = net.counts(st, budget, rng=seed)
+        assert c.dtype == np.int64 and c.shape == (20, 20) and c.sum() == budget
+        # systematic rounding: every pixel gets floor or ceil of its real-valued target
+        assert np.all(np.abs(c - target) < 1 + 1e-6)
+
+
+def test_seed_fixes_initial_weights_without_touching_global_rng():
+    torch.manual_seed(123)
+    before = torch.rand(3)
+    torch.manual_seed(123)
+    a, b = snn.KernelNet(seed=5), snn.KernelNet(seed=5)
+    assert torch.equal(torch.rand(3), before)
+    for pa, pb in zip(a.parameters(), b.parameters()):
+        assert torch.equal(pa, pb)
+    assert not torch.equal(next(snn.KernelNet(seed=6).parameters()), next(a.parameters()))
+
+
+# ============================================================================ training
+def test_relmse_loss_equals_statmc_metric():
+    rng = np.random.default_rng(8)
+    x, r = rng.normal(size=(6, 7, 3)), rng.uniform(0, 2, size=(6, 7, 3))
+    got = float(snn.relmse_loss(snn.image_to_tensor(x, dtype=F64), snn.image_to_tensor(r, dtype=F64)))
+    assert got == pytest.approx(metrics.relmse(x, r), rel=1e-13)
+
+
+def test_train_is_reproducible():
+    st = _render(size=12)
+    feats, img = snn.pixel_features(st), snn.image_to_tensor(st.mean)
+    truth = snn.image_to_tensor(ToyRenderer("mixed", width=12, height=12).true_mean())
+
+    def loss_fn(m, step):
+        noise = 1 + 0.01 * torch.randn(1)                        # uses the seeded torch RNG
+        return snn.relmse_loss(m.denoise(feats * noise, img), truth)
+    runs = [snn.train(snn.KernelNet(width=4), loss_fn, 3, seed=2)["losses"] for _ in range(2)]
+    assert runs[0] == runs[1]
+
+
+def test_a_few_dozen_steps_reduce_held_out_error():
+    """KernelNet trained 40 steps on 8-spp renders of the toy "mixed" scene against its exact
+    truth (each step a fresh render); evaluated on 8 renders with seeds never used in
+    training.  One-sided sign test: all 8 held-out relMSEs lower than the untrained
+    network's has probability 2^-8 = 0.0039 if training did not help."""
+    H = W = 32
+    scene = ToyRenderer("mixed", width=W, height=H)
+    truth = snn.image_to_tensor(scene.true_mean())
+    net, untrained = snn.KernelNet(seed=0), snn.KernelNet(seed=0)
+
+    def loss_fn(model, step):
+        st = scene.render_uniform(8, seed=step)
+        return snn.relmse_loss(model.denoise(snn.pixel_features(st), snn.image_to_tensor(st.mean)), truth)
+    run = snn.train(net, loss_fn, 40, lr=3e-3, seed=0)
+    before, after = [], []
+    for s in range(10_000, 10_008):
+        st = scene.render_uniform(8, seed=s)
+        before.append(metrics.relmse(analytic.apply_kernels(untrained.kernels(st), st.mean), scene.true_mean()))
+        after.append(metrics.relmse(analytic.apply_kernels(net.kernels(st), st.mean), scene.true_mean()))
+    before, after = np.array(before), np.array(after)
+    p_sign = 0.5 ** int(np.sum(after < before))
+    msg = (f"held-out relMSE untrained {before.mean():.4f}, trained {after.mean():.4f} "
+           f"(ratio {after.mean() / before.mean():.3f}); training loss {run['losses'][0]:.4f} -> "
+           f"{np.mean(run['losses'][-5:]):.4f}")
+    assert p_sign < 0.01, msg
+    assert after.mean() < 0.7 * before.mean(), msg
+
+
+# ============================================================================ layering
+def test_statmc_never_imports_torch():
+    """statmc's modules import without torch; statmc.nn imports statmc, never the reverse."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    mods = sorted(f[:-3] for f in os.listdir(os.path.join(root, "statmc"))
+                  if f.endswith(".py") and f != "__init__.py")
+    code = ("import sys, importlib\n"
+            f"for m in {mods!r}: importlib.import_module('statmc.' + m)\n"
+            "bad = [m for m in ('torch', 'statmc.nn') if m in sys.modules]\n"
+            "print(bad); sys.exit(1 if bad else 0)\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR",
+                                                          os.path.join(root, ".cache", "numba")))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
