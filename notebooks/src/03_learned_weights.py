@@ -2,18 +2,19 @@
 # # Learned weights in the statistical kernels
 #
 # The product's third use: small networks whose outputs — per-pixel kernel weights,
-# mixing parameters, sampling logits — plug into `statmc`'s statistical kernels. The
-# `nn/` package (installed as `statmc.nn`, PyTorch CPU) is meant to hold such networks,
-# but **it ships no network yet** (its docstring says "Empty for now"). So the two small
-# networks below are defined in the notebook itself, in plain PyTorch:
+# mixing parameters, sampling logits — plug into `statmc`'s statistical kernels. They
+# live in `statmc.nn` (the `nn/` folder, PyTorch CPU; docs/nn.md), which also holds the
+# differentiable twins of the kernels they feed, the one input builder
+# (`pixel_features`, from a `PixelStats`) and a small training helper. Two of its
+# networks are used here:
 #
-# 1. a **kernel-predicting network**: a 5×5 softmax kernel per pixel (the classical
+# 1. a **kernel-predicting network** (`statmc.nn.KernelNet`): a 5×5 softmax kernel per pixel (the classical
 #    counterpart is GEM's per-pixel choice among Gaussian kernels, Rousselle et al.
 #    2011). Its kernels are exported as an `(H, W, 5, 5)` array and used by
 #    `statmc.analytic.apply_kernels` and by Salehi et al. 2022's closed-form expected
 #    loss of a future render (Lemma A.1, `statmc.analytic.expected_kernel_loss`);
-# 2. a **mixing network** for progressive denoising (Firmino et al. 2022, Eq. 19 learns
-#    α with a network): its α goes into `statmc.progressive.progressive_denoise(...,
+# 2. a **mixing network** for progressive denoising (`statmc.nn.MixNet`; Firmino et al.
+#    2022, §4.3, learn α with a network): its α goes into `statmc.progressive.progressive_denoise(...,
 #    alpha=...)`, through the same Student-t gate as the classical α of Eq. 9.
 #
 # Both train for **a few dozen steps** on the analytic toy renderer (`statmc.toy`), whose
@@ -29,12 +30,11 @@ import time
 import numpy as np
 import matplotlib.pyplot as plt
 import torch
-import torch.nn.functional as F
 
 from statmc import analytic, gem, metrics, progressive
+from statmc import nn as snn
 from statmc.toy import ToyRenderer
 
-torch.manual_seed(0)
 torch.set_num_threads(2)
 plt.rcParams["figure.dpi"] = 80
 t_start = time.perf_counter()
@@ -43,75 +43,36 @@ H = W = 64
 train_scene = ToyRenderer("mixed", width=W, height=H)
 truth = train_scene.true_mean()
 SPP = 8
-
-
-def to_tensor(a):
-    """(H, W, C) numpy -> (1, C, H, W) float32 tensor: statmc is channel-last, torch is not."""
-    return torch.from_numpy(np.ascontiguousarray(np.asarray(a, np.float32).transpose(2, 0, 1)[None]))
-
-
-def net_input(stats):
-    """Per-pixel inputs: log radiance, log relative variance of the mean, albedo, normal."""
-    x = np.maximum(stats.mean, 0)
-    rel_var = stats.mean_var / (x ** 2 + 1e-2)
-    feats = np.concatenate([np.log1p(x), np.log(rel_var + 1e-4) / 10, stats.albedo, stats.normal],
-                           axis=2)
-    return to_tensor(feats)
+to_tensor = snn.image_to_tensor      # (H, W, C) numpy -> (1, C, H, W) tensor: statmc is channel-last, torch is not
 
 # %% [markdown]
 # ## 1. A kernel-predicting network
 #
-# Three convolutions map the 12 input channels to 25 logits per pixel; a softmax turns
-# them into a normalised 5×5 kernel. `apply_kernels_torch` is the differentiable twin of
-# `statmc.analytic.apply_kernels` (same convention: `out[y, x] = Σ K[y, x, dy, dx] ·
-# img[y + dy − 2, x + dx − 2]`, taps outside the image dropped). The loss is relMSE
-# against the toy's exact truth; every step sees a fresh 8-spp render (new seed).
+# `statmc.nn.KernelNet`: three convolutions map the 12 input planes of
+# `statmc.nn.pixel_features` (log radiance, log relative variance of the mean, albedo,
+# normal) to 25 logits per pixel; a softmax turns them into a normalised 5×5 kernel.
+# `KernelNet.denoise` applies them with `statmc.nn.apply_kernels`, the differentiable
+# twin of `statmc.analytic.apply_kernels` (same convention: `out[y, x] = Σ K[y, x, dy, dx] ·
+# img[y + dy − 2, x + dx − 2]`, taps outside the image dropped; tests/test_nn.py checks
+# the two agree). The loss is relMSE (`statmc.nn.relmse_loss`, ε = 0.01) against the
+# toy's exact truth; `statmc.nn.train` runs Adam, and every step sees a fresh 8-spp
+# render (new seed).
 
 # %%
-class KernelNet(torch.nn.Module):
-    def __init__(self, k=5, width=24):
-        super().__init__()
-        self.k = k
-        self.body = torch.nn.Sequential(
-            torch.nn.Conv2d(12, width, 3, padding=1), torch.nn.ReLU(),
-            torch.nn.Conv2d(width, width, 3, padding=1), torch.nn.ReLU(),
-            torch.nn.Conv2d(width, k * k, 1))
-
-    def forward(self, inp):                      # (B, 12, H, W) -> (B, k*k, H, W) kernels
-        return torch.softmax(self.body(inp), dim=1)
-
-
-def apply_kernels_torch(kernels, img, k=5):
-    """(B, k*k, H, W) kernels applied to (B, C, H, W) images, zero outside the image."""
-    B, C, Hh, Ww = img.shape
-    patches = F.unfold(img, k, padding=k // 2).view(B, C, k * k, Hh, Ww)
-    return (patches * kernels[:, None]).sum(dim=2)
-
-
-def relmse_torch(x, ref):
-    return torch.mean((x - ref) ** 2 / (ref ** 2 + 0.01))
-
-
-knet = KernelNet()
-opt = torch.optim.Adam(knet.parameters(), lr=3e-3)
+knet = snn.KernelNet(width=24, seed=0)
 target = to_tensor(truth)
-losses = []
-t0 = time.perf_counter()
-for step in range(60):
+
+
+def kernel_loss(net, step):
     st = train_scene.render_uniform(SPP, seed=step)
-    out = apply_kernels_torch(knet(net_input(st)), to_tensor(st.mean))
-    loss = relmse_torch(out, target)
-    opt.zero_grad(); loss.backward(); opt.step()
-    losses.append(loss.item())
-print(f"60 steps in {time.perf_counter() - t0:.1f} s; training relMSE {losses[0]:.4f} -> "
-      f"{np.mean(losses[-10:]):.4f} (mean of the last 10 steps)")
+    return snn.relmse_loss(net.denoise(snn.pixel_features(st), to_tensor(st.mean)), target)
 
 
-def learned_kernels(stats):
-    """The network's kernels as statmc's (H, W, k, k) float64 array."""
-    with torch.no_grad():
-        k = knet(net_input(stats))[0]                      # (k*k, H, W)
-    return k.numpy().transpose(1, 2, 0).reshape(H, W, 5, 5).astype(np.float64)
+run = snn.train(knet, kernel_loss, 60, lr=3e-3, seed=0)
+losses = run["losses"]
+print(f"{knet.n_parameters()} parameters; 60 steps in {run['seconds']:.1f} s; training relMSE "
+      f"{losses[0]:.4f} -> {np.mean(losses[-10:]):.4f} (mean of the last 10 steps)")
+learned_kernels = knet.kernels     # PixelStats -> statmc's (H, W, 5, 5) float64 kernels
 
 # %% [markdown]
 # Evaluation on renders with seeds never used in training, against the classical
@@ -136,7 +97,7 @@ def evaluate(scene, seeds):
 
 st = train_scene.render_uniform(SPP, seed=10_001)
 with torch.no_grad():
-    torch_out = apply_kernels_torch(knet(net_input(st)), to_tensor(st.mean))[0].numpy().transpose(1, 2, 0)
+    torch_out = snn.tensor_to_image(knet.denoise(snn.pixel_features(st), to_tensor(st.mean)))
 print("max |statmc.apply_kernels − torch twin| =",
       f"{np.abs(analytic.apply_kernels(learned_kernels(st), st.mean) - torch_out).max():.1e}")
 
@@ -219,52 +180,36 @@ for name, Kk in kernels.items():
 # %% [markdown]
 # ## 2. A mixing network for progressive denoising
 #
-# Firmino et al. 2022 (Eq. 19) predict the mixing α with a network. Here a tiny one
-# (same inputs plus the denoised image `y` and `|y − x|`) outputs one α per pixel
-# through a sigmoid; `y` is OIDN (CPU) with albedo and normal, bound to the render by
-# `statmc.progressive.bind_denoiser`. Mixing matters when the render becomes better than
-# the denoiser somewhere, i.e. at higher spp, so each of the 40 training steps draws its
-# spp from 8, 32, 128 and 512; the loss is `relMSE(x + α(y − x))` against the truth,
-# divided by OIDN's relMSE so that the low-spp steps, with errors 100× larger, do not
-# drown the others.
+# Firmino et al. 2022 (§4.3) predict the mixing α with a network. Here
+# `statmc.nn.MixNet`, a tiny one (the same inputs plus, via `pixel_features(stats,
+# extra=y)`, the denoised image `y` and its relative distance `|y − x|/(|x| + 0.1)`),
+# outputs one α per pixel through a sigmoid; `y` is OIDN (CPU) with albedo and normal,
+# bound to the render by `statmc.progressive.bind_denoiser`. Mixing matters when the
+# render becomes better than the denoiser somewhere, i.e. at higher spp, so each of the
+# 40 training steps draws its spp from 8, 32, 128 and 512; the loss is
+# `relMSE(x + α(y − x))` against the truth, divided by OIDN's relMSE so that the low-spp
+# steps, with errors 100× larger, do not drown the others.
 # The classical counterpart is the default `progressive_denoise`: α from Eq. 9 with
 # MC-SURE, then the Student-t gate. The network's α goes through the same gate
 # (`alpha=`), and un-gated (`gate=False`) for comparison.
 
 # %%
-class AlphaNet(torch.nn.Module):
-    def __init__(self, width=16):
-        super().__init__()
-        self.body = torch.nn.Sequential(
-            torch.nn.Conv2d(18, width, 3, padding=1), torch.nn.ReLU(),
-            torch.nn.Conv2d(width, 1, 3, padding=1))
-
-    def forward(self, inp):
-        return torch.sigmoid(self.body(inp))     # (B, 1, H, W), α in (0, 1)
-
-
-def alpha_input(stats, y):
-    return torch.cat([net_input(stats), to_tensor(np.log1p(np.maximum(y, 0))),
-                      to_tensor(np.abs(y - stats.mean) / (np.abs(stats.mean) + 0.1))], dim=1)
-
-
-anet = AlphaNet()
-opt = torch.optim.Adam(anet.parameters(), lr=1e-2)
+anet = snn.MixNet(seed=0)
 spp_rng = np.random.default_rng(4)
-t0 = time.perf_counter()
-for step in range(40):
+
+
+def mix_loss(net, step):
     st = train_scene.render_uniform(int(spp_rng.choice([8, 32, 128, 512])), seed=40_000 + step)
     y = progressive.bind_denoiser("oidn", st)(st.mean.astype(np.float32))
     x_t, y_t = to_tensor(st.mean), to_tensor(y)
     # relative to OIDN's own error, so that the high-spp steps (small errors) count too
-    loss = relmse_torch(x_t + anet(alpha_input(st, y)) * (y_t - x_t), target) / relmse_torch(y_t, target)
-    opt.zero_grad(); loss.backward(); opt.step()
-print(f"40 steps in {time.perf_counter() - t0:.1f} s")
+    return (snn.relmse_loss(net.mix(snn.pixel_features(st, extra=y), x_t, y_t), target)
+            / snn.relmse_loss(y_t, target))
 
 
-def learned_alpha(stats, y):
-    with torch.no_grad():
-        return anet(alpha_input(stats, y))[0, 0].numpy().astype(np.float64)   # (H, W)
+run = snn.train(anet, mix_loss, 40, lr=1e-2, seed=0)
+print(f"{anet.n_parameters()} parameters; 40 steps in {run['seconds']:.1f} s")
+learned_alpha = anet.alpha         # (PixelStats, y) -> (H, W) float64 α
 
 # %%
 def evaluate_alpha(scene, spp, seeds):
@@ -301,7 +246,8 @@ print(f"\nnotebook run time: {time.perf_counter() - t_start:.0f} s")
 # * The plumbing: a network's per-pixel kernels are an `(H, W, k, k)` array that
 #   `statmc.analytic` applies and evaluates in closed form exactly like GEM's; a
 #   network's α is an `(H, W)` array that `progressive_denoise` gates like Eq. 9's.
-#   Layout conversions happen only at the boundary (`to_tensor`, `learned_kernels`).
+#   Layout conversions happen only at the boundary (`statmc.nn.layout`, the networks'
+#   `kernels` and `alpha` methods).
 # * The numbers come from a few dozen steps on one procedural scene, with the exact
 #   truth as target. Where the learned kernels beat GEM on the training scene, that is
 #   mostly the network fitting that image's statistics; on the unseen scene GEM wins.
