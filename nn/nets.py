@@ -122,7 +122,12 @@ class KernelNet(_Net):
                          width, seed)
 
     def forward(self, features):
-        """``(N, 2C + 6, H, W)`` features -> ``(N, k·k, H, W)`` kernels, softmax over taps."""
+        """``(N, 2C + 6, H, W)`` features -> ``(N, k·k, H, W)`` kernels, softmax over taps.
+
+        The weights ``K_pq`` of the kernel denoiser ``D(X)_p = Σ_q K_pq X_q`` (Salehi 2022
+        §A.1, Lemma A.1), for :func:`statmc.nn.apply_kernels` /
+        :func:`statmc.analytic.apply_kernels`.
+        """
         return torch.softmax(self._body(features), dim=1)
 
     def denoise(self, features, image):
@@ -171,7 +176,11 @@ class CombinerNet(_Net):
                          self.buffers * self.k * self.k, width, seed)
 
     def forward(self, features):
-        """Features -> ``(N, B, k·k, H, W)`` positive weights (softmax over ``B·k·k``)."""
+        """Features -> ``(N, B, k·k, H, W)`` positive weights (softmax over ``B·k·k``).
+
+        The ``w_{i,b}`` of Back 2020 Eq. 14 (``w_c``, ``w_i`` of Eq. 8 when ``B = 1``),
+        for :func:`statmc.nn.combine_multi` / :func:`statmc.combine.combine_multi`.
+        """
         out = torch.softmax(self._body(features), dim=1)
         N, _, H, W = out.shape
         return out.view(N, self.buffers, self.k * self.k, H, W)
@@ -232,7 +241,13 @@ class MixNet(_Net):
                          1 if activation == "sigmoid" else 3, width, seed)
 
     def forward(self, features):
-        """Features -> ``(N, 1, H, W)`` α in [0, 1]."""
+        """Features -> ``(N, 1, H, W)`` α in [0, 1].
+
+        The α of ``z = x + α (y − x)`` (Firmino 2022 §4; the network is ``h`` of Eq. 3,
+        with ``f_act`` of Eq. 19 when ``activation="f_act"``), gated by
+        :func:`statmc.progressive.confidence_gate` (Eq. 12–18) in
+        :func:`statmc.progressive.progressive_denoise`.
+        """
         o = self._body(features)
         if self.activation == "sigmoid":
             return torch.sigmoid(o)
@@ -276,7 +291,8 @@ class SamplingNet(_Net):
                          width, seed)
 
     def forward(self, features):
-        """Features -> ``(N, 1, H, W)`` logits ``Φ``."""
+        """Features -> ``(N, 1, H, W)`` logits ``Φ`` of Salehi 2022 Eq. 11
+        (``S = B · softmax(Φ)``, see :meth:`sample_map`, :meth:`counts`)."""
         return self._body(features)
 
     def density(self, features):

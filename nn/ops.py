@@ -93,6 +93,14 @@ def apply_kernels(kernels, image):
         taps outside the image dropped, no renormalisation: the kernel denoiser
         ``D(X)_p = Σ_q K_pq X_q`` of §A.1 of [2]_ (Lemma A.1 needs ``K`` independent of
         the samples it is applied to).
+
+    Examples
+    --------
+    >>> import torch
+    >>> K = torch.zeros(1, 9, 2, 3); K[:, 4] = 1.0          # identity: centre tap only
+    >>> img = torch.arange(6.0).view(1, 1, 2, 3)
+    >>> bool(torch.equal(apply_kernels(K, img), img))
+    True
     """
     _check("kernels", kernels, 4, "(N, k·k, H, W)")
     _check("image", image, 4, "(N, C, H, W)")
@@ -120,6 +128,14 @@ def combine(y, z, weights):
         ``W_c = w_c + Σ_i w_i`` over the taps inside the image, computed in the boosting
         form ``z + apply_kernels(w, y − z) / apply_kernels(w, 1)`` (Eq. 15, algebraically
         Eq. 8).
+
+    Examples
+    --------
+    >>> import torch
+    >>> y = torch.full((1, 3, 4, 5), 2.0); z = y + 1.0      # z off by a constant: cancels
+    >>> w = torch.rand(1, 9, 4, 5) + 0.1
+    >>> bool(torch.allclose(combine(y, z, w), y))
+    True
     """
     _check("y", y, 4, "(N, C, H, W)")
     _check("z", z, 4, "(N, C, H, W)")

@@ -242,6 +242,35 @@ def test_sampling_net_counts_meet_the_budget_exactly():
         assert np.all(np.abs(c - target) < 1 + 1e-6)
 
 
+def test_every_parameter_gets_a_gradient_through_the_statmc_twins():
+    """Each network's torch path (network -> op of statmc.nn.ops -> relMSE) backpropagates
+    to all of its parameters: nothing in the plumbing detaches."""
+    st = _render(size=12)
+    truth = snn.image_to_tensor(ToyRenderer("mixed", width=12, height=12).true_mean())
+    x = snn.image_to_tensor(st.mean)
+    y = x * 0.8 + 0.05
+    ys_np = np.stack([st.mean, st.mean * 0.8 + 0.05])           # two "bins" (B, H, W, C)
+    ys = _nchw(ys_np).float()
+    nets = {
+        "kernel": (snn.KernelNet(width=4),
+                   lambda n: n.denoise(snn.pixel_features(st), x)),
+        "combiner": (snn.CombinerNet(width=4),
+                     lambda n: snn.combine(x, y, n(snn.pixel_features(st, extra=st.mean * 0.8 + 0.05))[:, 0])),
+        "combiner B=2": (snn.CombinerNet(buffers=2, width=4),
+                         lambda n: snn.combine_multi(ys, ys * 0.9, n(n.features(st, ys_np * 0.9, ys_np)))),
+        "mix": (snn.MixNet(width=4), lambda n: n.mix(snn.pixel_features(st, extra=st.mean * 0.8 + 0.05), x, y)),
+        "mix f_act": (snn.MixNet(width=4, activation="f_act", seed=3),
+                      lambda n: n.mix(snn.pixel_features(st, extra=st.mean * 0.8 + 0.05), x, y)),
+    }
+    for name, (net, out) in nets.items():
+        snn.relmse_loss(out(net), truth).backward()
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters()), name
+    net = snn.SamplingNet(width=4)
+    smap = net.sample_map(snn.pixel_features(st, budget=1000), 1000)
+    (smap * torch.linspace(0, 1, 144).view(1, 1, 12, 12)).sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+
+
 def test_seed_fixes_initial_weights_without_touching_global_rng():
     torch.manual_seed(123)
     before = torch.rand(3)
