@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as hst
 
 torch = pytest.importorskip("torch")
 
@@ -73,6 +74,21 @@ def test_combine_multi_equals_statmc_eq14(B, H, W, C, k):
     got = snn.tensor_to_image(snn.combine_multi(_nchw(ys), _nchw(zs),
                                                 snn.weights_from_numpy(w, dtype=F64)))
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(B=hst.integers(1, 3), H=hst.integers(1, 8), W=hst.integers(1, 8), C=hst.sampled_from([1, 3]),
+       k=hst.sampled_from([1, 3, 5, 7]), seed=hst.integers(0, 2**31 - 1))
+def test_ops_equal_statmc_on_any_shape(B, H, W, C, k, seed):
+    """Property: for any image size (1 x 1 included) and window, the torch twins equal
+    statmc's apply_kernels and combine_multi."""
+    rng = np.random.default_rng(seed)
+    w = np.exp(rng.normal(size=(H, W, B, k, k)))
+    ys, zs = rng.normal(size=(B, H, W, C)), rng.normal(size=(B, H, W, C))
+    got = snn.tensor_to_image(snn.combine_multi(_nchw(ys), _nchw(zs), snn.weights_from_numpy(w, dtype=F64)))
+    np.testing.assert_allclose(got, cb.combine_multi(ys, zs, w), rtol=0, atol=1e-11)
+    got = snn.tensor_to_image(snn.apply_kernels(snn.kernels_from_numpy(w[:, :, 0], dtype=F64), _nchw(ys[0])))
+    np.testing.assert_allclose(got, analytic.apply_kernels(w[:, :, 0], ys[0]), rtol=0, atol=1e-12)
 
 
 def test_combine_multi_with_one_bin_is_combine():
