@@ -224,6 +224,8 @@ class MixNet(_Net):
 
     Notes
     -----
+    One α per pixel, shared by the channels (the paper's network predicts one per pixel
+    and channel; ``progressive_denoise`` accepts either).
     ``z = x + α (y − x)`` (§4 of Firmino 2022; the network is their ``h`` of Eq. 3).  Pass the α of :meth:`alpha` to
     :func:`statmc.progressive.progressive_denoise` ``(alpha=...)``: it goes through the
     same Student-t confidence gate (Eq. 12–18) as the classical α of Eq. 9, which keeps
