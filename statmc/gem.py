@@ -849,7 +849,10 @@ class SelectedFilter:
         if sc.size and (sc.min() < 0 or sc.max() >= len(sig)):
             raise InputError(f"`scales` must index `sigmas` (0 … {len(sig) - 1}); got values "
                              f"{int(sc.min())} … {int(sc.max())}.")
-        self.scales = np.ascontiguousarray(sc, dtype=np.intp)
+        # an own read-only copy: the compiled gather indexes the bank by it unchecked, so
+        # neither the caller's array nor ``f.scales`` may change after the range check
+        self.scales = np.array(sc, dtype=np.intp, order="C", copy=True)
+        self.scales.flags.writeable = False
         self.sigmas = tuple(sig)
         self.truncate = float(as_number("truncate", truncate, lo=0.0, lo_open=True))
 

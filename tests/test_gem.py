@@ -912,3 +912,17 @@ def test_selected_filter_bad_input_is_refused():
         gem.SelectedFilter(np.zeros((4, 4)), (0.0, 1.0))
     with pytest.raises(InputError, match="unknown option"):
         gem.selected_filter(m, v, sigma=2)
+
+
+def test_selected_filter_scales_cannot_change_after_the_range_check():
+    """The compiled gather indexes the bank by ``scales`` without bounds checks, so the
+    filter keeps its own read-only copy: changing the caller's array afterwards does not
+    change the filter, and writing an out-of-range scale into ``f.scales`` is refused
+    (before, both reached the kernel and read outside the bank)."""
+    m, _ = _scene_with_many_scales(shape=(12, 10))
+    sc = np.zeros(m.shape[:2], np.intp)
+    f = gem.SelectedFilter(sc, (0.0, 1.0))
+    sc[...] = 1
+    np.testing.assert_array_equal(f(m), m)                # still the pixel filter
+    with pytest.raises(ValueError, match="read-only"):
+        f.scales[0, 0] = 7
