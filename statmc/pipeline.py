@@ -16,8 +16,9 @@ RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combi
 #: combination kernel (Back 2020 Eq. 14) with GEM's full-sample kernel shared by the bins,
 #: or OIDN applied to each bin.
 BIN_RECONSTRUCTIONS = ("gem+bins", "oidn+bins")
-#: Salt of the bin seeds, so bin ``b`` of seed ``s`` draws other numbers than ``render``
-#: with any seed.
+#: Salt of the bin seeds: a bin's seed is a hash of ``(seed, b, salt)``, so the bins of
+#: seed ``s`` do not reuse the numbers of ``render(seed=s)`` (a hashed seed may still equal
+#: some other plain seed, with probability ~2⁻³¹ per pair).
 _SALT_BINS = 0xB1B5
 
 
@@ -86,16 +87,21 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
 
 
 def _gem_kernel(stats, gamma, gem_bias):
-    """GEM's selection on ``stats`` as a fixed linear filter (:class:`statmc.gem.SelectedFilter`)."""
+    """GEM's selection on ``stats`` as a fixed linear filter (:class:`statmc.gem.SelectedFilter`).
+
+    Counts below 2 are raised to 2 for GEM's ``ρ = 1 − 1/n``, as
+    :func:`statmc.progressive.bind_denoiser` does for GEM as a black box (pixels with
+    fewer than 2 samples have no variance estimate; an adaptive render may hold some).
+    """
     from .gem import selected_filter
     _, f = selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
-                           gamma=gamma, n=stats.n, bias=gem_bias)
+                           gamma=gamma, n=np.maximum(stats.n, 2), bias=gem_bias)
     return f
 
 
 def bin_seed(seed: int, b: int) -> int:
     """Seed of sample bin ``b`` of a binned render with ``seed`` (distinct per bin)."""
-    ss = np.random.SeedSequence([int(seed), int(b), _SALT_BINS])
+    ss = np.random.SeedSequence([as_int("seed", seed, lo=0), as_int("b", b, lo=0), _SALT_BINS])
     return int(ss.generate_state(1, np.uint32)[0] >> 1)
 
 
@@ -109,6 +115,7 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     """
     spp = as_int("spp", spp, lo=1)
     bins = as_int("bins", bins, lo=2)
+    seed = as_int("seed", seed, lo=0)
     if spp % bins:
         raise InputError(f"--spp {spp} must be a multiple of --bins {bins} (every bin gets "
                          f"the same number of samples).")

@@ -868,7 +868,7 @@ def test_combine_bins_gives_the_weights_per_bin_moments(monkeypatch):
     real = cbm.statistical_weights
 
     def spy(y, z, var_y, cov_z, size, **kw):
-        seen.update(var_y=var_y, cov_z=cov_z)
+        seen.update(var_y=var_y, cov_z=cov_z, cov_yz=kw["cov_yz"])
         return real(y, z, var_y, cov_z, size, **kw)
 
     monkeypatch.setattr(cbm, "statistical_weights", spy)
@@ -892,6 +892,14 @@ def test_combine_bins_gives_the_weights_per_bin_moments(monkeypatch):
     assert np.corrcoef(est, exact)[0, 1] > 0.9
     # without the factor B the estimate would sit at 1/4 of the exact values
     assert np.median(est / np.where(exact != 0, exact, np.nan)) == pytest.approx(1, abs=0.25)
+    # cov(y_b at p, z_b at p + (0, 1)) = A[p+1, p] · B mean_var_p, the same factor B
+    est = np.array([seen["cov_yz"][y, x, 1, 2, c] for y, x in pix])
+    exact = np.array([A[y * W + x + 1, y * W + x] * B * full.mean_var[y, x, c] for y, x in pix])
+    sd = np.array([np.sqrt(B * full.mean_var[y, x, c] * S[y * W + x + 1, y * W + x + 1])
+                   for y, x in pix])
+    assert np.all(np.abs(est - exact) < 5 * sd / np.sqrt(400) + 1e-12)
+    assert np.count_nonzero(exact) >= len(pix) // 2
+    assert np.nanmedian(est / np.where(exact != 0, exact, np.nan)) == pytest.approx(1, abs=0.25)
 
 
 def test_combine_bins_refuses_bad_input():
@@ -944,3 +952,31 @@ def test_render_bins_and_reconstruct_bins_check_their_input():
         reconstruct_bins(bins[:1])
     with pytest.raises(InputError, match="unknown bin reconstruction"):
         reconstruct_bins(bins, "gem")
+
+
+def test_pipeline_combine_with_gem_accepts_pixels_with_fewer_than_two_samples():
+    """Regression: the exposed-kernel path passed the raw counts to GEM, which refuses
+    n < 2, so `"combine"` with GEM failed on a render with a few 0/1-sample pixels that
+    GEM as a black box (bind_denoiser, n raised to 2) combined.  It now raises n to 2 the
+    same way."""
+    from statmc import gem
+    from statmc.pipeline import reconstruct_stats
+    counts = np.full((32, 40), 8)
+    counts[:4, :4] = 1
+    counts[5, 5] = 0
+    stats = ToyRenderer("edges", width=40, height=32).render(counts, seed=1)
+    img, _ = reconstruct_stats(stats, "combine", denoiser="gem", seed=0)
+    _, f = gem.selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
+                               n=np.maximum(stats.n, 2))
+    want = combine_denoised(stats.mean, stats.mean_var, f, rng=0)
+    np.testing.assert_allclose(img, want, rtol=1e-5, atol=1e-6)
+
+
+def test_bin_seeds_refuse_negative_seeds_with_an_input_error():
+    """A negative seed gave NumPy's bare ValueError from SeedSequence, not an InputError
+    naming the parameter."""
+    from statmc.pipeline import bin_seed, render_bins
+    with pytest.raises(InputError, match="`seed`"):
+        bin_seed(-1, 0)
+    with pytest.raises(InputError, match="`seed`"):
+        render_bins(ToyRenderer("edges", width=8, height=6), 4, 2, seed=-1)
