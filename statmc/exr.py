@@ -626,7 +626,13 @@ def read_bins(path):
             found.add((int(mt.group(1)), bool(mt.group(2))))
     if not found:
         return None
-    B = max(b for b, _ in found) + 1
+    nums = {b for b, _ in found}
+    B = max(nums) + 1
+    if len(nums) != B:
+        # a gap (or a corrupt huge index): name it without listing every missing channel
+        gap = min(set(range(len(nums) + 1)) - nums)
+        raise FileFormatError(f"{p!r} has {BIN}* channels for bins up to {B - 1} but none for "
+                              f"bin {gap} (e.g. {_bin_name(gap, 'R', False)!r}).")
     has_z = any(d for _, d in found)
     want = [_bin_name(b, c, d) for d in ((False, True) if has_z else (False,))
             for b in range(B) for c in _RGB]

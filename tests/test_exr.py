@@ -605,3 +605,19 @@ def test_bin_channels_round_trip_and_partial_bins_are_refused(tmp_path):
     assert read_bins(plain) is None
     with pytest.raises(InputError, match="zs"):
         bin_channels(ys, zs[:2])
+
+
+def test_read_bins_refuses_a_bin_gap_without_listing_every_missing_channel(tmp_path):
+    """A corrupt or foreign `Bin<huge>.R` channel made read_bins build the names of every
+    bin up to that number (1e7 took 12 s; larger ones run out of memory); the gap is now
+    named at once, without that list."""
+    from statmc.errors import FileFormatError
+    from statmc.exr import bin_channels, read_bins, write_exr
+
+    ys = np.zeros((2, 4, 5, 3), np.float32)
+    ch = bin_channels(ys)
+    ch["Bin100000.R"] = ys[0, ..., 0]
+    p = tmp_path / "gap.exr"
+    write_exr(p, ys[0], extra=ch)
+    with pytest.raises(FileFormatError, match="up to 100000 but none for bin 2 "):
+        read_bins(p)
