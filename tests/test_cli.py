@@ -727,11 +727,13 @@ def test_render_gem_bins_and_oidn_bins_write_the_bins_and_match_the_library(tmp_
     ys2, zs2 = read_bins(out2 / "bins.exr")
     assert ys2.shape == (3, 16, 24, 3) and np.max(np.abs(zs2 - ys2)) > 1e-3
 
+    smap = tmp_path / "map.npy"
+    np.save(smap, np.full((16, 24), 8.0))
     for args, msg in ((("--spp", 6), "multiple of --bins 4"),
                       (("--spp", 4), "at least 2 samples per bin"),
                       (("--spp", 8, "--bins", 1), "--bins must be at least 2"),
                       (("--spp", 8, "--sampler", "gem"), "cannot be combined"),
-                      (("--spp", 8, "--sample-map", tmp_path / "none.npy"), "")):
+                      (("--spp", 8, "--sample-map", smap), "or a --sample-map")):
         bad = tmp_path / "bad"
         code, _, err = run_cli("render", "toy:edges", "--size", "24x16", "--reconstruct",
                                "gem+bins", *args, "--out", bad, "-q")
