@@ -851,6 +851,11 @@ def test_combine_bins_with_a_shared_linear_kernel_is_eq8_on_the_bin_means():
     ybar = ys.mean(axis=0)
     np.testing.assert_allclose(info["denoised"].mean(axis=0), f(ybar.astype(np.float32)),
                                rtol=1e-5, atol=1e-6)
+    # each bin its own image under the shared kernel (z_b = K ȳ for every b would pass
+    # the two checks above and the Eq. 8 identity below)
+    for b in range(len(bins)):
+        np.testing.assert_allclose(info["denoised"][b], f(ys[b].astype(np.float32)),
+                                   rtol=1e-5, atol=1e-6)
     want = combine(ybar, f(ybar.astype(np.float32)).astype(np.float64), w[:, :, 0])
     np.testing.assert_allclose(out, want, rtol=1e-4, atol=1e-5)
     assert np.max(np.abs(out - ybar)) > 1e-3 and np.max(np.abs(out - want)) < 1e-4
