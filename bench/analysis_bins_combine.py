@@ -12,6 +12,9 @@ reference) of
   (:func:`statmc.gem.selected_filter`; the pipeline's ``"combine"`` with ``denoiser="gem"``);
 * ``gem+bins``: Eq. 14 on the bins with that kernel shared by the bins
   (:func:`statmc.pipeline.reconstruct_bins`);
+* ``gem+bins, per-bin variances``: the same, but each bin's ``y`` variance is the larger
+  of ``B`` times the smoothed full-sample one and the bin's own sample variance of the
+  mean — weights that differ between bins, the variant ``combine_bins`` does not offer;
 * ``oidn``, ``oidn+combine`` and ``oidn+bins`` (OIDN applied to each bin);
 
 and the ratios to ``gem`` and ``oidn`` (mean over seeds, per-seed range).
@@ -29,7 +32,10 @@ import time
 import numpy as np
 
 from statmc import metrics
-from statmc.combine import combine_denoised
+from scipy.ndimage import uniform_filter
+
+from statmc import gem
+from statmc.combine import combine_denoised, combine_multi, denoiser_moments, statistical_weights
 from statmc.pipeline import reconstruct_bins, reconstruct_stats, render_bins
 from statmc.progressive import bind_denoiser
 
@@ -37,7 +43,23 @@ from _scenes import scene_reference  # noqa: E402  (bench/ is the script's direc
 
 SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
 BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "gem",
-        "gem+bins": "gem", "oidn": "oidn", "oidn+combine": "oidn", "oidn+bins": "oidn"}
+        "gem+bins": "gem", "gem+bins, per-bin variances": "gem", "oidn": "oidn",
+        "oidn+combine": "oidn", "oidn+bins": "oidn"}
+
+
+def per_bin_variances(bl, full, seed):
+    """gem+bins with each bin's own variance in the weights (max with the smoothed shared
+    one): ``combine_bins``' steps written out, with ``var_y`` per bin."""
+    B = len(bl)
+    _, f = gem.selected_filter(full.mean.astype(np.float32), full.mean_var.astype(np.float32))
+    ys = np.stack([b.mean for b in bl])
+    zs = np.stack([f(y.astype(np.float32)) for y in ys]).astype(np.float64)
+    _, cov_z, cov_yz = denoiser_moments(f, ys.mean(axis=0), full.mean_var, rng=seed)
+    box = lambda a, n: uniform_filter(a, (n, n) + (1,) * (a.ndim - 2), mode="reflect")  # noqa: E731
+    shared = B * box(full.mean_var, 5)
+    var_y = np.maximum(shared[None], np.stack([b.mean_var for b in bl]))
+    w = statistical_weights(ys, zs, var_y, B * box(cov_z, 5), 15, cov_yz=B * box(cov_yz, 5))
+    return combine_multi(ys, zs, w)
 
 
 def cell(r, ref, spp, seed, bins):
@@ -60,6 +82,7 @@ def cell(r, ref, spp, seed, bins):
     run("combine, GEM kernel", lambda: reconstruct_stats(full, "combine", denoiser="gem",
                                                          seed=seed)[0])
     run("gem+bins", lambda: reconstruct_bins(bl, "gem+bins", seed=seed)[0])
+    run("gem+bins, per-bin variances", lambda: per_bin_variances(bl, full, seed))
     run("oidn", lambda: reconstruct_stats(full, "oidn")[0])
     run("oidn+combine", lambda: reconstruct_stats(full, "oidn+combine", seed=seed)[0])
     run("oidn+bins", lambda: reconstruct_bins(bl, "oidn+bins", seed=seed)[0])
@@ -91,7 +114,7 @@ def main(argv=None):
                 v = np.array(v)
                 base = np.array(res[BASE[key]])
                 ratio = v / base
-                print(f"  {key:24s} relMSE {v.mean():.4g}   / {BASE[key]:4s} "
+                print(f"  {key:30s} relMSE {v.mean():.4g}   / {BASE[key]:4s} "
                       f"{v.mean() / base.mean():.3f} (per seed {ratio.min():.3f}–{ratio.max():.3f})"
                       f"   {np.mean(secs[key]):.2f} s", flush=True)
                 rows.append({"scene": scene, "spp": spp, "method": key, "relmse": v.tolist(),

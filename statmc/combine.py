@@ -981,6 +981,8 @@ DEFAULT_STENCIL = 5       # covariance stencil width m of the first-order moment
 DEFAULT_MOMENT_SMOOTH = 2  # box radius smoothing the probe moments (5x5)
 DEFAULT_SIZE = 15         # combination window (the paper's 15x15, §5)
 DEFAULT_MIX_SIGMA = 16.0  # Gaussian σ (pixels) pooling the SURE terms of the mix
+#: Memory of one band of :func:`combine_bins`' per-pixel weights (float32 bytes).
+BINS_WEIGHT_BYTES = 1 << 30
 
 
 def _box(a, radius):
@@ -1347,7 +1349,8 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     size, stencil, probes, smooth, patch, rng
         As in :func:`combine_denoised`.
     extra_output : bool
-        Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}``.
+        Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
+        weights of the whole image at once, whatever their size).
 
     Returns
     -------
@@ -1355,14 +1358,20 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
 
     Notes
     -----
+    The weights, ``H·W·B·k²`` float32 values (7.5 GB at 1920x1080 with ``B = 4``, 15x15),
+    are formed in bands of rows of at most :data:`BINS_WEIGHT_BYTES`, each with a margin
+    of ``k // 2 + patch`` rows on either side, which is everything a pixel's weights and
+    its Eq. 14 read; the output is the same as in one piece (tested).
+
     With these moment-based weights every bin gets the same moments, so the weights
     differ between bins only through the tap biases; with a shared *linear* kernel and
     equal weights Eq. 14 is then Eq. 8 on the bin means (``docs/combine.md``, "Sample
     bins").  The paper's gain from bins — down-weighting the one bin whose centre holds
-    an outlier — needs per-bin weights; taking them from per-bin sample variances was
-    1.2–1.5x worse than GEM on the Mitsuba scenes (a bin that drew few bright samples
-    has a low mean *and* a low variance, so inverse-variance weighting is biased low),
-    so it is not offered.  There is no SURE mix with ``z`` here (as there is in
+    an outlier — needs per-bin weights; taking them from per-bin sample variances cost
+    1.23–1.51x GEM on the Cornell box (a bin that drew few bright samples has a low mean
+    *and* a low variance, so inverse-variance weighting is biased low), though it held
+    off a firefly render on glass-caustic (``bench/analysis_bins_combine.py``), so it is
+    not offered.  There is no SURE mix with ``z`` here (as there is in
     :func:`combine_denoised`): ``β̂`` is returned as it is.
     """
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
@@ -1388,8 +1397,18 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     cov_z = B * _box(cov_z, smooth)
     cov_yz = B * _box(cov_yz, smooth)
     var_y = B * np.maximum(_box(mv, 2), 0.0)
-    w = statistical_weights(yb, zs, var_y, cov_z, k, cov_yz=cov_yz, patch=int(patch))
-    out = combine_multi(yb, zs, w)
+    H = yb.shape[1]
+    margin = k // 2 + int(patch)          # rows a pixel's weights and Eq. 14 depend on
+    rows = H if extra_output else max(1, BINS_WEIGHT_BYTES // (yb.shape[2] * B * k * k * 4)
+                                      - 2 * margin)
+    out = np.empty(yb.shape[1:])
+    w = None
+    for a in range(0, H, rows):
+        b = min(H, a + rows)
+        lo, hi = max(0, a - margin), min(H, b + margin)
+        w = statistical_weights(yb[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z[lo:hi], k,
+                                cov_yz=cov_yz[lo:hi], patch=int(patch))
+        out[a:b] = combine_multi(yb[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
     if extra_output:
         return out, {"denoised": zs, "weights": w}
     return out

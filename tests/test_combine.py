@@ -985,3 +985,17 @@ def test_bin_seeds_refuse_negative_seeds_with_an_input_error():
         bin_seed(-1, 0)
     with pytest.raises(InputError, match="`seed`"):
         render_bins(ToyRenderer("edges", width=8, height=6), 4, 2, seed=-1)
+
+
+def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
+    """The weights of a large image are formed in bands of rows with a margin of
+    k // 2 + patch rows: the output must be what the whole image at once gives."""
+    import statmc.combine as cbm
+    bins, full, f = _bins_and_kernel(seed=3)
+    ys = np.stack([b.mean for b in bins])
+    whole, _ = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1, extra_output=True)
+    B, H, W, _ = ys.shape
+    for rows in (1, 5, 13):
+        monkeypatch.setattr(cbm, "BINS_WEIGHT_BYTES", (rows + 2 * (3 + 2)) * W * B * 49 * 4)
+        banded = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
+        np.testing.assert_allclose(banded, whole, rtol=0, atol=1e-12)
