@@ -229,11 +229,17 @@ def counts_for_render(height, width, *, spp=None, sample_map=None, seed=0) -> np
 
 
 def _need_variance(stats, path: str, what: str) -> None:
-    """Refuse a file none of whose pixels has the 2 samples a variance estimate needs (a
-    1-spp render): ``what`` would silently treat it as noise-free."""
-    if stats.n.size and stats.n.max() < 2:
-        raise InputError(f"{what} needs pixel variances, but every pixel of {path} has fewer than "
-                         f"2 samples (SampleCount max {int(stats.n.max())}); render at least 2 spp.")
+    """Refuse a file with pixels of fewer than the 2 samples a variance estimate needs (a
+    1-spp render, or holes of a sample map): ``what`` would silently treat them as
+    noise-free (an empty pixel as an exact black)."""
+    few = int((stats.n < 2).sum())
+    if few:
+        which = ("every pixel" if few == stats.n.size
+                 else f"{few} of its {stats.n.size} pixels")
+        raise InputError(f"{what} needs a variance in every pixel, but {which} of {path} "
+                         f"{'has' if few == stats.n.size else 'have'} fewer than 2 samples "
+                         f"(SampleCount min {int(stats.n.min())}); render at least 2 samples "
+                         "in every pixel.")
 
 
 def _write_json(path, obj, protect=()):
@@ -287,9 +293,10 @@ def cmd_render(args) -> int:
     if counts is not None and args.reconstruct == "gem" and counts.min() < 2:
         raise InputError(f"--reconstruct gem needs at least 2 samples in every pixel (a variance "
                          f"needs two); the counts have {int((counts < 2).sum())} pixels with fewer.")
-    if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.max() < 2:
-        raise InputError(f"--reconstruct {args.reconstruct} needs pixel variances, which need at "
-                         f"least 2 samples; every pixel has fewer (raise --spp).")
+    if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.min() < 2:
+        raise InputError(f"--reconstruct {args.reconstruct} needs a variance in every pixel, which "
+                         f"needs at least 2 samples; the counts have {int((counts < 2).sum())} "
+                         "pixels with fewer (raise --spp or the sample map's minimum).")
     if args.stencil is not None and not args.crn:
         raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
     binned = args.reconstruct in BIN_RECONSTRUCTIONS

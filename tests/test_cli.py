@@ -743,3 +743,33 @@ def test_render_gem_bins_and_oidn_bins_write_the_bins_and_match_the_library(tmp_
                            "--out", tmp_path / "nobins", "-q")
     assert code != 0 and "--bins" in err and "needs one of them" in err
     assert not (tmp_path / "nobins").exists()
+
+
+def test_files_with_empty_or_single_sample_pixels_are_refused_where_variances_are_needed(tmp_path):
+    """A sample-map render with holes (0 samples) and 1-sample pixels has no variance
+    there; progressive, denoise --variance, combine --weights statistical and render
+    --reconstruct progressive would take those pixels as exact (a hole as exact black).
+    They refuse in one line naming how many pixels, and write nothing; plain OIDN and the
+    uniform-weight combination still accept the file."""
+    counts = np.full((16, 24), 8)
+    counts[3, 4], counts[5, 6] = 0, 1
+    np.save(tmp_path / "map.npy", counts)
+    r = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--sample-map",
+                           tmp_path / "map.npy", "--out", r, "-q")
+    assert code == 0, err
+    f = r / "render.exr"
+    for args in (("progressive", f, "--denoiser", "gaussian"),
+                 ("denoise", f, "--denoiser", "oidn", "--variance"),
+                 ("combine", f, f, "--weights", "statistical")):
+        out = tmp_path / "o.exr"
+        code, _, err = run_cli(*args, "--out", out, "-q")
+        assert code != 0 and "2 of its 384 pixels" in err and "Traceback" not in err, err
+        assert not out.exists()
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--sample-map",
+                           tmp_path / "map.npy", "--reconstruct", "progressive", "--out",
+                           tmp_path / "r2", "-q")
+    assert code != 0 and "2 pixels with fewer" in err
+    assert not (tmp_path / "r2").exists()
+    code, _, err = run_cli("denoise", f, "--denoiser", "oidn", "--out", tmp_path / "d.exr", "-q")
+    assert code == 0, err

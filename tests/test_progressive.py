@@ -790,3 +790,16 @@ def test_outlier_alpha_plugs_into_the_minimiser_of_eq8():
         plug = sigma ** 2 / np.mean((y - x) ** 2)
         assert abs(res.x - plug) < 0.01, (sigma, res.x, plug)
         assert abs(plug - sigma ** 2 / (sigma ** 2 + b ** 2)) < 0.01
+
+
+def test_progressive_denoise_refuses_pixels_without_a_variance():
+    """A pixel with 0 or 1 samples has no variance of the mean; taking σ² = 0 there would
+    gate it as exact.  Refused unless the variances are supplied."""
+    st = ToyRenderer("gradient", width=16, height=12).render_uniform(8, seed=2)
+    n = st.n.copy()
+    n[2, 3] = 1
+    holed = PixelStats(n, st.mean, st.m2)
+    with pytest.raises(InputError, match="1 pixels with fewer"):
+        pg.progressive_denoise(holed, denoisers.gaussian(1.0), rng=0)
+    out = pg.progressive_denoise(holed, denoisers.gaussian(1.0), mean_var=st.mean_var, rng=0)
+    assert out.shape == st.mean.shape
