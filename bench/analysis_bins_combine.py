@@ -12,6 +12,9 @@ reference) of
   (:func:`statmc.gem.selected_filter`; the pipeline's ``"combine"`` with ``denoiser="gem"``);
 * ``gem+bins``: Eq. 14 on the bins with that kernel shared by the bins
   (:func:`statmc.pipeline.reconstruct_bins`);
+* ``gem bins, moments from spread``: the same bins and per-bin images combined by
+  :func:`statmc.combine.combine_bin_images` (``statmc combine bins.exr``), whose moments
+  come from the spread over the bins instead of the probes;
 * ``gem+bins, per-bin variances``: the same, but each bin's ``y`` variance is the larger
   of ``B`` times the smoothed full-sample one and the bin's own sample variance of the
   mean — weights that differ between bins, the variant ``combine_bins`` does not offer;
@@ -35,7 +38,8 @@ from statmc import metrics
 from scipy.ndimage import uniform_filter
 
 from statmc import gem
-from statmc.combine import combine_denoised, combine_multi, denoiser_moments, statistical_weights
+from statmc.combine import (combine_bin_images, combine_denoised, combine_multi, denoiser_moments,
+                            statistical_weights)
 from statmc.pipeline import reconstruct_bins, reconstruct_stats, render_bins
 from statmc.progressive import bind_denoiser
 
@@ -43,7 +47,8 @@ from _scenes import scene_reference  # noqa: E402  (bench/ is the script's direc
 
 SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
 BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "gem",
-        "gem+bins": "gem", "gem+bins, per-bin variances": "gem", "oidn": "oidn",
+        "gem+bins": "gem", "gem bins, moments from spread": "gem",
+        "gem+bins, per-bin variances": "gem", "oidn": "oidn",
         "oidn+combine": "oidn", "oidn+bins": "oidn"}
 
 
@@ -81,7 +86,14 @@ def cell(r, ref, spp, seed, bins):
         full.mean, full.mean_var, bind_denoiser("gem", full), rng=seed))
     run("combine, GEM kernel", lambda: reconstruct_stats(full, "combine", denoiser="gem",
                                                          seed=seed)[0])
-    run("gem+bins", lambda: reconstruct_bins(bl, "gem+bins", seed=seed)[0])
+    binned = {}
+
+    def gem_bins():
+        img, _, binned["gem"] = reconstruct_bins(bl, "gem+bins", seed=seed, return_bins=True)
+        return img
+
+    run("gem+bins", gem_bins)
+    run("gem bins, moments from spread", lambda: combine_bin_images(*binned["gem"]))
     run("gem+bins, per-bin variances", lambda: per_bin_variances(bl, full, seed))
     run("oidn", lambda: reconstruct_stats(full, "oidn")[0])
     run("oidn+combine", lambda: reconstruct_stats(full, "oidn+combine", seed=seed)[0])

@@ -527,9 +527,36 @@ def cmd_progressive(args) -> int:
     return 0
 
 
+def _combine_bins_file(args) -> int:
+    """`statmc combine BINS.exr`: Eq. 14 on the file's bins and their denoised images."""
+    from . import combine as cb
+    from .exr import read_bins
+
+    _check_out_file(args.out, [args.y])
+    bins = read_bins(args.y)
+    if bins is None or bins[1] is None:
+        what = "no sample bins" if bins is None else "bins but no Bin<b>.Denoised.* channels"
+        raise InputError(f"{args.y} has {what}; give the correlated image as Z, or pass the "
+                         "bins.exr of `statmc render --reconstruct gem+bins|oidn+bins`.")
+    ys, zs = bins
+    B, h, w, _ = ys.shape
+    if B < 2:
+        raise InputError(f"{args.y} holds {B} sample bin; Eq. 14 needs at least 2.")
+    if args.weights == "statistical":
+        out = cb.combine_bin_images(ys, zs, size=args.size)
+    else:
+        weights = (cb.uniform_weights(h, w, B, args.size) if args.weights == "uniform"
+                   else cb.gaussian_weights(h, w, B, args.size, args.sigma))
+        out = cb.combine_multi(ys, zs, weights)
+    _write_result(args.out, out, out, inputs=[args.y], quiet=args.quiet)
+    return 0
+
+
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
+    if args.z is None:
+        return _combine_bins_file(args)
     _check_out_file(args.out, [args.y, args.z])
     y_stats = read_exr(args.y, spp=args.spp)
     _refuse_crn(y_stats, args.y, "Y must be an independent render (Back 2020 §3.1, Eq. 11); "
@@ -742,11 +769,15 @@ def build_parser() -> argparse.ArgumentParser:
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     pg.set_defaults(func=cmd_progressive)
 
-    c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 Eq. 8)")
-    c.add_argument("y", help="statistics EXR of the independent render")
-    c.add_argument("z", help="correlated image (e.g. its denoised version); with --weights "
-                             "statistical it needs Variance.* too (statmc denoise --variance), "
-                             "and a `statmc render --crn` file's covariance stencil is used")
+    c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 "
+                                        "Eq. 8), or sample bins with their denoised images (Eq. 14)")
+    c.add_argument("y", help="statistics EXR of the independent render, or a bins.exr of "
+                             "`statmc render --reconstruct gem+bins|oidn+bins` (then without Z)")
+    c.add_argument("z", nargs="?", default=None,
+                   help="correlated image (e.g. its denoised version); with --weights "
+                        "statistical it needs Variance.* too (statmc denoise --variance), "
+                        "and a `statmc render --crn` file's covariance stencil is used; left out "
+                        "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=15, help="odd window width (default 15)")

@@ -54,7 +54,7 @@ __all__ = [
     "combine", "combine_multi", "combine_boosting",
     "uniform_weights", "gaussian_weights", "statistical_weights",
     "combine_bias_variance", "filter_covariance", "buffer_moments",
-    "denoiser_moments", "combine_denoised", "combine_bins",
+    "denoiser_moments", "combine_denoised", "combine_bins", "combine_bin_images",
 ]
 
 _BIAS_MODES = ("estimate", "zero")
@@ -1397,18 +1397,62 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     cov_z = B * _box(cov_z, smooth)
     cov_yz = B * _box(cov_yz, smooth)
     var_y = B * np.maximum(_box(mv, 2), 0.0)
-    H = yb.shape[1]
-    margin = k // 2 + int(patch)          # rows a pixel's weights and Eq. 14 depend on
-    rows = H if extra_output else max(1, BINS_WEIGHT_BYTES // (yb.shape[2] * B * k * k * 4)
-                                      - 2 * margin)
-    out = np.empty(yb.shape[1:])
+    out, w = _banded_eq14(yb, zs, var_y, cov_z, cov_yz, k, int(patch), whole=extra_output)
+    if extra_output:
+        return out, {"denoised": zs, "weights": w}
+    return out
+
+
+def _banded_eq14(ys, zs, var_y, cov_z, cov_yz, k, patch, *, whole=False):
+    """Statistical weights and Eq. 14 in bands of rows of at most :data:`BINS_WEIGHT_BYTES`
+    of weights, each with the ``k // 2 + patch`` rows of margin a pixel's weights and its
+    Eq. 14 read (``whole``: one band; returns its weights too)."""
+    B, H, W = ys.shape[:3]
+    margin = k // 2 + patch
+    rows = H if whole else max(1, BINS_WEIGHT_BYTES // (W * B * k * k * 4) - 2 * margin)
+    out = np.empty(ys.shape[1:])
     w = None
     for a in range(0, H, rows):
         b = min(H, a + rows)
         lo, hi = max(0, a - margin), min(H, b + margin)
-        w = statistical_weights(yb[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z[lo:hi], k,
-                                cov_yz=cov_yz[lo:hi], patch=int(patch))
-        out[a:b] = combine_multi(yb[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
-    if extra_output:
-        return out, {"denoised": zs, "weights": w}
-    return out
+        w = statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z[lo:hi], k,
+                                cov_yz=cov_yz[lo:hi], patch=patch)
+        out[a:b] = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
+    return out, (w if whole else None)
+
+
+def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
+                       smooth=DEFAULT_MOMENT_SMOOTH, patch=2):
+    """Eq. 14 of Back et al. 2020 [1]_ on given bins and per-bin correlated images, with
+    statistical weights whose moments come from the spread over the bins.
+
+    For bins made elsewhere — ``bins.exr`` of ``statmc render --reconstruct gem+bins`` with
+    the ``Bin<b>.Denoised`` channels replaced by another denoiser's per-bin output, say —
+    nothing but the ``B`` pairs ``(y_b, z_b)`` is known.  §4.4 of [1]_ makes the bins
+    disjoint sample subsets, so the pairs are i.i.d. over ``b`` when ``z_b`` is computed
+    from bin ``b`` (for a kernel shared by the bins, nearly so) and
+    :func:`buffer_moments` estimates the moments of one bin from their spread (``B − 1``
+    degrees of freedom; ``stencil``-wide, box-smoothed over ``(2 smooth + 1)²`` pixels).
+    The weights are :func:`statistical_weights` ("coherent", tap biases from the bins'
+    ``δ``), formed in bands of rows like :func:`combine_bins`.
+
+    Parameters
+    ----------
+    ys, zs : (B, H, W, C) ndarray, ``B >= 2``
+    size, stencil, smooth, patch : int
+        Window, moment stencil, moment smoothing radius, bias-box radius.
+
+    Returns
+    -------
+    out : (H, W, C) float64 ndarray
+    """
+    ysa, zsa, _ = _pair("ys", ys, "zs", zs, multi=True)
+    k = _check_size(size)
+    for name, v in (("smooth", smooth), ("patch", patch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
+    var_y, cov_z, cov_yz = buffer_moments(ysa, zsa, size=stencil)
+    var_y, cov_z, cov_yz = (_box(a, int(smooth)) for a in (var_y, cov_z, cov_yz))
+    var_y = np.maximum(var_y, 0.0)     # the box filter's running sums can leave -1e-19
+    return _banded_eq14(ysa, zsa, var_y, cov_z, cov_yz, k, int(patch))[0]

@@ -773,3 +773,32 @@ def test_files_with_empty_or_single_sample_pixels_are_refused_where_variances_ar
     assert not (tmp_path / "r2").exists()
     code, _, err = run_cli("denoise", f, "--denoiser", "oidn", "--out", tmp_path / "d.exr", "-q")
     assert code == 0, err
+
+
+def test_combine_takes_a_bins_file_without_z(tmp_path):
+    """`statmc combine bins.exr` combines the file's bins with their denoised images by
+    Eq. 14: statistical weights from the bins' spread, or uniform / Gaussian windows."""
+    from statmc import combine as cb
+    from statmc.exr import read_bins, read_image
+
+    d = tmp_path / "b"
+    code, _, err = run_cli("render", "toy:edges", "--size", "24x16", "--spp", 8,
+                           "--reconstruct", "gem+bins", "--out", d, "-q")
+    assert code == 0, err
+    ys, zs = read_bins(d / "bins.exr")
+    for weights, want in (("statistical", cb.combine_bin_images(ys, zs, size=5)),
+                          ("uniform", cb.combine_multi(ys, zs, cb.uniform_weights(16, 24, 4, 5))),
+                          ("gaussian", cb.combine_multi(ys, zs,
+                                                        cb.gaussian_weights(16, 24, 4, 5, 3.0)))):
+        out = tmp_path / f"{weights}.exr"
+        code, _, err = run_cli("combine", d / "bins.exr", "--weights", weights, "--size", 5,
+                               "--out", out, "-q")
+        assert code == 0, err
+        np.testing.assert_allclose(read_image(out), want, rtol=1e-5, atol=1e-6)
+    from statmc.exr import bin_channels, write_exr
+    write_exr(tmp_path / "ybins.exr", ys.mean(axis=0), extra=bin_channels(ys))
+    for path, msg in ((d / "render.exr", "has no sample bins"),
+                      (tmp_path / "ybins.exr", "no Bin<b>.Denoised.* channels")):
+        code, _, err = run_cli("combine", path, "--out", tmp_path / "x.exr", "-q")
+        assert code != 0 and msg in err and "Traceback" not in err, err
+        assert not (tmp_path / "x.exr").exists()

@@ -999,3 +999,41 @@ def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
         monkeypatch.setattr(cbm, "BINS_WEIGHT_BYTES", (rows + 2 * (3 + 2)) * W * B * 49 * 4)
         banded = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
         np.testing.assert_allclose(banded, whole, rtol=0, atol=1e-12)
+
+
+def test_combine_bin_images_is_eq14_with_moments_from_the_bin_spread(monkeypatch):
+    """Bins made elsewhere: buffer_moments over the bins (smoothed), coherent statistical
+    weights and Eq. 14 — the same numbers assembled by hand, in one piece and in bands."""
+    import statmc.combine as cbm
+    from scipy.ndimage import uniform_filter
+    from statmc.filters import gaussian_filter
+    r = ToyRenderer("edges", width=36, height=28)
+    ys = np.stack([r.render_uniform(4, seed=60 + b).mean for b in range(4)])
+    zs = np.stack([gaussian_filter(y, 2.0) for y in ys])      # z_b from bin b alone: i.i.d.
+    var_y, cov_z, cov_yz = buffer_moments(ys, zs, size=3)
+    box = lambda a: uniform_filter(a, (5, 5) + (1,) * (a.ndim - 2), mode="reflect")  # noqa: E731
+    w = statistical_weights(ys, zs, box(var_y), box(cov_z), 7, cov_yz=box(cov_yz))
+    want = combine_multi(ys, zs, w)
+    got = cbm.combine_bin_images(ys, zs, size=7, stencil=3)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    monkeypatch.setattr(cbm, "BINS_WEIGHT_BYTES", (4 + 2 * 5) * 36 * 4 * 49 * 4)
+    np.testing.assert_allclose(cbm.combine_bin_images(ys, zs, size=7, stencil=3), want,
+                               rtol=0, atol=1e-12)
+    with pytest.raises(InputError, match="patch"):
+        cbm.combine_bin_images(ys, zs, patch=-1)
+    with pytest.raises(InputError):
+        cbm.combine_bin_images(ys[:1], zs[:1])
+
+
+def test_combine_bin_images_survives_box_filter_rounding_below_zero():
+    """Zero spread next to a wildly varying region: the box filter's running sums leave
+    smoothed variances of about -1e-13, which statistical_weights would refuse."""
+    from scipy.ndimage import uniform_filter
+    from statmc.combine import combine_bin_images
+    rng = np.random.default_rng(0)
+    ys = np.full((4, 20, 20, 3), 0.25)
+    ys[:, :, :6] = rng.gamma(0.3, 50, (4, 20, 6, 3))
+    var_y = buffer_moments(ys, ys, size=3)[0]
+    assert uniform_filter(var_y, (5, 5, 1), mode="reflect").min() < 0      # the trap is set
+    out = combine_bin_images(ys, ys, size=5)
+    np.testing.assert_allclose(out[:, 9:], 0.25, atol=1e-9)   # z = y: flat region stays flat
