@@ -538,6 +538,10 @@ def _combine_bins_file(args) -> int:
         what = "no sample bins" if bins is None else "bins but no Bin<b>.Denoised.* channels"
         raise InputError(f"{args.y} has {what}; give the correlated image as Z, or pass the "
                          "bins.exr of `statmc render --reconstruct gem+bins|oidn+bins`.")
+    if args.spp is not None:
+        raise InputError(f"--spp is the sample count of a Y file without SampleCount; {args.y} "
+                         "holds sample bins, which the combination uses without counts: leave "
+                         "--spp out.")
     ys, zs = bins
     B, h, w, _ = ys.shape
     if B < 2:

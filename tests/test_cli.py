@@ -802,3 +802,10 @@ def test_combine_takes_a_bins_file_without_z(tmp_path):
         code, _, err = run_cli("combine", path, "--out", tmp_path / "x.exr", "-q")
         assert code != 0 and msg in err and "Traceback" not in err, err
         assert not (tmp_path / "x.exr").exists()
+    # --spp means nothing for a bins file (it was silently ignored); one bin has no spread
+    write_exr(tmp_path / "one.exr", ys[0], extra=bin_channels(ys[:1], zs[:1]))
+    for args, msg in (((d / "bins.exr", "--spp", 8), "leave --spp out"),
+                      ((tmp_path / "one.exr",), "holds 1 sample bin")):
+        code, _, err = run_cli("combine", *args, "--out", tmp_path / "x.exr", "-q")
+        assert code != 0 and msg in err and "Traceback" not in err, err
+        assert not (tmp_path / "x.exr").exists()
