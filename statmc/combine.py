@@ -1391,6 +1391,10 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     for name, v in (("smooth", smooth), ("patch", patch)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
             raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    if isinstance(stencil, bool) or not isinstance(stencil, (int, np.integer)) or stencil < 1 \
+            or stencil % 2 == 0:
+        raise InputError(f"`stencil` (the covariance stencil width m) must be an odd integer "
+                         f">= 1; got {stencil!r}.")
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
     _, cov_z, cov_yz = denoiser_moments(denoiser, yb.mean(axis=0), mv, size=stencil,
                                         probes=probes, rng=rng)
@@ -1438,21 +1442,26 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
 
     Parameters
     ----------
-    ys, zs : (B, H, W, C) ndarray, ``B >= 2``
+    ys, zs : (B, H, W, C) or (B, H, W) ndarray, ``B >= 2``
     size, stencil, smooth, patch : int
-        Window, moment stencil, moment smoothing radius, bias-box radius.
+        Window, moment stencil (odd), moment smoothing radius, bias-box radius.
 
     Returns
     -------
-    out : (H, W, C) float64 ndarray
+    out : (H, W, C) float64 ndarray (``(H, W)`` for ``(B, H, W)`` bins)
     """
-    ysa, zsa, _ = _pair("ys", ys, "zs", zs, multi=True)
+    ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
     k = _check_size(size)
     for name, v in (("smooth", smooth), ("patch", patch)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
             raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    if isinstance(stencil, bool) or not isinstance(stencil, (int, np.integer)) or stencil < 1 \
+            or stencil % 2 == 0:
+        raise InputError(f"`stencil` (the covariance stencil width m) must be an odd integer "
+                         f">= 1; got {stencil!r}.")
     ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
     var_y, cov_z, cov_yz = buffer_moments(ysa, zsa, size=stencil)
     var_y, cov_z, cov_yz = (_box(a, int(smooth)) for a in (var_y, cov_z, cov_yz))
     var_y = np.maximum(var_y, 0.0)     # the box filter's running sums can leave -1e-19
-    return _banded_eq14(ysa, zsa, var_y, cov_z, cov_yz, k, int(patch))[0]
+    out = _banded_eq14(ysa, zsa, var_y, cov_z, cov_yz, k, int(patch))[0]
+    return out[..., 0] if squeeze else out     # (B, H, W) bins give (H, W), as combine_multi

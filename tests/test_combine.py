@@ -1037,3 +1037,27 @@ def test_combine_bin_images_survives_box_filter_rounding_below_zero():
     assert uniform_filter(var_y, (5, 5, 1), mode="reflect").min() < 0      # the trap is set
     out = combine_bin_images(ys, ys, size=5)
     np.testing.assert_allclose(out[:, 9:], 0.25, atol=1e-9)   # z = y: flat region stays flat
+
+
+def test_combine_bin_images_names_stencil_and_keeps_channel_less_bins_channel_less():
+    """A bad `stencil` is named as such (it was reported as `size`, and combine_bins
+    reported it only after denoising every bin); (B, H, W) bins give an (H, W) image as
+    combine_multi does (it was (H, W, 1))."""
+    import statmc.combine as cbm
+    rng = np.random.default_rng(4)
+    ys = rng.gamma(2.0, 0.5, (3, 10, 12))
+    zs = 0.5 * (ys + ys.mean())                     # a shrinkage "denoiser" per bin
+    out = cbm.combine_bin_images(ys, zs, size=5)
+    assert out.shape == (10, 12)
+    np.testing.assert_array_equal(out, cbm.combine_bin_images(ys[..., None], zs[..., None],
+                                                              size=5)[..., 0])
+    with pytest.raises(InputError, match="`stencil`"):
+        cbm.combine_bin_images(ys, zs, stencil=4)
+    calls = []
+
+    def den(x):
+        calls.append(1)
+        return x
+    with pytest.raises(InputError, match="`stencil`"):
+        cbm.combine_bins(ys[..., None], ys.var(axis=0)[..., None] / 3, den, stencil=4)
+    assert not calls
