@@ -562,7 +562,14 @@ def cmd_combine(args) -> int:
     if args.z is None:
         return _combine_bins_file(args)
     _check_out_file(args.out, [args.y, args.z])
-    y_stats = read_exr(args.y, spp=args.spp)
+    try:
+        y_stats = read_exr(args.y, spp=args.spp)
+    except FileFormatError:
+        from .exr import read_bins
+        if read_bins(args.y) is not None:
+            raise InputError(f"{args.y} is a sample-bins file (Bin<b>.* channels); combine it "
+                             "alone, without Z: `statmc combine BINS.exr --out OUT.exr`.") from None
+        raise
     _refuse_crn(y_stats, args.y, "Y must be an independent render (Back 2020 §3.1, Eq. 11); "
                 "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)

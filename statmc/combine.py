@@ -1359,9 +1359,12 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     Notes
     -----
     The weights, ``H·W·B·k²`` float32 values (7.5 GB at 1920x1080 with ``B = 4``, 15x15),
-    are formed in bands of rows of at most :data:`BINS_WEIGHT_BYTES`, each with a margin
+    are formed in bands of rows of at most :data:`BINS_WEIGHT_BYTES` (or of ``4 (k // 2 +
+    patch)`` rows, if more, so the margins cost at most twice the work), each with a margin
     of ``k // 2 + patch`` rows on either side, which is everything a pixel's weights and
-    its Eq. 14 read; the output is the same as in one piece (tested).
+    its Eq. 14 read; the output is the same as in one piece (tested).  The moment stencils,
+    ``(H, W, m, m, C)`` float64 with their smoothed copies, are not banded: about 6 GB at
+    1920x1080 with ``m = 5``.
 
     With these moment-based weights every bin gets the same moments, so the weights
     differ between bins only through the tap biases; with a shared *linear* kernel and
@@ -1409,11 +1412,14 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
 
 def _banded_eq14(ys, zs, var_y, cov_z, cov_yz, k, patch, *, whole=False):
     """Statistical weights and Eq. 14 in bands of rows of at most :data:`BINS_WEIGHT_BYTES`
-    of weights, each with the ``k // 2 + patch`` rows of margin a pixel's weights and its
-    Eq. 14 read (``whole``: one band; returns its weights too)."""
+    of weights (or ``4 (k // 2 + patch)`` rows, whichever is more), each with the
+    ``k // 2 + patch`` rows of margin a pixel's weights and its Eq. 14 read (``whole``:
+    one band; returns its weights too)."""
     B, H, W = ys.shape[:3]
     margin = k // 2 + patch
-    rows = H if whole else max(1, BINS_WEIGHT_BYTES // (W * B * k * k * 4) - 2 * margin)
+    # at least 2·margin output rows a band, so the margins at most double the work
+    rows = H if whole else max(1, 2 * margin,
+                               BINS_WEIGHT_BYTES // (W * B * k * k * 4) - 2 * margin)
     out = np.empty(ys.shape[1:])
     w = None
     for a in range(0, H, rows):

@@ -795,6 +795,10 @@ def test_combine_takes_a_bins_file_without_z(tmp_path):
                                "--out", out, "-q")
         assert code == 0, err
         np.testing.assert_allclose(read_image(out), want, rtol=1e-5, atol=1e-6)
+    code, _, err = run_cli("combine", d / "bins.exr", d / "render.exr", "--out",
+                           tmp_path / "yz.exr", "-q")
+    assert code != 0 and "combine it alone, without Z" in err and "Traceback" not in err, err
+    assert not (tmp_path / "yz.exr").exists()
     from statmc.exr import bin_channels, write_exr
     write_exr(tmp_path / "ybins.exr", ys.mean(axis=0), extra=bin_channels(ys))
     for path, msg in ((d / "render.exr", "has no sample bins"),
