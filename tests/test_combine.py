@@ -20,6 +20,7 @@ from statmc.combine import (buffer_moments, combine, combine_bias_variance, comb
                             filter_covariance, gaussian_weights, statistical_weights,
                             uniform_weights)
 from statmc.errors import InputError
+from statmc.stats import PixelStats
 from statmc.toy import ToyRenderer
 
 ALPHA = 1e-3   # family-wise level of the statistical tests in this file
@@ -1061,3 +1062,15 @@ def test_combine_bin_images_names_stencil_and_keeps_channel_less_bins_channel_le
     with pytest.raises(InputError, match="`stencil`"):
         cbm.combine_bins(ys[..., None], ys.var(axis=0)[..., None] / 3, den, stencil=4)
     assert not calls
+
+
+def test_pipeline_combine_refuses_pixels_without_a_variance():
+    """A hole (0 samples) has variance 0 in mean_var: the combiner would take it as exact."""
+    from statmc.pipeline import reconstruct_stats
+    st = ToyRenderer("edges", width=16, height=12).render_uniform(8, seed=1)
+    n = st.n.copy()
+    n[1, 1] = 0
+    holed = PixelStats(n, st.mean, st.m2)
+    for method in ("combine", "oidn+combine"):
+        with pytest.raises(InputError, match="1 pixels with fewer than 2"):
+            reconstruct_stats(holed, method, denoiser="gaussian")
