@@ -960,24 +960,6 @@ def test_render_bins_and_reconstruct_bins_check_their_input():
         reconstruct_bins(bins, "gem")
 
 
-def test_pipeline_combine_with_gem_accepts_pixels_with_fewer_than_two_samples():
-    """Regression: the exposed-kernel path passed the raw counts to GEM, which refuses
-    n < 2, so `"combine"` with GEM failed on a render with a few 0/1-sample pixels that
-    GEM as a black box (bind_denoiser, n raised to 2) combined.  It now raises n to 2 the
-    same way."""
-    from statmc import gem
-    from statmc.pipeline import reconstruct_stats
-    counts = np.full((32, 40), 8)
-    counts[:4, :4] = 1
-    counts[5, 5] = 0
-    stats = ToyRenderer("edges", width=40, height=32).render(counts, seed=1)
-    img, _ = reconstruct_stats(stats, "combine", denoiser="gem", seed=0)
-    _, f = gem.selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
-                               n=np.maximum(stats.n, 2))
-    want = combine_denoised(stats.mean, stats.mean_var, f, rng=0)
-    np.testing.assert_allclose(img, want, rtol=1e-5, atol=1e-6)
-
-
 def test_bin_seeds_refuse_negative_seeds_with_an_input_error():
     """A negative seed gave NumPy's bare ValueError from SeedSequence, not an InputError
     naming the parameter."""
@@ -1071,6 +1053,6 @@ def test_pipeline_combine_refuses_pixels_without_a_variance():
     n = st.n.copy()
     n[1, 1] = 0
     holed = PixelStats(n, st.mean, st.m2)
-    for method in ("combine", "oidn+combine"):
+    for method, den in (("combine", "gaussian"), ("combine", "gem"), ("oidn+combine", "oidn")):
         with pytest.raises(InputError, match="1 pixels with fewer than 2"):
-            reconstruct_stats(holed, method, denoiser="gaussian")
+            reconstruct_stats(holed, method, denoiser=den)
