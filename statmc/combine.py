@@ -1390,14 +1390,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
-    k = _check_size(size)
-    for name, v in (("smooth", smooth), ("patch", patch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
-    if isinstance(stencil, bool) or not isinstance(stencil, (int, np.integer)) or stencil < 1 \
-            or stencil % 2 == 0:
-        raise InputError(f"`stencil` (the covariance stencil width m) must be an odd integer "
-                         f">= 1; got {stencil!r}.")
+    k = _check_bin_options(size, stencil, smooth, patch)
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
     _, cov_z, cov_yz = denoiser_moments(denoiser, yb.mean(axis=0), mv, size=stencil,
                                         probes=probes, rng=rng)
@@ -1408,6 +1401,20 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     if extra_output:
         return out, {"denoised": zs, "weights": w}
     return out
+
+
+def _check_bin_options(size, stencil, smooth, patch):
+    """The window ``k`` after checking the options of :func:`combine_bins` and
+    :func:`combine_bin_images` (before any denoiser call)."""
+    k = _check_size(size)
+    for name, v in (("smooth", smooth), ("patch", patch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    if isinstance(stencil, bool) or not isinstance(stencil, (int, np.integer)) or stencil < 1 \
+            or stencil % 2 == 0:
+        raise InputError(f"`stencil` (the covariance stencil width m) must be an odd integer "
+                         f">= 1; got {stencil!r}.")
+    return k
 
 
 def _banded_eq14(ys, zs, var_y, cov_z, cov_yz, k, patch, *, whole=False):
@@ -1457,14 +1464,7 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
     out : (H, W, C) float64 ndarray (``(H, W)`` for ``(B, H, W)`` bins)
     """
     ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
-    k = _check_size(size)
-    for name, v in (("smooth", smooth), ("patch", patch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
-    if isinstance(stencil, bool) or not isinstance(stencil, (int, np.integer)) or stencil < 1 \
-            or stencil % 2 == 0:
-        raise InputError(f"`stencil` (the covariance stencil width m) must be an odd integer "
-                         f">= 1; got {stencil!r}.")
+    k = _check_bin_options(size, stencil, smooth, patch)
     ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
     var_y, cov_z, cov_yz = buffer_moments(ysa, zsa, size=stencil)
     var_y, cov_z, cov_yz = (_box(a, int(smooth)) for a in (var_y, cov_z, cov_yz))
