@@ -194,10 +194,7 @@ def njs_variance(rho, alpha, var_fa, var_fb, var_x) -> np.ndarray:
 def _check_stats(stats):
     if not isinstance(stats, PixelStats):
         raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
-    if stats.n.size and int(stats.n.min()) < 2:
-        raise InputError(f"`stats` must have >= 2 samples in every pixel (for the variance of the "
-                         f"mean); got {int((stats.n < 2).sum())} pixels with fewer. Render an "
-                         "initial uniform pass of >= 2 spp first.")
+    stats.require_variance(hint=" Render an initial uniform pass of >= 2 spp first.")
 
 
 def _blur(m, variant, blur):

@@ -71,10 +71,8 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         return img.astype(np.float32), {"alpha": alpha.mean(axis=-1)}
     if method in ("oidn+combine", "combine"):
         # Back 2020 Eq. 8 with statistical weights (Eq. 10/11) and a SURE mix with z.
-        few = int((stats.n < 2).sum())
-        if few:
-            raise InputError(f"{method!r} needs a variance in every pixel (Eq. 10/11 and SURE); "
-                             f"got {few} pixels with fewer than 2 samples.")
+        stats.require_variance(why=f"{method!r} needs a variance of the mean in every pixel "
+                                   "for Eq. 10/11 and SURE")
         from .combine import combine_denoised
         from .progressive import bind_denoiser
         name = "oidn" if method == "oidn+combine" else denoiser

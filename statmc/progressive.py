@@ -704,10 +704,9 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
         raise InputError(f"`gate` must be a bool; got {gate!r}.")
     if outlier is not None:
         outlier = as_number("outlier", outlier, lo=1.0, lo_open=True)
-    if mean_var is None and stats.n.size and int(stats.n.min()) < 2:
-        raise InputError(f"`stats` must have >= 2 samples in every pixel for its variance of the "
-                         f"mean (σ² of Eq. 1, 9 and 12–18); got {int((stats.n < 2).sum())} pixels "
-                         "with fewer (pass `mean_var` to supply the variances).")
+    if mean_var is None:
+        stats.require_variance(why="for its variance of the mean, σ² of Eq. 1, 9 and 12–18",
+                               hint=" Pass `mean_var` to supply the variances.")
     x = stats.mean
     mv = stats.mean_var if mean_var is None else mean_var
     s2 = _variance(mv, x.shape)

@@ -311,6 +311,17 @@ class PixelStats:
         """Variance of the mean ``sample_var / n``, ``(H, W, C)``; 0 where ``n < 2``."""
         return self.sample_var / np.maximum(self.n, 1)[..., None]
 
+    def require_variance(self, name: str = "stats", *, why: str = "for its variance of the mean",
+                         hint: str = "") -> None:
+        """Raise :class:`InputError` unless every pixel has the 2 samples a variance
+        estimate needs (:attr:`mean_var` is 0 where ``n < 2``, which a method that uses it
+        would take as exact); the message names ``name``, ``why`` and the pixel count,
+        then ``hint``."""
+        few = int((self.n < 2).sum())
+        if few:
+            raise InputError(f"`{name}` must have >= 2 samples in every pixel ({why}); got "
+                             f"{few} pixels with fewer than 2 samples.{hint}")
+
     @property
     def has_cov(self) -> bool:
         """Whether the channel co-moment :attr:`m2_cross` is known."""

@@ -513,10 +513,7 @@ def double_buffer_estimates(stats_a, stats_b, denoiser) -> DoubleBufferEstimates
         raise InputError(f"`stats_b` must have the shape of `stats_a` {stats_a.mean.shape}; "
                          f"got {stats_b.mean.shape}.")
     for name, s in (("stats_a", stats_a), ("stats_b", stats_b)):
-        few = int((s.n < 2).sum())
-        if few:
-            raise InputError(f"`{name}` must have >= 2 samples in every pixel (for its variance "
-                             f"of the mean); got {few} pixels with fewer.")
+        s.require_variance(name)
     if isinstance(denoiser, (tuple, list)):
         if len(denoiser) != 2:
             raise InputError(f"`denoiser` must be a callable or a pair (f_a, f_b); got "

@@ -279,3 +279,16 @@ def test_as_int_accepts_integers_only_and_names_the_parameter():
                           (2, {"lo": 3}, ">= 3")):
         with pytest.raises(InputError, match=f"`k` must be .*{what}"):
             as_int("k", bad, **kw)
+
+
+def test_require_variance_names_the_pixels_without_two_samples():
+    """mean_var is 0 where n < 2; require_variance refuses such statistics, counting them."""
+    from statmc.errors import InputError
+    st = PixelStats.from_mean_var(np.ones((3, 4, 3)), np.ones((3, 4, 3)), np.full((3, 4), 5))
+    st.require_variance()
+    n = st.n.copy()
+    n[0, 0], n[2, 3] = 0, 1
+    holed = PixelStats(n, st.mean, st.m2)
+    with pytest.raises(InputError, match=r"`x` must have >= 2 samples in every pixel \(why\); "
+                                         r"got 2 pixels with fewer than 2 samples\. Hint\."):
+        holed.require_variance("x", why="why", hint=" Hint.")
