@@ -290,12 +290,10 @@ def cmd_render(args) -> int:
     if args.sampler == "uniform":
         counts = counts_for_render(renderer.height, renderer.width, spp=args.spp,
                                    sample_map=sample_map, seed=args.seed)
-    if counts is not None and args.reconstruct == "gem" and counts.min() < 2:
-        raise InputError(f"--reconstruct gem needs at least 2 samples in every pixel (a variance "
-                         f"needs two); the counts have {int((counts < 2).sum())} pixels with fewer.")
-    if counts is not None and args.reconstruct in ("progressive", "oidn+combine") and counts.min() < 2:
-        raise InputError(f"--reconstruct {args.reconstruct} needs a variance in every pixel, which "
-                         f"needs at least 2 samples; the counts have {int((counts < 2).sum())} "
+    if (counts is not None and args.reconstruct in ("gem", "progressive", "oidn+combine")
+            and counts.min() < 2):
+        raise InputError(f"--reconstruct {args.reconstruct} needs at least 2 samples in every pixel "
+                         f"(a variance needs two); the counts have {int((counts < 2).sum())} "
                          "pixels with fewer (raise --spp or the sample map's minimum).")
     if args.stencil is not None and not args.crn:
         raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
