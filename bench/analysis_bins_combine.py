@@ -40,7 +40,7 @@ from scipy.ndimage import uniform_filter
 from statmc import gem
 from statmc.combine import (combine_bin_images, combine_denoised, combine_multi, denoiser_moments,
                             statistical_weights)
-from statmc.pipeline import reconstruct_bins, reconstruct_stats, render_bins
+from statmc.pipeline import merge_bins, reconstruct_bins, reconstruct_stats, render_bins
 from statmc.progressive import bind_denoiser
 
 from _scenes import scene_reference  # noqa: E402  (bench/ is the script's directory)
@@ -70,9 +70,7 @@ def per_bin_variances(bl, full, seed):
 def cell(r, ref, spp, seed, bins):
     """relMSE of every method on one binned render, and the seconds each took."""
     bl = render_bins(r, spp, bins, seed=9000 + seed)
-    full = bl[0]
-    for b in bl[1:]:
-        full = full.merge(b)
+    full = merge_bins(bl)
     out, sec = {}, {}
 
     def run(name, fn):

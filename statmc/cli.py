@@ -269,8 +269,8 @@ def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
     from .metrics import all_metrics
-    from .pipeline import (BIN_RECONSTRUCTIONS, reconstruct_bins, reconstruct_stats, render_bins,
-                           render_with_sampler)
+    from .pipeline import (BIN_RECONSTRUCTIONS, merge_bins, reconstruct_bins, reconstruct_stats,
+                           render_bins, render_with_sampler)
     from .plots import write_map_png
     from .renderers import make_renderer
 
@@ -351,9 +351,7 @@ def cmd_render(args) -> int:
     elif binned:
         bins = render_bins(renderer, args.spp, args.bins, seed=args.seed,
                            progress=not args.quiet)
-        stats = bins[0]
-        for b in bins[1:]:
-            stats = stats.merge(b)
+        stats = merge_bins(bins)
     else:
         stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
                                     seed=args.seed, progress=not args.quiet, gamma=args.gamma,

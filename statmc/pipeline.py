@@ -9,7 +9,7 @@ from .errors import InputError, as_int
 from .stats import PixelStats
 
 __all__ = ["RECONSTRUCTIONS", "BIN_RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler",
-           "render_bins", "reconstruct_bins", "bin_seed"]
+           "render_bins", "merge_bins", "reconstruct_bins", "bin_seed"]
 
 RECONSTRUCTIONS = ("none", "gem", "gaussian", "oidn", "progressive", "oidn+combine", "combine")
 #: Reconstructions from ``B`` sample bins (:func:`reconstruct_bins`): the multi-buffer
@@ -130,6 +130,23 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     return out
 
 
+def merge_bins(bins) -> PixelStats:
+    """The full render of sample bins: their exact merge (``PixelStats.merge``), after
+    checking that they are ``B >= 2`` :class:`PixelStats` with equal counts (equal-count
+    subsets of every pixel's samples, Back 2020 §4.4)."""
+    bins = list(bins)
+    if len(bins) < 2 or not all(isinstance(b, PixelStats) for b in bins):
+        raise InputError("`bins` must be a list of at least 2 PixelStats.")
+    for i, b in enumerate(bins[1:], 1):
+        if b.shape != bins[0].shape or not np.array_equal(b.n, bins[0].n):
+            raise InputError(f"bin {i} has other sample counts or shape than bin 0; the bins "
+                             "must be equal-count subsets of every pixel's samples.")
+    full = bins[0]
+    for b in bins[1:]:
+        full = full.merge(b)
+    return full
+
+
 def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed: int = 0,
                      gem_bias: str | None = None, return_bins: bool = False):
     """Reconstruct from sample bins (a list of ``B >= 2`` :class:`PixelStats` with equal
@@ -147,16 +164,7 @@ def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed
         raise InputError(f"unknown bin reconstruction {method!r}; expected one of "
                          f"{BIN_RECONSTRUCTIONS}.")
     bins = list(bins)
-    if len(bins) < 2 or not all(isinstance(b, PixelStats) for b in bins):
-        raise InputError("`bins` must be a list of at least 2 PixelStats.")
-    n0 = bins[0].n
-    for i, b in enumerate(bins[1:], 1):
-        if b.shape != bins[0].shape or not np.array_equal(b.n, n0):
-            raise InputError(f"bin {i} has other sample counts or shape than bin 0; the bins "
-                             "must be equal-count subsets of every pixel's samples.")
-    full = bins[0]
-    for b in bins[1:]:
-        full = full.merge(b)
+    full = merge_bins(bins)
     ys = np.stack([b.mean for b in bins])
     maps = {}
     if method == "gem+bins":

@@ -827,11 +827,10 @@ def test_neighbour_products_kernel_equals_numpy_reference_to_the_bit():
 def _bins_and_kernel(seed=0, B=4, spp=16, scene="edges"):
     """``B`` bins of a toy render, the merged render and GEM's full-sample kernel."""
     from statmc import gem
+    from statmc.pipeline import merge_bins
     r = ToyRenderer(scene, width=40, height=32)
     bins = [r.render_uniform(spp // B, seed=100 * seed + b) for b in range(B)]
-    full = bins[0]
-    for b in bins[1:]:
-        full = full.merge(b)
+    full = merge_bins(bins)
     _, f = gem.selected_filter(full.mean.astype(np.float32), full.mean_var.astype(np.float32))
     return bins, full, f
 
