@@ -89,15 +89,11 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
 
 
 def _gem_kernel(stats, gamma, gem_bias):
-    """GEM's selection on ``stats`` as a fixed linear filter (:class:`statmc.gem.SelectedFilter`).
-
-    Counts below 2 are raised to 2 for GEM's ``ρ = 1 − 1/n``, as
-    :func:`statmc.progressive.bind_denoiser` does for GEM as a black box (pixels with
-    fewer than 2 samples have no variance estimate; an adaptive render may hold some).
-    """
+    """GEM's selection on ``stats`` (>= 2 samples in every pixel, checked by the callers)
+    as a fixed linear filter (:class:`statmc.gem.SelectedFilter`)."""
     from .gem import selected_filter
     _, f = selected_filter(stats.mean.astype(np.float32), stats.mean_var.astype(np.float32),
-                           gamma=gamma, n=np.maximum(stats.n, 2), bias=gem_bias)
+                           gamma=gamma, n=stats.n, bias=gem_bias)
     return f
 
 
@@ -165,6 +161,8 @@ def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed
                          f"{BIN_RECONSTRUCTIONS}.")
     bins = list(bins)
     full = merge_bins(bins)
+    full.require_variance("bins", why="merged, for the variance of the mean that the weights "
+                                       "use")
     ys = np.stack([b.mean for b in bins])
     maps = {}
     if method == "gem+bins":

@@ -1055,3 +1055,16 @@ def test_pipeline_combine_refuses_pixels_without_a_variance():
     for method, den in (("combine", "gaussian"), ("combine", "gem"), ("oidn+combine", "oidn")):
         with pytest.raises(InputError, match="1 pixels with fewer than 2"):
             reconstruct_stats(holed, method, denoiser=den)
+
+
+def test_reconstruct_bins_refuses_pixels_without_a_variance():
+    """Bins whose merge leaves pixels with fewer than 2 samples: their zero mean_var would
+    count as exact in the weights (as in reconstruct_stats' combiners)."""
+    from statmc.pipeline import reconstruct_bins
+    r = ToyRenderer("edges", width=16, height=12)
+    counts = np.full((12, 16), 2)
+    counts[4, 5] = 0
+    bins = [r.render(counts, seed=70 + b) for b in range(2)]
+    for method in ("gem+bins", "oidn+bins"):
+        with pytest.raises(InputError, match="1 pixels with fewer than 2 samples"):
+            reconstruct_bins(bins, method)
