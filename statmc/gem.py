@@ -849,12 +849,16 @@ class SelectedFilter:
         if sc.size and (sc.min() < 0 or sc.max() >= len(sig)):
             raise InputError(f"`scales` must index `sigmas` (0 … {len(sig) - 1}); got values "
                              f"{int(sc.min())} … {int(sc.max())}.")
-        # an own read-only copy: the compiled gather indexes the bank by it unchecked, so
-        # neither the caller's array nor ``f.scales`` may change after the range check
+        # an own read-only copy: neither the caller's array nor ``f.scales`` may change
+        # after the range check
         self.scales = np.array(sc, dtype=np.intp, order="C", copy=True)
         self.scales.flags.writeable = False
         self.sigmas = tuple(sig)
         self.truncate = float(as_number("truncate", truncate, lo=0.0, lo_open=True))
+        # the scales in use, and each pixel's index among them: a call filters only those
+        # (the compiled gather indexes the stack by ``_slot`` unchecked)
+        self._used, slot = np.unique(self.scales, return_inverse=True)
+        self._slot = np.ascontiguousarray(slot.reshape(self.scales.shape), dtype=np.intp)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -871,18 +875,14 @@ class SelectedFilter:
             raise InputError(f"`image` has {x3.shape[0]}x{x3.shape[1]} pixels but the filter "
                              f"was selected on {self.scales.shape[0]}x{self.scales.shape[1]}.")
         x, c = _rows(x3)
-        used = np.zeros(len(self.sigmas), bool)
-        used[np.unique(self.scales)] = True
-        vals = np.zeros((len(self.sigmas),) + x.shape, dt)
-        for k, s in enumerate(self.sigmas):
-            if not used[k]:
-                continue
-            if s == 0.0:
-                vals[k] = x
+        vals = np.empty((len(self._used),) + x.shape, dt)
+        for j, k in enumerate(self._used):
+            if self.sigmas[k] == 0.0:
+                vals[j] = x
             else:
-                _run(x, c, None, 0, s, self.truncate, out_x=vals[k])
+                _run(x, c, None, 0, self.sigmas[k], self.truncate, out_x=vals[j])
         out = np.empty_like(x)
-        _k.gather(vals, c, self.scales, out)
+        _k.gather(vals, c, self._slot, out)
         return out.reshape(x3.shape)
 
     def reference(self, image) -> np.ndarray:
