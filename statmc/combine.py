@@ -1268,10 +1268,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
                          f"them; got {var!r}.")
     if mix not in ("local", "global", None):
         raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
-    k = _check_size(size)
-    for name, v in (("smooth", smooth), ("patch", patch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise InputError(f"`{name}` must be an integer >= 0; got {v!r}.")
+    k = _check_window_options(size, stencil, smooth, patch)
     ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     z, cov_z, cov_yz, V, JV = denoiser_moments(denoiser, yy, mean_var, size=stencil,
                                                probes=probes, rng=rng, extra_output=True)
@@ -1390,7 +1387,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
-    k = _check_bin_options(size, stencil, smooth, patch)
+    k = _check_window_options(size, stencil, smooth, patch)
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
     _, cov_z, cov_yz = denoiser_moments(denoiser, yb.mean(axis=0), mv, size=stencil,
                                         probes=probes, rng=rng)
@@ -1403,9 +1400,9 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     return out
 
 
-def _check_bin_options(size, stencil, smooth, patch):
-    """The window ``k`` after checking the options of :func:`combine_bins` and
-    :func:`combine_bin_images` (before any denoiser call)."""
+def _check_window_options(size, stencil, smooth, patch):
+    """The window ``k`` after checking the options of :func:`combine_denoised`,
+    :func:`combine_bins` and :func:`combine_bin_images` (before any denoiser call)."""
     k = _check_size(size)
     for name, v in (("smooth", smooth), ("patch", patch)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
@@ -1464,7 +1461,7 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
     out : (H, W, C) float64 ndarray (``(H, W)`` for ``(B, H, W)`` bins)
     """
     ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
-    k = _check_bin_options(size, stencil, smooth, patch)
+    k = _check_window_options(size, stencil, smooth, patch)
     ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
     var_y, cov_z, cov_yz = buffer_moments(ysa, zsa, size=stencil)
     var_y, cov_z, cov_yz = (_box(a, int(smooth)) for a in (var_y, cov_z, cov_yz))
