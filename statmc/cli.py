@@ -297,6 +297,11 @@ def cmd_render(args) -> int:
                          "pixels with fewer (raise --spp or the sample map's minimum).")
     if args.stencil is not None and not args.crn:
         raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
+    if (args.denoiser is not None and args.reconstruct != "progressive"
+            and args.sampler not in ("denoising-aware", "expected-error")):
+        raise InputError(f"--denoiser chooses the denoiser of --sampler denoising-aware / "
+                         f"expected-error and of --reconstruct progressive; it has no effect on "
+                         f"--sampler {args.sampler} with --reconstruct {args.reconstruct}.")
     binned = args.reconstruct in BIN_RECONSTRUCTIONS
     if args.bins is not None and not binned:
         raise InputError(f"--bins is the number of sample bins of --reconstruct "

@@ -813,3 +813,24 @@ def test_combine_takes_a_bins_file_without_z(tmp_path):
         code, _, err = run_cli("combine", *args, "--out", tmp_path / "x.exr", "-q")
         assert code != 0 and msg in err and "Traceback" not in err, err
         assert not (tmp_path / "x.exr").exists()
+
+
+@pytest.mark.parametrize("extra", [("--reconstruct", "gem+bins"), ("--reconstruct", "oidn+bins"),
+                                   ("--reconstruct", "gem"), ("--sampler", "gem"), ()])
+def test_render_refuses_a_denoiser_it_would_ignore(tmp_path, extra):
+    """`--denoiser` only matters to --sampler denoising-aware / expected-error and to
+    --reconstruct progressive; elsewhere it used to be dropped without a word."""
+    out = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--spp", 8, "--denoiser",
+                           "gaussian", *extra, "--out", out, "-q")
+    assert code != 0 and "--denoiser" in err and "no effect" in err
+    assert "Traceback" not in err and not out.exists()
+
+
+def test_render_accepts_a_denoiser_where_it_is_used(tmp_path):
+    for extra in (("--reconstruct", "progressive"), ("--sampler", "denoising-aware")):
+        out = tmp_path / extra[1]
+        code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--spp", 8, "--denoiser",
+                               "gaussian", *extra, "--out", out, "-q")
+        assert code == 0, err
+        assert (out / "render.exr").exists()
