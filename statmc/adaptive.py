@@ -125,6 +125,15 @@ def pass_budgets(total: int, first: int, *, schedule: str = "even",
     return out
 
 
+def _takes_first_sample(renderer) -> bool:
+    """Whether ``renderer.render`` accepts ``first_sample`` (continues sample sequences)."""
+    import inspect
+    try:
+        return "first_sample" in inspect.signature(renderer.render).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4,
                     iterations: int | None = None, schedule: str = "even", seed: int = 0,
                     progress: bool = False, callback=None, **sampler_options) -> AdaptiveResult:
@@ -133,6 +142,13 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     Parameters
     ----------
     renderer : object with ``height``, ``width`` and ``render(counts, *, seed, features)``
+        If its ``render`` also takes ``first_sample`` (as
+        :meth:`statmc.mitsuba_backend.MitsubaRenderer.render` does), every pass continues
+        each pixel's sample sequence of ``seed``: the result then holds the same samples as
+        one render of the final counts with ``seed``, so it shares the first samples of
+        every pixel with a uniform render of that seed (common random numbers between
+        samplers), and a change in one pass's counts changes only the pixels it moves.
+        Otherwise every pass gets a seed of its own, derived from ``seed``.
     spp : float
         Average samples per pixel over all passes; the total is ``round(spp × H × W)``.
     sampler : str or callable
@@ -184,6 +200,7 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     if not iterations and rest:  # uniform remainder spread unbiasedly
         counts = counts + _uniform_sampler(PixelStats.empty(h, w), rest, rng)
     res = AdaptiveResult(stats=None)
+    continues = _takes_first_sample(renderer)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -197,7 +214,11 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
                 raise InputError(f"sampler returned counts of shape {counts.shape} summing to "
                                  f"{counts.sum()}; expected ({h}, {w}) summing to {budgets[k - 1]}.")
         t0 = time.perf_counter()
-        part = renderer.render(counts, seed=seed * 1_000_003 + 7919 * k, features=(k == 0))
+        if continues:
+            part = renderer.render(counts, seed=seed, features=(k == 0),
+                                   first_sample=None if res.stats is None else res.stats.n)
+        else:
+            part = renderer.render(counts, seed=seed * 1_000_003 + 7919 * k, features=(k == 0))
         t_render += time.perf_counter() - t0
         res.stats = part if res.stats is None else res.stats.merge(part)
         res.counts.append(counts)

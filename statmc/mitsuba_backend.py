@@ -13,8 +13,12 @@ what makes this as fast as ``mi.render`` (see ``bench/bench_render.py``).
 
 A sample belongs to the pixel it was drawn in: the reconstruction filter is a box, whatever
 filter the scene's film declares.  The scene's sampler is replaced by an ``independent``
-sampler seeded per chunk, so different seeds, and different chunks of one render, give
-independent samples.
+sampler.  Every sample has its own random stream, a function of the render's seed, its
+pixel and its index in that pixel only (:func:`_sample_seeds`): sample ``j`` of pixel ``p``
+is the same whatever the counts of the other pixels, and ``render(..., first_sample=)``
+continues a pixel's sequence where an earlier pass stopped.  So an adaptive render and a
+uniform render with the same seed share the first samples of every pixel (common random
+numbers between samplers), and moving one sample leaves every other pixel as it was.
 
 Mitsuba's fast ``llvm_ad_rgb`` variant needs LLVM >= 16 at run time
 (:func:`find_libllvm`, :func:`setup_mitsuba`).  Without it the backend falls back to
@@ -212,6 +216,42 @@ def _chunk_seed(seed: int, salt: int, chunk: int) -> int:
     return int(np.random.SeedSequence([seed, salt, chunk]).generate_state(1, np.uint32)[0])
 
 
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's output mix of a ``uint64`` array (a bijection; wraps modulo 2**64)."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * np.uint64(0xBF58476D1CE4E5B9)
+    x = x ^ (x >> np.uint64(27))
+    x = x * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def _fmix32(h: np.ndarray) -> np.ndarray:
+    """MurmurHash3's 32-bit finaliser of a ``uint32`` array (a bijection of 32-bit words)."""
+    h = h ^ (h >> np.uint32(16))
+    h = h * np.uint32(0x85EBCA6B)
+    h = h ^ (h >> np.uint32(13))
+    h = h * np.uint32(0xC2B2AE35)
+    return h ^ (h >> np.uint32(16))
+
+
+def _pixel_keys(seed: int, salt: int, pixels: int) -> np.ndarray:
+    """A pseudo-random 32-bit base per pixel, a function of (seed, salt, pixel)."""
+    key = np.random.SeedSequence([seed, salt]).generate_state(1, np.uint64)[0]
+    p = np.arange(pixels, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    return (_splitmix64(p ^ key) >> np.uint64(32)).astype(np.uint32)
+
+
+def _sample_seeds(keys: np.ndarray, pix: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Sampler seed of sample ``index`` of pixel ``pix``: ``fmix32(keys[pix] + index)``.
+
+    Within a pixel the seeds are distinct for up to 2**32 samples (a bijection of
+    distinct words); two pixels share a stream only if their ranges of words overlap,
+    which for ``n`` samples each happens with probability about ``2n / 2**32``.
+    """
+    with np.errstate(over="ignore"):
+        return _fmix32(keys[pix] + index.astype(np.uint32))
+
+
 def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
     """Yield the flat pixel index of every sample, ``chunk`` samples at a time.
 
@@ -227,6 +267,18 @@ def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
         p1 = int(np.searchsorted(cum, b - 1, side="right"))
         local = np.minimum(cum[p0:p1 + 1], b) - np.maximum(start[p0:p1 + 1], a)
         yield np.repeat(np.arange(p0, p1 + 1, dtype=np.uint32), local)
+
+
+def _chunk_samples(counts_flat: np.ndarray, first_flat: np.ndarray, chunk: int):
+    """Like :func:`_chunk_pixels`, yielding ``(pixel, index)``: the pixel of every sample
+    and its index in that pixel's sequence, ``first_flat[pixel] + (its rank in this
+    render)``."""
+    start = np.cumsum(counts_flat) - counts_flat
+    a = 0
+    for pix in _chunk_pixels(counts_flat, chunk):
+        rank = np.arange(a, a + pix.size, dtype=np.int64) - start[pix]
+        yield pix, first_flat[pix] + rank
+        a += pix.size
 
 
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool):
@@ -363,7 +415,7 @@ class MitsubaRenderer:
 
     # ------------------------------------------------------------------ public
     def render(self, counts, *, seed: int = 0, progress: bool = False, features: bool = True,
-               feature_spp: int = 16, cross: bool = True) -> PixelStats:
+               feature_spp: int = 16, cross: bool = True, first_sample=None) -> PixelStats:
         """Render exactly ``counts[i, j]`` samples in pixel ``(i, j)``.
 
         Parameters
@@ -371,7 +423,9 @@ class MitsubaRenderer:
         counts : (H, W) array of non-negative integers
             Samples per pixel; zeros allowed.
         seed : int, optional
-            Seed of the random numbers; different seeds give independent renders.
+            Seed of the random numbers; different seeds give independent renders.  Sample
+            ``j`` of pixel ``p`` depends on ``(seed, p, j)`` only, so two renders with the
+            same seed share the first ``min`` of their counts in every pixel.
         progress : bool, optional
             Show a tqdm progress bar over the chunks.
         features : bool, optional
@@ -383,6 +437,12 @@ class MitsubaRenderer:
             Also accumulate the channel cross sums (default), so the result carries the
             channel co-moment ``m2_cross`` (``sample_cov``, ``mean_cov``); ``False`` skips
             them (``m2_cross`` is None).
+        first_sample : (H, W) array of non-negative integers, optional
+            Index of the first sample of each pixel in its sequence (default 0): a pass
+            that continues an earlier one with the same seed passes the counts rendered so
+            far, and the two passes merged equal one render of the summed counts (up to
+            the order of the float64 sums).  ``counts + first_sample`` must stay below
+            2**31.
 
         Returns
         -------
@@ -394,13 +454,14 @@ class MitsubaRenderer:
             ``nonfinite_samples`` (NaN/Inf samples, counted as zeros).
         """
         counts = self._check_counts(counts)
+        first = self._check_first(first_sample, counts)
         seed = _check_int("seed", seed, minimum=0)
         feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
         if self._mi.variant() != self.variant:
             self._mi.set_variant(self.variant)
         render = self._render_jit if self._jit else self._render_scalar
         t0 = time.perf_counter()
-        s1, s2, sxy, n_bad, n_chunks = render(counts, seed, progress, bool(cross))
+        s1, s2, sxy, n_bad, n_chunks = render(counts, first, seed, progress, bool(cross))
         seconds = time.perf_counter() - t0
         stats = PixelStats.from_sums(counts, s1, s2, sxy)
         total = int(counts.sum())
@@ -549,6 +610,22 @@ class MitsubaRenderer:
             raise InputError("`counts` must hold whole numbers of samples; got fractional values.")
         return a.astype(np.int64)
 
+    def _check_first(self, first_sample, counts) -> np.ndarray:
+        if first_sample is None:
+            return np.zeros_like(counts)
+        a = as_float_array("first_sample", first_sample, ndim=2)
+        if a.shape != counts.shape:
+            raise InputError(f"`first_sample` must have the image shape (H, W) = "
+                             f"{counts.shape}; got {a.shape}.")
+        check_finite("first_sample", a)
+        check_nonnegative("first_sample", a)
+        if np.any(a != np.floor(a)):
+            raise InputError("`first_sample` must hold whole sample indices; got fractional "
+                             "values.")
+        if np.any(a + counts >= 2 ** 31):
+            raise InputError("`first_sample + counts` must stay below 2**31 samples per pixel.")
+        return a.astype(np.int64)
+
     def _reduce_mode(self, arrays: int):
         dr = self._dr
         if self.variant.startswith("llvm"):
@@ -558,17 +635,23 @@ class MitsubaRenderer:
                 return dr.ReduceMode.Expand
         return dr.ReduceMode.Auto
 
-    def _trace(self, integrator, pix: np.ndarray, chunk_seed: int, diff_scale,
-               shared: bool = False):
+    def _trace(self, integrator, pix: np.ndarray, seed, diff_scale, shared: bool = False):
         """Trace one wavefront: samples in pixels ``pix``; returns (idx, L, aovs).
 
-        ``shared``: one random stream for the whole wavefront (a sampler seeded for a
-        wavefront of 1, broadcast to every lane): common random numbers.
+        ``seed``: an int seeds the wavefront's sampler (Mitsuba derives one stream per
+        lane from it and the lane's index); a ``uint32`` array gives every lane its own
+        stream, independent of its position in the wavefront (:func:`_sample_seeds`).
+        ``shared`` (with an int): one random stream for the whole wavefront (a sampler
+        seeded for a wavefront of 1, broadcast to every lane): common random numbers.
         """
         mi, dr = self._mi, self._dr
         sensor, sampler = self._sensor, self._sampler
         idx = mi.UInt32(pix)
-        sampler.seed(dr.opaque(mi.UInt32, chunk_seed), 1 if shared else int(pix.size))
+        if isinstance(seed, np.ndarray):
+            # per-lane seeds and a wavefront of 1: lane i's stream is TEA(seed[i], 0)
+            sampler.seed(mi.UInt32(seed), 1)
+        else:
+            sampler.seed(dr.opaque(mi.UInt32, seed), 1 if shared else int(pix.size))
         y = idx // self.width
         x = idx - y * self.width
         jitter = sampler.next_2d()
@@ -586,10 +669,12 @@ class MitsubaRenderer:
         L, _valid, aovs = integrator.sample(self._scene, sampler, ray, None, True)
         return idx, L * weight, aovs
 
-    def _render_jit(self, counts: np.ndarray, seed: int, progress: bool, cross: bool):
+    def _render_jit(self, counts: np.ndarray, first: np.ndarray, seed: int, progress: bool,
+                    cross: bool):
         mi, dr = self._mi, self._dr
         hw = self.height * self.width
         flat = counts.ravel()
+        keys = _pixel_keys(seed, _SALT_MAIN, hw)
         s1 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s2 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s3 = [dr.zeros(mi.Float64, hw) for _ in _PAIRS] if cross else []
@@ -602,9 +687,9 @@ class MitsubaRenderer:
 
         n_chunks = 0
         with _progress(int(flat.sum()), progress, f"mitsuba {self.name}") as bar:
-            for k, pix in enumerate(_chunk_pixels(flat, self.chunk_samples)):
-                idx, L, _ = self._trace(self._integrator, pix, _chunk_seed(seed, _SALT_MAIN, k),
-                                        scale)
+            for pix, index in _chunk_samples(flat, first.ravel(), self.chunk_samples):
+                idx, L, _ = self._trace(self._integrator, pix,
+                                        _sample_seeds(keys, pix, index), scale)
                 ok = dr.isfinite(L.x) & dr.isfinite(L.y) & dr.isfinite(L.z)
                 vs = [mi.Float64(dr.select(ok, L[c], 0.0)) for c in range(3)]
                 for c, v in enumerate(vs):
@@ -624,19 +709,25 @@ class MitsubaRenderer:
                   else None)
         return sum_x, sum_x2, sum_xy, int(np.asarray(bad).sum()), n_chunks
 
-    def _render_scalar(self, counts: np.ndarray, seed: int, progress: bool, cross: bool):
-        """Fallback: ``max(counts)`` one-sample passes of ``mi.render`` (box filter)."""
+    def _render_scalar(self, counts: np.ndarray, first: np.ndarray, seed: int, progress: bool,
+                       cross: bool):
+        """Fallback: one-sample passes of ``mi.render`` (box filter), pass ``j`` giving
+        sample ``j`` of every pixel whose sequence ``[first, first + counts)`` holds it:
+        ``max(first + counts) - min(first)`` passes."""
         mi = self._mi
         shape = (self.height, self.width, 3)
         s1, s2, s3 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
         n_bad = 0
-        passes = int(counts.max()) if counts.size else 0
+        live = counts > 0
+        j0 = int(first[live].min()) if live.any() else 0
+        j1 = int((first + counts)[live].max()) if live.any() else 0
+        passes = j1 - j0
         with _progress(passes, progress, f"mitsuba {self.name} (scalar)", "pass") as bar:
-            for k in range(passes):
+            for k in range(j0, j1):
                 img = np.asarray(mi.render(self._scene, spp=1,
                                            seed=_chunk_seed(seed, _SALT_MAIN, k)), np.float64)
                 img = img[..., :3]
-                active = (counts > k)[..., None]
+                active = ((first <= k) & (k < first + counts))[..., None]
                 ok = np.isfinite(img)
                 n_bad += int((~ok.all(axis=-1) & active[..., 0]).sum())
                 img = np.where(ok & active, img, 0.0)

@@ -119,14 +119,18 @@ def test_random_counts_exact_and_consistent(cornell, pilot, reference):
     z = (stats.mean - reference) / np.sqrt(pilot * (1 / np.maximum(n, 1) + 1 / 2048))
     p, msg = _ttest_zero(z[ok].mean(-1), "error vs reference (z)")
     assert p > ALPHA, msg
-    # 2) the squared error is predicted by sample_var / n (+ the reference's own variance)
+    # 2) the squared error is predicted by sample_var / n (+ the reference's own variance),
+    #    per pixel averaged over 4 independent renders of the same counts (for power)
     ok2 = ok & (counts >= 2)
     w = reference ** 2 + 1e-2                        # independent positive scale
-    d = ((stats.mean - reference) ** 2 - stats.mean_var - pilot / 2048) / w
+    renders = [stats] + [r.render(counts, seed=s, features=False) for s in (22, 23, 24)]
+    sq = np.mean([(st.mean - reference) ** 2 for st in renders], axis=0)
+    mv = np.mean([st.mean_var for st in renders], axis=0)
+    d = (sq - mv - pilot / 2048) / w
     p, msg = _ttest_zero(d[ok2].mean(-1), "squared error - mean_var")
     assert p > ALPHA, msg
     # ... and the test would notice mean_var off by 30 %
-    d_bad = ((stats.mean - reference) ** 2 - 0.7 * stats.mean_var - pilot / 2048) / w
+    d_bad = (sq - 0.7 * mv - pilot / 2048) / w
     assert _ttest_zero(d_bad[ok2].mean(-1), "scaled")[0] < ALPHA
 
 
@@ -318,6 +322,34 @@ def test_chunk_pixels_equals_repeat(chunk):
     assert list(mb._chunk_pixels(np.zeros(4, np.int64), chunk)) == []
 
 
+@pytest.mark.parametrize("chunk", [1, 7, 1000])
+def test_chunk_samples_index_each_pixels_sequence(chunk):
+    rng = np.random.default_rng(chunk)
+    counts = rng.integers(0, 6, size=200)
+    first = rng.integers(0, 50, size=200)
+    parts = list(mb._chunk_samples(counts, first, chunk))
+    pix = np.concatenate([p for p, _ in parts])
+    index = np.concatenate([i for _, i in parts])
+    np.testing.assert_array_equal(pix, np.repeat(np.arange(200), counts))
+    want = np.concatenate([first[p] + np.arange(c) for p, c in enumerate(counts)])
+    np.testing.assert_array_equal(index, want)
+
+
+def test_sample_seeds_distinct_within_a_pixel_and_spread():
+    keys = mb._pixel_keys(3, mb._SALT_MAIN, 64)
+    assert np.unique(keys).size == 64
+    assert not np.array_equal(keys, mb._pixel_keys(4, mb._SALT_MAIN, 64))
+    pix = np.repeat(np.arange(64, dtype=np.uint32), 4096)
+    index = np.tile(np.arange(4096), 64)
+    seeds = mb._sample_seeds(keys, pix, index)
+    for p in range(64):                           # a bijection of distinct words per pixel
+        assert np.unique(seeds[pix == p]).size == 4096
+    # the hashed words look uniform on 32 bits (fmix32 of consecutive words)
+    bits = ((seeds[:, None] >> np.arange(32, dtype=np.uint32)) & 1).mean(0)
+    assert np.all(np.abs(bits - 0.5) < 0.01), bits
+    assert np.unique(seeds).size > 0.999 * seeds.size
+
+
 def test_chunk_seeds_distinct():
     seeds = {mb._chunk_seed(s, salt, c) for s in range(20) for salt in (mb._SALT_MAIN, mb._SALT_FEATURES)
              for c in range(50)}
@@ -379,6 +411,93 @@ def test_import_statmc_does_not_import_mitsuba():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={**os.environ}, check=True)
     assert out.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------ per-sample streams
+def _assert_same_samples(a, b, where=Ellipsis):
+    """Equal per-pixel statistics, up to the order of the float64 sums."""
+    np.testing.assert_array_equal(a.n[where], b.n[where])
+    np.testing.assert_allclose(a.mean[where], b.mean[where], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(a.m2[where], b.m2[where], rtol=1e-9, atol=1e-14)
+
+
+def _counts_pair(seed):
+    rng = np.random.default_rng(seed)
+    c1 = rng.integers(0, 6, (SIZE, SIZE))
+    c2 = c1.copy()
+    moved = np.zeros((SIZE, SIZE), bool)
+    moved[16, 14] = moved[20, 12] = moved[SIZE - 1, 0] = True
+    c1[16, 14] = 2
+    c2[16, 14] = 5                    # 3 more samples in a lit pixel
+    c2[20, 12] = 0
+    c2[SIZE - 1, 0] += 1
+    return c1, c2, moved
+
+
+@pytest.mark.parametrize("variant", ["jit", "scalar_rgb"])
+def test_moving_samples_changes_only_those_pixels(cornell, variant):
+    """Sample j of pixel p depends on (seed, p, j) only: changing the counts of three
+    pixels leaves the statistics of every other pixel as they were (they used to be
+    re-randomised, because streams followed the position in the wavefront)."""
+    r = cornell if variant == "jit" else mb.MitsubaRenderer("cornell-box", width=SIZE,
+                                                            height=SIZE, variant=variant)
+    try:
+        c1, c2, moved = _counts_pair(1)
+        a = r.render(c1, seed=3, features=False)
+        b = r.render(c2, seed=3, features=False)
+        _assert_same_samples(a, b, ~moved)
+        lit = moved & (c1 > 0) & (c2 > 0)
+        assert not np.allclose(a.mean[lit], b.mean[lit])
+        # the common samples: the first min(c1, c2) samples of every pixel
+        c = np.minimum(c1, c2)
+        _assert_same_samples(r.render(c, seed=3, features=False),
+                             r.render(c, seed=3, features=False, first_sample=None))
+        other = r.render(c1, seed=4, features=False)
+        both = (c1 > 0) & (a.mean.sum(-1) > 0)
+        assert not np.allclose(a.mean[both], other.mean[both])
+    finally:
+        if variant != "jit":
+            _ensure_variant(cornell)
+
+
+@pytest.mark.parametrize("variant", ["jit", "scalar_rgb"])
+def test_first_sample_continues_the_sequence(cornell, variant):
+    """Two passes, the second starting where the first stopped, merge to one render of
+    the summed counts; a pass that restarts at 0 repeats the first pass's samples."""
+    r = cornell if variant == "jit" else mb.MitsubaRenderer("cornell-box", width=SIZE,
+                                                            height=SIZE, variant=variant)
+    try:
+        c1, c2, _ = _counts_pair(2)
+        p1 = r.render(c1, seed=5, features=False)
+        p2 = r.render(c2, seed=5, features=False, first_sample=c1)
+        _assert_same_samples(p1.merge(p2), r.render(c1 + c2, seed=5, features=False))
+        again = r.render(c1, seed=5, features=False, first_sample=np.zeros_like(c1))
+        _assert_same_samples(p1, again)
+    finally:
+        if variant != "jit":
+            _ensure_variant(cornell)
+
+
+def test_adaptive_render_shares_samples_with_a_uniform_render(cornell):
+    """adaptive_render continues every pixel's sequence: its result equals one render of
+    its final counts with the same seed, so a uniform render of that seed holds the first
+    min(n, spp) samples of every pixel (common random numbers between samplers)."""
+    from statmc.adaptive import adaptive_render
+    res = adaptive_render(cornell, 8, sampler="gem", initial_spp=4, iterations=2, seed=11)
+    n = res.stats.n
+    assert n.min() < 8 < n.max()
+    _assert_same_samples(res.stats, cornell.render(n, seed=11, features=False))
+    pilot = cornell.render(np.full(n.shape, 4), seed=11, features=False)
+    _assert_same_samples(pilot, cornell.render(np.minimum(n, 4), seed=11, features=False))
+
+
+def test_first_sample_bad_input(cornell):
+    c = np.ones((SIZE, SIZE), np.int64)
+    for bad, msg in ((np.ones((SIZE, SIZE + 1)), "image shape"), (-c, "non-negative|>= 0"),
+                     (c * 0.5, "whole sample indices"), (np.full((SIZE, SIZE), np.nan), "finite|NaN"),
+                     (np.full((SIZE, SIZE), 2 ** 31), "2\\*\\*31")):
+        with pytest.raises(InputError, match=msg):
+            cornell.render(c, seed=0, features=False, first_sample=bad)
 
 
 # ------------------------------------------------------------------ scalar fallback
