@@ -272,13 +272,33 @@ def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
 def _chunk_samples(counts_flat: np.ndarray, first_flat: np.ndarray, chunk: int):
     """Like :func:`_chunk_pixels`, yielding ``(pixel, index)``: the pixel of every sample
     and its index in that pixel's sequence, ``first_flat[pixel] + (its rank in this
-    render)``."""
+    render)``.  (NumPy reference of the seeds :meth:`MitsubaRenderer._render_jit` forms
+    inside Dr.Jit.)"""
     start = np.cumsum(counts_flat) - counts_flat
     a = 0
     for pix in _chunk_pixels(counts_flat, chunk):
         rank = np.arange(a, a + pix.size, dtype=np.int64) - start[pix]
         yield pix, first_flat[pix] + rank
         a += pix.size
+
+
+def _seed_bases(keys: np.ndarray, counts_flat: np.ndarray, first_flat: np.ndarray) -> np.ndarray:
+    """``keys[p] + first[p] − start[p]`` modulo 2**32, where ``start`` is the position of
+    pixel p's first sample in the render's sample order: then the sample at position
+    ``g`` (in pixel p) has index ``first[p] + g − start[p]`` and seed
+    ``fmix32(base[p] + g)``."""
+    start = np.cumsum(counts_flat) - counts_flat
+    b = keys.astype(np.int64) + first_flat - start
+    return (b % (1 << 32)).astype(np.uint32)
+
+
+def _fmix32_drjit(mi, h):
+    """:func:`_fmix32` on a Dr.Jit ``UInt32`` array (products wrap modulo 2**32)."""
+    h = h ^ (h >> 16)
+    h = h * mi.UInt32(0x85EBCA6B)
+    h = h ^ (h >> 13)
+    h = h * mi.UInt32(0xC2B2AE35)
+    return h ^ (h >> 16)
 
 
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool):
@@ -639,17 +659,18 @@ class MitsubaRenderer:
         """Trace one wavefront: samples in pixels ``pix``; returns (idx, L, aovs).
 
         ``seed``: an int seeds the wavefront's sampler (Mitsuba derives one stream per
-        lane from it and the lane's index); a ``uint32`` array gives every lane its own
-        stream, independent of its position in the wavefront (:func:`_sample_seeds`).
+        lane from it and the lane's index); a callable ``seed(idx)`` returning a
+        ``UInt32`` array gives every lane its own stream, independent of its position in
+        the wavefront (:func:`_sample_seeds`).
         ``shared`` (with an int): one random stream for the whole wavefront (a sampler
         seeded for a wavefront of 1, broadcast to every lane): common random numbers.
         """
         mi, dr = self._mi, self._dr
         sensor, sampler = self._sensor, self._sampler
         idx = mi.UInt32(pix)
-        if isinstance(seed, np.ndarray):
-            # per-lane seeds and a wavefront of 1: lane i's stream is TEA(seed[i], 0)
-            sampler.seed(mi.UInt32(seed), 1)
+        if callable(seed):
+            # per-lane seeds and a wavefront of 1: lane i's stream is TEA(seed(idx)[i], 0)
+            sampler.seed(seed(idx), 1)
         else:
             sampler.seed(dr.opaque(mi.UInt32, seed), 1 if shared else int(pix.size))
         y = idx // self.width
@@ -674,7 +695,9 @@ class MitsubaRenderer:
         mi, dr = self._mi, self._dr
         hw = self.height * self.width
         flat = counts.ravel()
-        keys = _pixel_keys(seed, _SALT_MAIN, hw)
+        # per-sample seeds fmix32(base[p] + g), formed inside the traced kernel (forming
+        # them in NumPy cost about 12 % of the render's time)
+        base = mi.UInt32(_seed_bases(_pixel_keys(seed, _SALT_MAIN, hw), flat, first.ravel()))
         s1 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s2 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s3 = [dr.zeros(mi.Float64, hw) for _ in _PAIRS] if cross else []
@@ -687,9 +710,13 @@ class MitsubaRenderer:
 
         n_chunks = 0
         with _progress(int(flat.sum()), progress, f"mitsuba {self.name}") as bar:
-            for pix, index in _chunk_samples(flat, first.ravel(), self.chunk_samples):
-                idx, L, _ = self._trace(self._integrator, pix,
-                                        _sample_seeds(keys, pix, index), scale)
+            pos = 0                     # position of the chunk's first sample in the render
+            for pix in _chunk_pixels(flat, self.chunk_samples):
+                def seeds(idx, pos=pos, size=pix.size):
+                    g = dr.arange(mi.UInt32, size) + mi.UInt32(pos % (1 << 32))
+                    return _fmix32_drjit(mi, dr.gather(mi.UInt32, base, idx) + g)
+                idx, L, _ = self._trace(self._integrator, pix, seeds, scale)
+                pos += pix.size
                 ok = dr.isfinite(L.x) & dr.isfinite(L.y) & dr.isfinite(L.z)
                 vs = [mi.Float64(dr.select(ok, L[c], 0.0)) for c in range(3)]
                 for c, v in enumerate(vs):

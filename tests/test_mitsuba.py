@@ -350,6 +350,27 @@ def test_sample_seeds_distinct_within_a_pixel_and_spread():
     assert np.unique(seeds).size > 0.999 * seeds.size
 
 
+def test_drjit_sample_seeds_equal_the_numpy_reference(cornell):
+    """The seeds _render_jit forms inside Dr.Jit, fmix32(base[p] + g), equal
+    _sample_seeds(keys, pixel, first + rank) of the NumPy reference, chunk by chunk."""
+    if not cornell._jit:
+        pytest.skip("needs a JIT variant")
+    mi, dr = cornell._mi, cornell._dr
+    _ensure_variant(cornell)
+    rng = np.random.default_rng(8)
+    counts = rng.integers(0, 9, size=500)
+    first = rng.integers(0, 2 ** 31 - 10, size=500)
+    keys = mb._pixel_keys(17, mb._SALT_MAIN, 500)
+    base = mi.UInt32(mb._seed_bases(keys, counts, first))
+    a = 0
+    for (pix, index), pix2 in zip(mb._chunk_samples(counts, first, 97),
+                                  mb._chunk_pixels(counts, 97)):
+        g = dr.arange(mi.UInt32, len(pix2)) + mi.UInt32(a)
+        got = np.asarray(mb._fmix32_drjit(mi, dr.gather(mi.UInt32, base, mi.UInt32(pix2)) + g))
+        np.testing.assert_array_equal(got, mb._sample_seeds(keys, pix, index))
+        a += pix2.size
+
+
 def test_chunk_seeds_distinct():
     seeds = {mb._chunk_seed(s, salt, c) for s in range(20) for salt in (mb._SALT_MAIN, mb._SALT_FEATURES)
              for c in range(50)}
@@ -458,6 +479,21 @@ def test_moving_samples_changes_only_those_pixels(cornell, variant):
     finally:
         if variant != "jit":
             _ensure_variant(cornell)
+
+
+def test_chunking_does_not_change_the_samples(cornell):
+    """The wavefront is cut into chunks only to bound memory: with small chunks (pixels
+    split across chunks, a pixel of 300 samples spanning several) the render holds the same
+    samples as in one chunk."""
+    rng = np.random.default_rng(4)
+    counts = rng.integers(0, 9, (SIZE, SIZE))
+    counts[16, 14] = 300
+    first = rng.integers(0, 1000, (SIZE, SIZE))
+    small = mb.MitsubaRenderer(cornell._scene, chunk_samples=97)
+    for f in (None, first):
+        a = small.render(counts, seed=9, features=False, first_sample=f)
+        assert a.meta["chunks"] > 10
+        _assert_same_samples(a, cornell.render(counts, seed=9, features=False, first_sample=f))
 
 
 @pytest.mark.parametrize("variant", ["jit", "scalar_rgb"])
