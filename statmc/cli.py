@@ -501,9 +501,12 @@ def cmd_denoise(args) -> int:
     if args.variance:
         # Store the denoised output as statistics whose variance of the mean is the
         # first-order variance of the output (Firmino 2023), with the input's counts.
+        from .denoisers import GEMDenoiser
         from .sure import output_variance
         if hasattr(den, "kernels"):  # linear filters: exactly Σ_j w_ij² σ_j²
             var = output_variance(den, x, stats.mean_var.astype(np.float32), method="exact")
+        elif isinstance(den, GEMDenoiser):  # the selected filter's, given the selection
+            var, _ = den.output_variance(x)
         else:  # first order; the channel covariance when the file has it (OIDN mixes channels)
             cov = stats.mean_cov if stats.has_cov else stats.mean_var
             var = output_variance(den, x, cov.astype(np.float32), method="fd", rng=args.seed)

@@ -221,11 +221,7 @@ def _output_variance(f, x, s2, k, method, gen):
     from .sure import output_variance
 
     if isinstance(f, GEMDenoiser) and method != "jvp":
-        from .gem import select
-
-        info = select(x, f.mean_var, gamma=f.gamma, final=f.final, n=f.n, bias=f.bias)
-        var = np.take_along_axis(info["variances"], info["scales"][None, ..., None], axis=0)[0]
-        return np.asarray(var, np.float64), np.asarray(info["image"], np.float64)
+        return f.output_variance(x)
     var, info = output_variance(f, x, s2, k=k, method=method, rng=gen, extra_output=True)
     out = info["denoised"]
     if out is None:

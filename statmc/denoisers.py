@@ -201,6 +201,20 @@ class GEMDenoiser:
         return _gem.reconstruct(x, self.mean_var.astype(x.dtype, copy=False), gamma=self.gamma,
                                 final=self.final, n=self.n, bias=self.bias)
 
+    def output_variance(self, color):
+        """``(variance, image)`` of the output on ``color``, both float64: the variance of
+        the filter GEM selects on ``color``, given that selection — ``mean_var`` filtered
+        with the squared weights of each pixel's selected scale (Rousselle 2011 §4.1).
+        Exact for the linear filter the selection defines; finite differences would cross
+        the selection's switches (see :func:`gem`'s notes)."""
+        from . import gem as _gem
+
+        x = _color("color", color, shape=self.mean_var.shape)
+        info = _gem.select(x, self.mean_var.astype(x.dtype, copy=False), gamma=self.gamma,
+                           final=self.final, n=self.n, bias=self.bias)
+        var = np.take_along_axis(info["variances"], info["scales"][None, ..., None], axis=0)[0]
+        return np.asarray(var, np.float64), np.asarray(info["image"], np.float64)
+
     def __repr__(self):
         return (f"gem(mean_var=<{self.mean_var.shape}>, gamma={self.gamma}, final={self.final}, "
                 f"bias={self.bias!r})")

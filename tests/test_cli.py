@@ -178,6 +178,17 @@ def test_denoise_lowers_error_and_writes_variance(tmp_path, toy_render, toy_ref,
         from statmc.sure import kernel_variance
         exact = kernel_variance(gaussian(1.0).kernels(raw.mean.shape), raw.mean_var)
         np.testing.assert_allclose(d.mean_var, exact, rtol=1e-4, atol=1e-9)
+    if den == "gem":  # the selected filter's exact variance, given GEM's selection
+        from statmc.analytic import scale_kernels
+        from statmc.gem import select
+        from statmc.sure import kernel_variance
+        x = raw.mean.astype(np.float32)
+        info = select(x, raw.mean_var.astype(np.float32), n=np.maximum(raw.n, 2))
+        np.testing.assert_array_equal(d.mean, info["image"])
+        exact = kernel_variance(scale_kernels(info["scales"], info["sigmas"], dtype=np.float64),
+                                raw.mean_var)
+        # (finite differences crossed the selection's switches: up to 75,000x off)
+        np.testing.assert_allclose(d.mean_var, exact, rtol=1e-4, atol=1e-9)
 
 
 def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
