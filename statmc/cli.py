@@ -335,10 +335,11 @@ def cmd_render(args) -> int:
                              "common-random-number render's correlated noise survives them; "
                              "render without --crn to reconstruct, or use the --crn render as "
                              "Z in `statmc combine`.")
-    if args.sampler != "uniform" and (args.spp is None or args.spp < INITIAL_SPP):
-        raise InputError(f"--sampler {args.sampler} needs an --spp budget of at least {INITIAL_SPP} "
-                         f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes); "
-                         f"got {args.spp}.")
+    if args.sampler != "uniform" and (args.spp is None or args.spp <= INITIAL_SPP):
+        raise InputError(f"--sampler {args.sampler} needs an --spp budget above {INITIAL_SPP} "
+                         f"(a {INITIAL_SPP}-spp pilot pass, then {ITERATIONS} adaptive passes "
+                         f"share the rest; at {INITIAL_SPP} spp the pilot would be the whole, "
+                         f"uniform, render); got {args.spp}.")
     if ref is not None and ref.shape != (renderer.height, renderer.width, 3):
         raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} with "
                          f"{ref.shape[2]} channel(s) but the render is {renderer.width}x"

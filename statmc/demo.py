@@ -61,7 +61,9 @@ def compare(renderer, ref, spps, methods=METHODS, *, seed: int = 0, out: str | N
     for spp in spps:
         for name, (sampler, rec) in methods.items():
             t0 = time.perf_counter()
-            stats = render_with_sampler(renderer, spp, sampler=sampler, seed=seed + spp, gamma=gamma)
+            # below 8 spp a 2-spp pilot, so that an adaptive run has samples to place
+            stats = render_with_sampler(renderer, spp, sampler=sampler, seed=seed + spp,
+                                        gamma=gamma, initial_spp=2 if spp < 8 else 4)
             t1 = time.perf_counter()
             image, _ = reconstruct_stats(stats, rec, gamma=gamma)
             t2 = time.perf_counter()

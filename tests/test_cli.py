@@ -845,3 +845,12 @@ def test_render_accepts_a_denoiser_where_it_is_used(tmp_path):
                                "gaussian", *extra, "--out", out, "-q")
         assert code == 0, err
         assert (out / "render.exr").exists()
+
+
+def test_adaptive_sampler_needs_more_than_its_pilot(tmp_path):
+    """At --spp 4 the 4-spp pilot is the whole budget: the 'adaptive' render was a uniform
+    one without a word."""
+    out = tmp_path / "a"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--spp", 4, "--sampler",
+                           "gem", "--out", out, "-q")
+    assert code != 0 and "above 4" in err and not out.exists()

@@ -119,7 +119,8 @@ spps = (4, 16, 64)
 curves = {name: [] for name in images}
 for i, spp in enumerate(spps):
     st = r.render_uniform(spp, seed=100 + i)
-    ad = adaptive_render(r, spp, sampler="gem", seed=200 + i)
+    ad = adaptive_render(r, spp, sampler="gem", seed=200 + i,
+                         initial_spp=2 if spp < 8 else 4)   # a 4-spp pilot would be all of 4 spp
     curves["box"].append(metrics.relmse(st.mean, ref))
     curves["GEM"].append(metrics.relmse(gem.reconstruct(st.mean, st.mean_var, n=st.n), ref))
     curves["adaptive GEM"].append(metrics.relmse(reconstruct_stats(ad.stats, "gem")[0], ref))
