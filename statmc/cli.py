@@ -468,15 +468,16 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _add_gem_options(parser, gamma_use: str = "") -> None:
-    """``--gamma`` and ``--gem-bias``: the GEM selector's error rate and bias estimate."""
+def _add_gem_options(parser, gem_use: str, always: str = "") -> None:
+    """``--gamma`` and ``--gem-bias``: the GEM selector's error rate and bias estimate.
+    ``gem_use`` names the command's GEM final selections, ``always`` what uses γ in any
+    case (with a trailing ", and ")."""
     parser.add_argument("--gamma", type=_gamma_type, default=0.2,
                         help=f"GEM error-rate parameter γ in (0, 0.526), default 0.2 (Rousselle "
-                             f"2011 §4.3): used {gamma_use}by the final GEM reconstruction (and "
-                             "--denoiser gem) only with --gem-bias paper")
+                             f"2011 §4.3): used {always}by {gem_use} only with --gem-bias paper")
     parser.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
-                        help="bias estimate of GEM's final scale selection: pooled (default, "
-                             "docs/gem.md §5d) or the paper's per-pixel Eq. 1")
+                        help=f"bias estimate of the scale selection of {gem_use}: pooled "
+                             "(default, docs/gem.md §5d) or the paper's per-pixel Eq. 1")
 
 
 def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0, gem_bias=None):
@@ -688,8 +689,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render a scene with uniform or mapped per-pixel sample counts")
     r.add_argument("scene", help="built-in scene name (see `statmc scenes`), toy:NAME, or Mitsuba XML path")
     r.add_argument("--spp", type=POSITIVE_INT,
-                   help="samples per pixel, a positive integer (the budget of an adaptive --sampler "
-                        "or of a real-valued --sample-map)")
+                   help="samples per pixel, a positive integer; with an adaptive --sampler the "
+                        "average budget, with --sample-map the budget the map (then a density, "
+                        "whole numbers or not) is scaled to")
     r.add_argument("--out", required=True, help="output directory (created if missing)")
     r.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
     r.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
@@ -714,8 +716,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--bins", type=POSITIVE_INT, default=None,
                    help="number of sample bins of --reconstruct gem+bins / oidn+bins (default "
                         "4, the paper's; --spp must be a multiple of it)")
-    _add_gem_options(r, "by the adaptive --sampler gem and the pilot kernels of --sampler "
-                        "expected-error always, and ")
+    _add_gem_options(r, "--reconstruct gem and --denoiser gem",
+                     "by the adaptive --sampler gem and the pilot kernels of --sampler "
+                     "expected-error always, and ")
     r.add_argument("--crn", action="store_true",
                    help="common-random-number render (Mitsuba scenes, uniform --spp >= 2): sample "
                         "j of every pixel uses the same random sequence, so neighbouring errors "
@@ -732,7 +735,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--method", choices=["gem"], default="gem", help="reconstruction (only gem)")
     rc.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     rc.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
-    _add_gem_options(rc)
+    _add_gem_options(rc, "--method gem")
     rc.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     rc.set_defaults(func=cmd_reconstruct)
 
@@ -766,7 +769,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
-    _add_gem_options(d)
+    _add_gem_options(d, "--denoiser gem")
     d.add_argument("--sigma", type=POSITIVE, default=1.0,
                    help="standard deviation of --denoiser gaussian in pixels (default 1)")
     d.add_argument("--seed", type=SEED, default=0, help="seed of --variance's random probes")
@@ -780,7 +783,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="default oidn")
     pg.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     pg.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
-    _add_gem_options(pg)
+    _add_gem_options(pg, "--denoiser gem")
     pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     pg.set_defaults(func=cmd_progressive)

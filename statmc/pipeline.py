@@ -3,6 +3,8 @@ then reconstruct with a named method."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from .errors import InputError, as_int
@@ -121,7 +123,7 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     out = []
     for b in range(bins):
         if progress:
-            print(f"  bin {b + 1}/{bins}: {spp // bins} spp", flush=True)
+            print(f"  bin {b + 1}/{bins}: {spp // bins} spp", file=sys.stderr, flush=True)
         out.append(renderer.render(counts, seed=bin_seed(seed, b), progress=progress))
     return out
 

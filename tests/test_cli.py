@@ -340,7 +340,7 @@ def _files(d):
     (["render", "toy:mixed", "--spp", "4", "--gamma", "nan", "--out", "{tmp}/x"], "--gamma"),
     (["render", "toy:mixed", "--spp", "4", "--gamma", "0.9", "--out", "{tmp}/x"], "--gamma"),
     (["render", "toy:mixed", "--spp", "2", "--sampler", "gem", "--size", "24x16", "--out", "{tmp}/x"],
-     "--spp budget of at least 4"),
+     "--spp budget above 4"),
     (["render", "toy:mixed", "--spp", "10000000000", "--size", "24x16", "--out", "{tmp}/x"], "--spp"),
     (["reference", "toy:mixed", "--spp", "8", "--pass-spp", "0", "--out", "{tmp}/x/r.exr"], "--pass-spp"),
     (["reference", "toy:mixed", "--spp", "0", "--out", "{tmp}/x/r.exr"], "--spp"),
@@ -854,3 +854,12 @@ def test_adaptive_sampler_needs_more_than_its_pilot(tmp_path):
     code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--spp", 4, "--sampler",
                            "gem", "--out", out, "-q")
     assert code != 0 and "above 4" in err and not out.exists()
+
+
+def test_bin_progress_goes_to_stderr(capsys):
+    """Progress lines go to stderr (docs/cli.md), so stdout stays the result summary."""
+    from statmc.pipeline import render_bins
+    from statmc.renderers import make_renderer
+    render_bins(make_renderer("toy:edges", width=8, height=8), 4, 2, seed=1, progress=True)
+    out, err = capsys.readouterr()
+    assert out == "" and "bin 1/2" in err and "bin 2/2" in err
