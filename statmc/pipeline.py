@@ -110,9 +110,14 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     """``bins`` independent uniform renders of ``spp // bins`` samples each: the sample
     bins of Back 2020 §4.4 (each pixel's samples split into disjoint subsets).
 
-    ``spp`` must be a multiple of ``bins``.  Merge them (``PixelStats.merge``) for the
-    full render.  Bin ``b`` uses :func:`bin_seed` ``(seed, b)``.
+    ``spp`` must be a multiple of ``bins``.  Merge them (:func:`merge_bins`) for the
+    full render.  With a renderer whose ``render`` takes ``first_sample`` (the Mitsuba
+    backend), bin ``b`` holds samples ``b·m … (b+1)·m − 1`` (``m = spp // bins``) of every
+    pixel's sequence of ``seed``, so the merged bins are the very samples of
+    ``renderer.render(spp, seed=seed)``.  Otherwise bin ``b`` is a render with
+    :func:`bin_seed` ``(seed, b)``.
     """
+    from .adaptive import _takes_first_sample
     spp = as_int("spp", spp, lo=1)
     bins = as_int("bins", bins, lo=2)
     seed = as_int("seed", seed, lo=0)
@@ -120,11 +125,16 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
         raise InputError(f"--spp {spp} must be a multiple of --bins {bins} (every bin gets "
                          f"the same number of samples).")
     counts = np.full((renderer.height, renderer.width), spp // bins, np.int64)
+    slices = _takes_first_sample(renderer)
     out = []
     for b in range(bins):
         if progress:
             print(f"  bin {b + 1}/{bins}: {spp // bins} spp", file=sys.stderr, flush=True)
-        out.append(renderer.render(counts, seed=bin_seed(seed, b), progress=progress))
+        if slices:
+            out.append(renderer.render(counts, seed=seed, progress=progress,
+                                       first_sample=b * counts))
+        else:
+            out.append(renderer.render(counts, seed=bin_seed(seed, b), progress=progress))
     return out
 
 

@@ -527,6 +527,17 @@ def test_adaptive_render_shares_samples_with_a_uniform_render(cornell):
     _assert_same_samples(pilot, cornell.render(np.minimum(n, 4), seed=11, features=False))
 
 
+def test_sample_bins_are_slices_of_one_render(cornell):
+    """render_bins on the Mitsuba backend: bin b holds samples b*m .. (b+1)*m - 1 of every
+    pixel, so the merged bins are one render of the seed, and the bins are disjoint."""
+    from statmc.pipeline import merge_bins, render_bins
+    bins = render_bins(cornell, 8, 4, seed=6)
+    whole = cornell.render(np.full((SIZE, SIZE), 8), seed=6, features=False)
+    _assert_same_samples(merge_bins(bins), whole)
+    lit = whole.mean.sum(-1) > 0
+    assert not np.allclose(bins[0].mean[lit], bins[1].mean[lit])
+
+
 def test_first_sample_bad_input(cornell):
     c = np.ones((SIZE, SIZE), np.int64)
     for bad, msg in ((np.ones((SIZE, SIZE + 1)), "image shape"), (-c, "non-negative|>= 0"),
