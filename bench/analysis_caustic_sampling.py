@@ -269,6 +269,12 @@ def variant(name):
 
 _ORACLE = {}
 
+#: Seed offset of the fixed-count (uniform, oracle) renders against the adaptive ones of
+#: the same seed: 10 000 (independent renders), or 0 with ``--crn``: the Mitsuba backend
+#: gives sample j of pixel p the same random numbers in both, so a pair shares the first
+#: min(n_adaptive, n_uniform) samples of every pixel (common random numbers).
+_FIXED_SEED_OFFSET = [10_000]
+
 
 def oracle_density(name):
     """Fixed sampling densities computed from the reference's own statistics (an oracle no
@@ -293,13 +299,14 @@ def render(r, name, spp, seed, initial_spp=None):
     """(final stats, pilot stats or None); adaptive runs start with ``initial_spp``
     (default: 4, or 2 below 8 spp as in bench_quality_table.py)."""
     if name == "uniform":
-        return r.render(np.full((r.height, r.width), spp, np.int64), seed=10_000 + seed), None
+        return r.render(np.full((r.height, r.width), spp, np.int64),
+                        seed=seed + _FIXED_SEED_OFFSET[0]), None
     if name.startswith("oracle"):
         from statmc.sampling import counts_from_density
 
         c = counts_from_density(oracle_density(name), spp * r.height * r.width, min_count=2,
                                 rng=seed)
-        return r.render(c, seed=10_000 + seed), None
+        return r.render(c, seed=seed + _FIXED_SEED_OFFSET[0]), None
     sampler, opts = variant(name)
     opts = dict(opts)
     opts.setdefault("initial_spp", initial_spp or (2 if spp < 8 else 4))
@@ -457,7 +464,11 @@ def main(argv=None):
                     help="only: do caught fireflies survive the final reconstruction, by n")
     ap.add_argument("--decompose", action="store_true",
                     help="only the bias/variance/reference split of uniform renders")
+    ap.add_argument("--crn", action="store_true",
+                    help="uniform/oracle renders share the adaptive render's seed (common "
+                         "random numbers per pixel and sample index; Mitsuba scenes)")
     a = ap.parse_args(argv)
+    _FIXED_SEED_OFFSET[0] = 0 if a.crn else 10_000
     r, ref_stats = _reference(a.scene)
     _ORACLE["ref"] = ref_stats
     ref = ref_stats.mean
