@@ -981,8 +981,10 @@ DEFAULT_STENCIL = 5       # covariance stencil width m of the first-order moment
 DEFAULT_MOMENT_SMOOTH = 2  # box radius smoothing the probe moments (5x5)
 DEFAULT_SIZE = 15         # combination window (the paper's 15x15, §5)
 DEFAULT_MIX_SIGMA = 16.0  # Gaussian σ (pixels) pooling the SURE terms of the mix
-#: Memory of one band of :func:`combine_bins`' per-pixel weights (float32 bytes).
-BINS_WEIGHT_BYTES = 1 << 30
+#: Memory of one band of rows (bytes) of the per-pixel weights (float32) and smoothed
+#: moment stencils (float64) of :func:`combine_denoised`, :func:`combine_bins` and
+#: :func:`combine_bin_images`, margins included (:func:`_band_rows`).
+BAND_BYTES = 1 << 30
 
 
 def _box(a, radius):
@@ -1073,6 +1075,58 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     .. [3] A. Firmino, J. R. Frisvad, H. W. Jensen. "Denoising-Aware Adaptive Sampling
        for Monte Carlo Ray Tracing". SIGGRAPH 2023. https://doi.org/10.1145/3588432.3591537
     """
+    m = _check_size(size)
+    pr = _probe_vectors(denoiser, x, mean_var, probes, rng, eps)
+    cov_z, cov_yz = pr.stencils(m, 0, pr.z.shape[0])
+    if extra_output:
+        V = np.stack([pr.v(i) for i in range(pr.K)])
+        return pr.z, cov_z, cov_yz, V, pr.jv
+    return pr.z, cov_z, cov_yz
+
+
+class _Probes:
+    """The probes of :func:`denoiser_moments`: ``z = f(x)``, the ``K`` probe vectors ``v``
+    (kept as their random signs, int8, and rebuilt as ``σ · (±1)`` exactly as drawn) and
+    ``J v`` (float64); ``used[i]`` is False for a probe skipped (no noise), whose ``v`` and
+    ``J v`` are zero."""
+
+    def __init__(self, z, sig, signs, jv, used):
+        self.z, self.sig, self.signs, self.jv, self.used = z, sig, signs, jv, used
+        self.K = jv.shape[0]
+
+    def v(self, i, lo=0, hi=None):
+        """Rows ``lo .. hi − 1`` of probe ``i``."""
+        if not self.used[i]:
+            return np.zeros(self.jv.shape[1:])[lo:hi]
+        return self.sig[lo:hi] * (self.signs[i, lo:hi] * 2.0 - 1.0)
+
+    def stencils(self, m, r0, r1):
+        """Rows ``r0 .. r1 − 1`` of the unsmoothed stencils ``cov_z``, ``cov_yz``
+        ``(r1 − r0, W, m, m, C)``: products over a slab with ``m // 2`` rows of margin,
+        summed over the probes in order and divided by ``K``, so each entry is the one
+        of the whole image to the bit."""
+        H, W, C = self.z.shape
+        R = m // 2
+        s0, s1 = max(0, r0 - R), min(H, r1 + R)
+        cov_z = np.zeros((s1 - s0, W, m, m, C))
+        cov_yz = np.zeros((s1 - s0, W, m, m, C))
+        for i in range(self.K):
+            if not self.used[i]:
+                continue                  # no noise (or a black image): zero moments
+            jv = self.jv[i, s0:s1]
+            add_neighbour_products(cov_z, jv, jv, R)       # cov_z[p, R+u] += (Jv)_p (Jv)_{p+u}
+            add_neighbour_products(cov_yz, self.v(i, s0, s1), jv, R)   # += v_p (Jv)_{p+u}
+        out = []
+        for a in (cov_z, cov_yz):
+            a = a[r0 - s0:r1 - s0]
+            a /= self.K
+            out.append(a)
+        return out
+
+
+def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
+    """Check the input of :func:`denoiser_moments` and run the ``K + 1`` denoiser calls
+    (on the whole image: a black box cannot be banded); returns :class:`_Probes`."""
     xx = as_float_array("x", x, ndim=3, dtype=np.float64)
     check_finite("x", xx)
     mv = as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64)
@@ -1081,35 +1135,130 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     if mv.shape != xx.shape:
         raise InputError(f"`mean_var` must have the shape of `x` {xx.shape} (the variance of the "
                          f"mean of each pixel and channel); got {mv.shape}.")
-    m = _check_size(size)
     if isinstance(probes, bool) or not isinstance(probes, (int, np.integer)) or probes < 1:
         raise InputError(f"`probes` must be an integer >= 1; got {probes!r}.")
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
     gen = np.random.default_rng(rng)
-    H, W, C = xx.shape
-    R = m // 2
     sig = np.sqrt(mv)
     z = _denoise(denoiser, xx)
-    V = np.zeros((probes, H, W, C))
-    JV = np.zeros((probes, H, W, C))
-    cov_z = np.zeros((H, W, m, m, C))
-    cov_yz = np.zeros((H, W, m, m, C))
+    signs = np.zeros((probes,) + xx.shape, np.int8)
+    jvs = np.zeros((probes,) + xx.shape)
+    used = np.zeros(probes, bool)
     for i in range(int(probes)):
-        v = sig * (gen.integers(0, 2, xx.shape) * 2.0 - 1.0)
+        draw = gen.integers(0, 2, xx.shape)
+        v = sig * (draw * 2.0 - 1.0)
         h = _probe_step(xx, v, eps)
         if h is None:
             continue                      # no noise (or a black image): zero moments
-        jv = np.ascontiguousarray((_denoise(denoiser, xx + h * v) - z) / h)
-        V[i], JV[i] = v, jv
-        add_neighbour_products(cov_z, jv, jv, R)      # cov_z[p, R+u] += (Jv)_p (Jv)_{p+u}
-        add_neighbour_products(cov_yz, v, jv, R)      # cov_yz[p, R+u] += v_p (Jv)_{p+u}
-    cov_z /= probes
-    cov_yz /= probes
-    if extra_output:
-        return z, cov_z, cov_yz, V, JV
-    return z, cov_z, cov_yz
+        jvs[i] = (_denoise(denoiser, xx + h * v) - z) / h
+        signs[i], used[i] = draw, True
+    return _Probes(z, sig, signs, jvs, used)
+
+
+def _reflect(i, n):
+    """Index ``i`` of a line of ``n`` extended as :mod:`scipy.ndimage`'s ``mode="reflect"``
+    (``d c b a | a b c d | d c b a``, repeated for lines shorter than the extension)."""
+    p = 2 * n
+    i %= p
+    return i if i < n else p - 1 - i
+
+
+class _SmoothedRows:
+    """Box-smoothed covariance stencils handed out in bands of rows, to the bit those of
+    ``scale · _box(stencil, radius)`` on the whole image, without ever holding it.
+
+    ``raw(r0, r1)`` gives rows ``r0 .. r1 − 1`` of the unsmoothed stencils (a tuple of
+    ``(r1 − r0, W, m, m, C)`` arrays).  :func:`scipy.ndimage.uniform_filter` filters the
+    rows axis, then the columns axis; along the rows it keeps a running sum from the
+    first row (``t_0 = Σ x_{−s..s}``, ``t_y = t_{y−1} + (x_{y+s} − x_{y−s−1})``, output
+    ``t_y / n``, reflected borders; SciPy 1.17), so a band's rows depend on the rounding
+    of every row above.
+    This class runs the same sum with the same operations, row after row over successive
+    bands (requests move down the image; a band may overlap the previous one), carrying
+    the running sums across bands; the columns pass is SciPy's own on each new row.
+    """
+
+    def __init__(self, raw, H, radius, scale=None):
+        self.raw, self.H, self.s, self.scale = raw, H, int(radius), scale
+        self.lo = self.hi = 0          # rows held: lo .. hi - 1
+        self.held = None
+        self.sums = None               # running sums of the rows pass at row hi - 1
+
+    def rows(self, lo, hi):
+        """Smoothed rows ``lo .. hi − 1`` (``lo``, ``hi`` not below the previous call's)."""
+        if lo < self.lo or hi < self.hi or lo > self.hi or hi <= lo:
+            raise ValueError(f"bands must move down the image: rows {lo}..{hi} after "
+                             f"{self.lo}..{self.hi}")
+        keep = [] if self.held is None else [a[lo - self.lo:].copy() for a in self.held]
+        self.held = None                   # free the previous band before the next
+        out = self._smooth(self.hi, hi, keep) if hi > self.hi else keep
+        self.lo, self.hi, self.held = lo, hi, out
+        return out
+
+    def _smooth(self, n0, n1, keep):
+        """Rows ``n0 .. n1 − 1`` appended to the ``keep`` rows (one array per stencil)."""
+        s, H = self.s, self.H
+        if s <= 0:
+            new = list(self.raw(n0, n1))
+            if self.scale is not None:
+                for o in new:
+                    o *= self.scale
+            return [np.concatenate([k_, o]) for k_, o in zip(keep, new)] if keep else new
+        from scipy.ndimage import uniform_filter1d
+
+        n = 2 * s + 1
+        first = n0 - s - 1 if n0 > 0 else -s
+        idx = [_reflect(e, H) for e in range(first, n1 + s)]
+        r0 = min(idx)
+        raw = list(self.raw(r0, max(idx) + 1))
+        if self.sums is None:
+            self.sums = [None] * len(raw)
+        out = []
+        for j in range(len(raw)):
+            x = raw[j]
+            nk = len(keep[j]) if keep else 0
+            full = np.empty((nk + n1 - n0,) + x.shape[1:])
+            if nk:
+                full[:nk] = keep[j]
+                keep[j] = None
+            o = full[nk:]
+            t = self.sums[j]
+            for y in range(n0, n1):
+                if y == 0:
+                    t = np.zeros(x.shape[1:])
+                    for e in range(-s, s + 1):
+                        t += x[_reflect(e, H) - r0]
+                else:
+                    t += x[_reflect(y + s, H) - r0] - x[_reflect(y - s - 1, H) - r0]
+                np.divide(t, n, out=o[y - n0])
+            self.sums[j] = t
+            raw[j] = x = None              # free each raw stencil once summed
+            uniform_filter1d(o, n, axis=1, output=o, mode="reflect")
+            if self.scale is not None:
+                o *= self.scale
+            out.append(full)
+        return out
+
+
+def _band_margin(k, patch):
+    """Rows of margin a band of weights needs on either side: a pixel's Eq. 8/14 reads
+    its taps ``k // 2`` rows away, whose tap biases are box means over ``patch`` rows."""
+    return k // 2 + patch
+
+
+def _band_rows(H, row_bytes, margin):
+    """Output rows of each band: as many as :data:`BAND_BYTES` holds with the ``margin``
+    rows on either side (``row_bytes`` per row), split into equal bands, but at least
+    ``2 margin`` (so the margins at most double the work)."""
+    most = max(1, 2 * margin, BAND_BYTES // max(1, row_bytes) - 2 * margin)
+    return max(-(-H // -(-H // most)), min(most, 2 * margin))
+
+
+def _stencil_row_bytes(W, m, C, count=2):
+    """Bytes of one row of ``count`` float64 ``(W, m, m, C)`` stencils."""
+    return count * W * m * m * C * 8
 
 
 def _simplex_mix(G, b):
@@ -1251,6 +1400,14 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     residuals ``y − z``; where ``z`` is better than any such average — low spp,
     fireflies — only the mix can keep ``z``.  Quality table: ``docs/combine.md``.
 
+    *Memory.*  The denoiser sees the whole image (``probes + 1`` calls; the probes are kept,
+    ``J v`` as float64 and ``v`` as signs).  Steps 1–3 then run in bands of rows, as in
+    :func:`combine_bins` (within :data:`BAND_BYTES`, ``k // 2 + patch`` rows of margin):
+    the smoothed stencils and the weights of the whole image would take
+    ``2 H W (m² C 8 + k² 4)`` bytes, 5 GB at 1920x1080.  The output is the one-piece
+    output to the bit (tested); at 1920x1080 with the defaults and GEM's kernel the peak
+    is the inputs plus 1.9 GiB (5.3 GiB before; ``bench/bench_combine.py --part memory``).
+
     References
     ----------
     .. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
@@ -1270,31 +1427,48 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
         raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
     k = _check_window_options(size, stencil, smooth, patch)
     ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
-    z, cov_z, cov_yz, V, JV = denoiser_moments(denoiser, yy, mean_var, size=stencil,
-                                               probes=probes, rng=rng, extra_output=True)
+    pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3)
+    z = pr.z
+    H, W, C = z.shape
+    m = int(stencil)
     mv = np.asarray(mean_var, np.float64)
-    cov_z = _box(cov_z, smooth)
-    cov_yz = _box(cov_yz, smooth)
     sm = np.maximum(_box(mv, 2), 0.0)
     var_w = {"smooth": sm, "raw": mv, "max": np.maximum(mv, sm)}
     rel = 1.0 / (z * z + 0.01)
-    betas, nums = [], []
-    for model in models:
-        w = statistical_weights(yy, z, var_w[model], cov_z, k, cov_yz=cov_yz,
-                                patch=int(patch), leave_centre_out=True)
-        beta = combine(yy, z, w)
-        betas.append(beta)
-        if mix is None:
-            break
-        nums.append((_mix_gain(yy, z, beta, mv, w, V, JV) * rel).sum(axis=-1))
-        del w
+    J = 1 if mix is None else len(models)
+    betas = np.empty((J, H, W, C))
+    nums = np.empty((H, W, J))
+    # Steps 1-3 in bands of rows (the stencils and weights of the whole image would take
+    # 2 H W (m² C 8 + k² 4) bytes, 5 GB at 1080p): a band's smoothed stencils need the
+    # rows above it (the box's running sums, carried by _SmoothedRows), and its weights,
+    # β̂ and SURE terms read k // 2 + patch rows on either side.
+    margin = _band_margin(k, int(patch))
+    rows = _band_rows(H, W * k * k * 4 + _stencil_row_bytes(W, m, C), margin)
+    moments = _SmoothedRows(lambda r0, r1: pr.stencils(m, r0, r1), H, smooth)
+    for a in range(0, H, rows):
+        b = min(H, a + rows)
+        lo, hi = max(0, a - margin), min(H, b + margin)
+        cov_z, cov_yz = moments.rows(lo, hi)
+        yb, zb = yy[lo:hi], z[lo:hi]
+        V = np.stack([pr.v(i, lo, hi) for i in range(pr.K)]) if mix is not None else None
+        for j in range(J):
+            w = statistical_weights(yb, zb, var_w[models[j]][lo:hi], cov_z, k, cov_yz=cov_yz,
+                                    patch=int(patch), leave_centre_out=True)
+            beta = combine(yb, zb, w)
+            betas[j, a:b] = beta[a - lo:b - lo]
+            if mix is not None:
+                gain = _mix_gain(yb, zb, beta, mv[lo:hi], w, V, pr.jv[:, lo:hi])
+                nums[a:b, :, j] = (gain * rel[lo:hi]).sum(axis=-1)[a - lo:b - lo]
+            del w, beta
+        del cov_z, cov_yz, V
+    del moments
     lam = None
     if mix is None:
         out = betas[0]
     else:
         rho = np.stack([b - z for b in betas], axis=-1)                   # (H, W, C, J)
         G = np.einsum("hwci,hwcj,hwc->hwij", rho, rho, rel)
-        b = np.stack(nums, axis=-1)
+        b = nums
         if mix == "global":
             lam = _simplex_mix(G.sum(axis=(0, 1)), b.sum(axis=(0, 1)))
             out = z + np.einsum("hwcj,j->hwc", rho, lam)
@@ -1306,7 +1480,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
             lam = _simplex_mix(Gs, bs)
             out = z + np.einsum("hwcj,hwj->hwc", rho, lam)
     if extra_output:
-        return out, {"denoised": z, "combined": np.stack(betas), "mix": lam}
+        return out, {"denoised": z, "combined": betas, "mix": lam}
     return out
 
 
@@ -1356,12 +1530,16 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     Notes
     -----
     The weights, ``H·W·B·k²`` float32 values (7.5 GB at 1920x1080 with ``B = 4``, 15x15),
-    are formed in bands of rows of at most :data:`BINS_WEIGHT_BYTES` (or of ``4 (k // 2 +
-    patch)`` rows, if more, so the margins cost at most twice the work), each with a margin
-    of ``k // 2 + patch`` rows on either side, which is everything a pixel's weights and
-    its Eq. 14 read; the output is the same as in one piece (tested).  The moment stencils,
-    ``(H, W, m, m, C)`` float64 with their smoothed copies, are not banded: about 6 GB at
-    1920x1080 with ``m = 5``.
+    and the smoothed moment stencils, two ``(H, W, m, m, C)`` float64 arrays (2.5 GB with
+    ``m = 5``), are formed in bands of rows: as many as :data:`BAND_BYTES` holds (or
+    ``2 (k // 2 + patch)``, if more, so the margins cost at most twice the work), in
+    equal bands, each with a margin of ``k // 2 + patch`` rows on either side, which is
+    everything a pixel's weights and its Eq. 14 read.  A band's stencils come from the
+    probes with ``m // 2`` rows of margin, and its box smoothing carries SciPy's running
+    sums down from the band above, so the output is the one-piece output to the bit
+    (tested).  Only the ``K + 1`` denoiser calls (and each bin's) see the whole image.
+    Peak memory at 1920x1080 (``B = 4``, defaults, GEM's kernel): the inputs plus 1.9 GiB
+    (4.9 GiB before the stencils were banded; ``bench/bench_combine.py --part memory``).
 
     With these moment-based weights every bin gets the same moments, so the weights
     differ between bins only through the tap biases; with a shared *linear* kernel and
@@ -1389,12 +1567,12 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
     k = _check_window_options(size, stencil, smooth, patch)
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
-    _, cov_z, cov_yz = denoiser_moments(denoiser, yb.mean(axis=0), mv, size=stencil,
-                                        probes=probes, rng=rng)
-    cov_z = B * _box(cov_z, smooth)
-    cov_yz = B * _box(cov_yz, smooth)
+    pr = _probe_vectors(denoiser, yb.mean(axis=0), mv, probes, rng, 1e-3)
+    m = int(stencil)
+    moments = _SmoothedRows(lambda r0, r1: pr.stencils(m, r0, r1), yb.shape[1], smooth,
+                            scale=B)
     var_y = B * np.maximum(_box(mv, 2), 0.0)
-    out, w = _banded_eq14(yb, zs, var_y, cov_z, cov_yz, k, int(patch), whole=extra_output)
+    out, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=extra_output)
     if extra_output:
         return out, {"denoised": zs, "weights": w}
     return out
@@ -1414,23 +1592,26 @@ def _check_window_options(size, stencil, smooth, patch):
     return k
 
 
-def _banded_eq14(ys, zs, var_y, cov_z, cov_yz, k, patch, *, whole=False):
-    """Statistical weights and Eq. 14 in bands of rows of at most :data:`BINS_WEIGHT_BYTES`
-    of weights (or ``4 (k // 2 + patch)`` rows, whichever is more), each with the
-    ``k // 2 + patch`` rows of margin a pixel's weights and its Eq. 14 read (``whole``:
-    one band; returns its weights too)."""
-    B, H, W = ys.shape[:3]
-    margin = k // 2 + patch
-    # at least 2·margin output rows a band, so the margins at most double the work
-    rows = H if whole else max(1, 2 * margin,
-                               BINS_WEIGHT_BYTES // (W * B * k * k * 4) - 2 * margin)
+def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False):
+    """Statistical weights and Eq. 14 in bands of rows (:func:`_band_rows`: weights and
+    ``m``-wide stencils within :data:`BAND_BYTES`), each with the ``k // 2 + patch`` rows
+    of margin a pixel's weights and its Eq. 14 read; ``moments`` (:class:`_SmoothedRows`)
+    gives each band's smoothed ``cov_z``, ``cov_yz`` (``whole``: one band; returns its
+    weights too)."""
+    B, H, W, C = ys.shape
+    margin = _band_margin(k, patch)
+    rows = H if whole else _band_rows(H, W * B * k * k * 4 + _stencil_row_bytes(W, m, C),
+                                      margin)
     out = np.empty(ys.shape[1:])
     w = None
     for a in range(0, H, rows):
         b = min(H, a + rows)
         lo, hi = max(0, a - margin), min(H, b + margin)
-        w = statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z[lo:hi], k,
-                                cov_yz=cov_yz[lo:hi], patch=patch)
+        w = None                           # free the previous band's weights first
+        cov_z, cov_yz = moments.rows(lo, hi)
+        w = statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z, k,
+                                cov_yz=cov_yz, patch=patch)
+        del cov_z, cov_yz
         out[a:b] = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
     return out, (w if whole else None)
 
@@ -1448,7 +1629,8 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
     :func:`buffer_moments` estimates the moments of one bin from their spread (``B − 1``
     degrees of freedom; ``stencil``-wide, box-smoothed over ``(2 smooth + 1)²`` pixels).
     The weights are :func:`statistical_weights` ("coherent", tap biases from the bins'
-    ``δ``), formed in bands of rows like :func:`combine_bins`.
+    ``δ``).  Moments and weights are formed in bands of rows like :func:`combine_bins`
+    (the same output as in one piece, to the bit).
 
     Parameters
     ----------
@@ -1463,8 +1645,17 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
     ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
     k = _check_window_options(size, stencil, smooth, patch)
     ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
-    var_y, cov_z, cov_yz = buffer_moments(ysa, zsa, size=stencil)
-    var_y, cov_z, cov_yz = (_box(a, int(smooth)) for a in (var_y, cov_z, cov_yz))
-    var_y = np.maximum(var_y, 0.0)     # the box filter's running sums can leave -1e-19
-    out = _banded_eq14(ysa, zsa, var_y, cov_z, cov_yz, k, int(patch))[0]
+    H, m = ysa.shape[1], int(stencil)
+    var_y = buffer_moments(ysa, zsa, size=1)[0]
+    var_y = np.maximum(_box(var_y, int(smooth)), 0.0)  # the box's running sums leave -1e-19
+
+    def raw(r0, r1):
+        """Stencil rows r0 .. r1 - 1 from a slab with m // 2 rows of margin (the same
+        products and sums as on the whole image)."""
+        s0, s1 = max(0, r0 - m // 2), min(H, r1 + m // 2)
+        _, cz, cyz = buffer_moments(ysa[:, s0:s1], zsa[:, s0:s1], size=m)
+        return cz[r0 - s0:r1 - s0], cyz[r0 - s0:r1 - s0]
+
+    moments = _SmoothedRows(raw, H, int(smooth))
+    out = _banded_eq14(ysa, zsa, var_y, moments, m, k, int(patch))[0]
     return out[..., 0] if squeeze else out     # (B, H, W) bins give (H, W), as combine_multi

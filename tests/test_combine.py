@@ -969,18 +969,37 @@ def test_bin_seeds_refuse_negative_seeds_with_an_input_error():
         render_bins(ToyRenderer("edges", width=8, height=6), 4, 2, seed=-1)
 
 
+def _band_bytes(rows, W, B, k, margin, m=5, C=3):
+    """A ``BAND_BYTES`` giving bands of ``rows`` output rows (when ``rows >= 2 margin``
+    and the image splits evenly): weights and two smoothed stencils per row."""
+    return (rows + 2 * margin) * (W * B * k * k * 4 + 2 * W * m * m * C * 8)
+
+
 def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
-    """The weights of a large image are formed in bands of rows with a margin of
-    k // 2 + patch rows: the output must be what the whole image at once gives."""
+    """The weights and moment stencils of a large image are formed in bands of rows with a
+    margin of k // 2 + patch rows: the output must be what the whole image at once gives,
+    to the bit, and the unbanded pipeline assembled by hand (denoiser_moments at the bin
+    mean, B x the 5x5 box of the stencils, weights, Eq. 14).  A margin one row short
+    changes the output (the test can see a wrong margin)."""
     import statmc.combine as cbm
     bins, full, f = _bins_and_kernel(seed=3)
     ys = np.stack([b.mean for b in bins])
-    whole, _ = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1, extra_output=True)
+    whole, info = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
+                                   extra_output=True)
     B, H, W, _ = ys.shape
-    for rows in (1, 5, 13):
-        monkeypatch.setattr(cbm, "BINS_WEIGHT_BYTES", (rows + 2 * (3 + 2)) * W * B * 49 * 4)
+    _, cz, cyz = denoiser_moments(f, ys.mean(axis=0), full.mean_var, size=5, rng=1)
+    var_y = B * np.maximum(cbm._box(full.mean_var, 2), 0.0)
+    w = statistical_weights(ys, info["denoised"], var_y, B * cbm._box(cz, 2), 7,
+                            cov_yz=B * cbm._box(cyz, 2), patch=2)
+    np.testing.assert_array_equal(w, info["weights"])
+    np.testing.assert_array_equal(whole, combine_multi(ys, info["denoised"], w))
+    for rows in (1, 10, 13):
+        monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(rows, W, B, 7, 5))
         banded = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
-        np.testing.assert_allclose(banded, whole, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(banded, whole)
+    monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
+    assert not np.array_equal(cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1),
+                              whole)
 
 
 def test_combine_bin_images_is_eq14_with_moments_from_the_bin_spread(monkeypatch):
@@ -998,9 +1017,9 @@ def test_combine_bin_images_is_eq14_with_moments_from_the_bin_spread(monkeypatch
     want = combine_multi(ys, zs, w)
     got = cbm.combine_bin_images(ys, zs, size=7, stencil=3)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
-    monkeypatch.setattr(cbm, "BINS_WEIGHT_BYTES", (4 + 2 * 5) * 36 * 4 * 49 * 4)
-    np.testing.assert_allclose(cbm.combine_bin_images(ys, zs, size=7, stencil=3), want,
-                               rtol=0, atol=1e-12)
+    for rows in (10, 13):
+        monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(rows, 36, 4, 7, 5, m=3))
+        np.testing.assert_array_equal(cbm.combine_bin_images(ys, zs, size=7, stencil=3), got)
     with pytest.raises(InputError, match="patch"):
         cbm.combine_bin_images(ys, zs, patch=-1)
     with pytest.raises(InputError):
@@ -1068,3 +1087,103 @@ def test_reconstruct_bins_refuses_pixels_without_a_variance():
     for method in ("gem+bins", "oidn+bins"):
         with pytest.raises(InputError, match="1 pixels with fewer than 2 samples"):
             reconstruct_bins(bins, method)
+
+
+# --------------------------------------------------------------------------- banded moments
+def test_smoothed_rows_equal_scipys_box_of_the_whole_image_to_the_bit():
+    """_SmoothedRows hands out box-smoothed stencils band after band, carrying SciPy's
+    running sums from band to band: bit for bit ``scale · _box(stencil, radius)`` of the
+    whole image, whatever the bands (overlapping as in the band loops), borders included
+    and images shorter than the box (reflected more than once).  Restarting the box on each
+    band (without the carried sums) is *not* bit for bit, which is why they are carried."""
+    from scipy.ndimage import uniform_filter
+
+    import statmc.combine as cbm
+    rng = np.random.default_rng(21)
+    for H, W, radius, scale in ((23, 6, 2, None), (23, 6, 3, 4), (9, 5, 0, 2), (1, 4, 2, None),
+                                (2, 3, 2, None), (3, 7, 4, None)):
+        x = rng.normal(size=(H, W, 3, 3, 2)) * 10.0 ** rng.integers(-4, 4, (H, W, 3, 3, 2))
+        y = 2 * x
+        want = [cbm._box(a, radius) for a in (x, y)]
+        if scale is not None:
+            want = [scale * a for a in want]
+        for rows, margin in ((H, 0), (1, 0), (4, 2), (5, 3), (7, 1)):
+            sr = cbm._SmoothedRows(lambda r0, r1: (x[r0:r1].copy(), y[r0:r1].copy()), H,
+                                   radius, scale=scale)
+            for a in range(0, H, rows):
+                b = min(H, a + rows)
+                lo, hi = max(0, a - margin), min(H, b + margin)
+                got = sr.rows(lo, hi)
+                for g, wnt in zip(got, want):
+                    np.testing.assert_array_equal(g, wnt[lo:hi])
+    x = rng.normal(size=(40, 8, 1, 1, 3))
+    band = uniform_filter(x[20:], (5, 5, 1, 1, 1), mode="reflect")[2:]
+    assert not np.array_equal(band, cbm._box(x, 2)[22:])
+    sr = cbm._SmoothedRows(lambda r0, r1: (x[r0:r1],), 40, 2)
+    sr.rows(0, 12)
+    with pytest.raises(ValueError, match="move down"):
+        sr.rows(0, 10)
+
+
+def test_probe_stencil_rows_equal_the_whole_image_stencils_to_the_bit():
+    """Rows r0 .. r1 of the probe stencils, from a slab with m // 2 rows of margin, are
+    those of ``denoiser_moments`` on the whole image (borders, a band of one row, bands
+    wider than the image's rows, a skipped probe of a black image)."""
+    import statmc.combine as cbm
+    from statmc import denoisers
+    rng = np.random.default_rng(22)
+    f = denoisers.gaussian(1.5)
+    for H, W, C, m in ((17, 9, 3, 5), (17, 9, 1, 3), (2, 5, 3, 5)):
+        x = rng.gamma(2.0, 0.5, (H, W, C))
+        mv = rng.gamma(2.0, 0.02, (H, W, C))
+        z, cz, cyz, V, JV = denoiser_moments(f, x, mv, size=m, probes=3, rng=4,
+                                             extra_output=True)
+        pr = cbm._probe_vectors(f, x, mv, 3, 4, 1e-3)
+        np.testing.assert_array_equal(np.stack([pr.v(i) for i in range(3)]), V)
+        for r0, r1 in ((0, H), (0, 1), (H - 1, H), (H // 2, H // 2 + 1), (1, H - 1)):
+            if r1 <= r0:
+                continue
+            a, b = pr.stencils(m, r0, r1)
+            np.testing.assert_array_equal(a, cz[r0:r1])
+            np.testing.assert_array_equal(b, cyz[r0:r1])
+    zero = np.zeros((5, 4, 3))
+    z, cz, cyz, V, JV = denoiser_moments(f, zero, np.ones_like(zero), size=3, probes=2,
+                                         extra_output=True)
+    assert not cz.any() and not cyz.any() and not V.any() and not JV.any()
+
+
+@pytest.mark.parametrize("H, W, C", [(31, 12, 3), (37, 12, 1), (3, 5, 3)])
+def test_combine_denoised_in_bands_of_rows_equals_one_piece(monkeypatch, H, W, C):
+    """combine_denoised forms the probe stencils, the weights, β̂ and the SURE terms in
+    bands of rows (the stencils and weights of a 1080p image took 5 GB at once): bit for
+    bit the output, β̂ and mix of one band, for any band size (31 rows in bands of 10: a
+    last band inside the previous one's margin), one channel, an image shorter than a
+    band's margin; equal to the unbanded pipeline assembled by hand
+    (mix=None); a margin one row short changes the output."""
+    import statmc.combine as cbm
+    from statmc import denoisers
+    rng = np.random.default_rng(23 + C)
+    y = rng.gamma(2.0, 0.5, (H, W, C))
+    mv = rng.gamma(2.0, 0.01, (H, W, C))
+    f = denoisers.gaussian(1.5)
+    kw = dict(size=7, patch=2, rng=3, extra_output=True)
+    whole = {mix: cbm.combine_denoised(y, mv, f, mix=mix, **kw)
+             for mix in ("local", "global", None)}
+    # mix=None, var="smooth" by hand: the moments, box, weights and Eq. 8 of the old code
+    z, cz, cyz = denoiser_moments(f, y, mv, size=5, probes=8, rng=3)
+    sm = np.maximum(cbm._box(mv, 2), 0.0)
+    w = statistical_weights(y, z, sm, cbm._box(cz, 2), 7, cov_yz=cbm._box(cyz, 2), patch=2,
+                            leave_centre_out=True)
+    np.testing.assert_array_equal(whole[None][0], combine(y, z, w))
+    for rows in (10, 11, 17):
+        monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(rows, W, 1, 7, 5, C=C))
+        for mix, (out, info) in whole.items():
+            got, ginfo = cbm.combine_denoised(y, mv, f, mix=mix, **kw)
+            np.testing.assert_array_equal(got, out)
+            np.testing.assert_array_equal(ginfo["combined"], info["combined"])
+            if mix is not None:
+                np.testing.assert_array_equal(ginfo["mix"], info["mix"])
+    if H > 2 * 5:
+        monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
+        short = cbm.combine_denoised(y, mv, f, mix=None, **kw)[0]
+        assert not np.array_equal(short, whole[None][0])
