@@ -216,29 +216,34 @@ def _chunk_seed(seed: int, salt: int, chunk: int) -> int:
     return int(np.random.SeedSequence([seed, salt, chunk]).generate_state(1, np.uint32)[0])
 
 
-def _splitmix64(x: np.ndarray) -> np.ndarray:
-    """SplitMix64's output mix of a ``uint64`` array (a bijection; wraps modulo 2**64)."""
-    x = x ^ (x >> np.uint64(30))
-    x = x * np.uint64(0xBF58476D1CE4E5B9)
-    x = x ^ (x >> np.uint64(27))
-    x = x * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
+#: (shifts, multipliers) of two xor-shift-multiply mixes: SplitMix64's output function on
+#: 64-bit words and MurmurHash3's 32-bit finaliser.  Both are bijections of their words.
+_SPLITMIX64 = ((30, 27, 31), (0xBF58476D1CE4E5B9, 0x94D049BB133111EB))
+_FMIX32 = ((16, 13, 16), (0x85EBCA6B, 0xC2B2AE35))
+
+
+def _xorshift_multiply(x, constants, word):
+    """``x ^= x >> s1; x *= m1; x ^= x >> s2; x *= m2; x ^= x >> s3`` on an array of
+    unsigned words (products wrap); ``word`` is the word type (``np.uint64``,
+    ``np.uint32`` or a Dr.Jit ``UInt32``), so NumPy and Dr.Jit share this code."""
+    (s1, s2, s3), (m1, m2) = constants
+    x = x ^ (x >> word(s1))
+    x = x * word(m1)
+    x = x ^ (x >> word(s2))
+    x = x * word(m2)
+    return x ^ (x >> word(s3))
 
 
 def _fmix32(h: np.ndarray) -> np.ndarray:
-    """MurmurHash3's 32-bit finaliser of a ``uint32`` array (a bijection of 32-bit words)."""
-    h = h ^ (h >> np.uint32(16))
-    h = h * np.uint32(0x85EBCA6B)
-    h = h ^ (h >> np.uint32(13))
-    h = h * np.uint32(0xC2B2AE35)
-    return h ^ (h >> np.uint32(16))
+    """MurmurHash3's 32-bit finaliser of a ``uint32`` array."""
+    return _xorshift_multiply(h, _FMIX32, np.uint32)
 
 
 def _pixel_keys(seed: int, salt: int, pixels: int) -> np.ndarray:
     """A pseudo-random 32-bit base per pixel, a function of (seed, salt, pixel)."""
     key = np.random.SeedSequence([seed, salt]).generate_state(1, np.uint64)[0]
     p = np.arange(pixels, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-    return (_splitmix64(p ^ key) >> np.uint64(32)).astype(np.uint32)
+    return (_xorshift_multiply(p ^ key, _SPLITMIX64, np.uint64) >> np.uint64(32)).astype(np.uint32)
 
 
 def _sample_seeds(keys: np.ndarray, pix: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -293,12 +298,8 @@ def _seed_bases(keys: np.ndarray, counts_flat: np.ndarray, first_flat: np.ndarra
 
 
 def _fmix32_drjit(mi, h):
-    """:func:`_fmix32` on a Dr.Jit ``UInt32`` array (products wrap modulo 2**32)."""
-    h = h ^ (h >> 16)
-    h = h * mi.UInt32(0x85EBCA6B)
-    h = h ^ (h >> 13)
-    h = h * mi.UInt32(0xC2B2AE35)
-    return h ^ (h >> 16)
+    """:func:`_fmix32` on a Dr.Jit ``UInt32`` array."""
+    return _xorshift_multiply(h, _FMIX32, mi.UInt32)
 
 
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool):
