@@ -19,6 +19,10 @@ import numpy as np
 from . import __version__
 from .errors import FileFormatError, InputError
 
+#: GEM's default error rate γ, as ``statmc.gem.DEFAULT_GAMMA`` (a test checks; the CLI does
+#: not import statmc.gem before it needs it).
+DEFAULT_GAMMA = 0.2
+
 DESCRIPTION = "statmc: statistics of Monte Carlo rendering (render, reconstruct, denoise, combine)."
 EXIT_USAGE = 2
 INITIAL_SPP, ITERATIONS = 4, 8  # the adaptive samplers' uniform pilot pass, then passes
@@ -468,14 +472,17 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _add_gem_options(parser, gem_use: str, always: str = "") -> None:
+def _add_gem_options(parser, gem_use: str, always: str = "", *, refuse_unused=False) -> None:
     """``--gamma`` and ``--gem-bias``: the GEM selector's error rate and bias estimate.
     ``gem_use`` names the command's GEM final selections, ``always`` what uses γ in any
-    case (with a trailing ", and ")."""
-    parser.add_argument("--gamma", type=_gamma_type, default=0.2,
+    case (with a trailing ", and ").  ``refuse_unused``: default None, so that the command
+    can refuse them when it has no GEM (it then fills in the defaults, :func:`_gem_defaults`)."""
+    parser.add_argument("--gamma", type=_gamma_type,
+                        default=None if refuse_unused else DEFAULT_GAMMA,
                         help=f"GEM error-rate parameter γ in (0, 0.526), default 0.2 (Rousselle "
                              f"2011 §4.3): used {always}by {gem_use} only with --gem-bias paper")
-    parser.add_argument("--gem-bias", choices=["pooled", "paper"], default="pooled",
+    parser.add_argument("--gem-bias", choices=["pooled", "paper"],
+                        default=None if refuse_unused else "pooled",
                         help=f"bias estimate of the scale selection of {gem_use}: pooled "
                              "(default, docs/gem.md §5d) or the paper's per-pixel Eq. 1")
 
@@ -487,12 +494,35 @@ def _make_denoiser(name, stats, *, gamma=0.2, sigma=1.0, gem_bias=None):
     return bind_denoiser(name, stats, **_denoiser_options(name, gamma, sigma, gem_bias))
 
 
+def _refuse_unused(args, names, why: str) -> None:
+    """Refuse options the user gave that this command would ignore (their argparse
+    default is None, so only given values are not None)."""
+    given = ["--" + n.replace("_", "-") for n in names if getattr(args, n, None) is not None]
+    if given:
+        raise InputError(f"{' and '.join(given)} {'has' if len(given) == 1 else 'have'} no "
+                         f"effect {why}.")
+
+
+def _gem_defaults(args) -> None:
+    """Fill in --gamma and --gem-bias after :func:`_refuse_unused` has seen them."""
+    args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
+    args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
+
+
 def cmd_denoise(args) -> int:
     from .exr import read_exr
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     _refuse_crn(stats, args.input, f"statmc denoise {_ASSUMES_INDEPENDENT}")
+    if args.denoiser != "gem":
+        _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
+                       "set --denoiser gem's scale selection)")
+    if args.denoiser != "gaussian":
+        _refuse_unused(args, ["sigma"], f"on --denoiser {args.denoiser} (it is the width of "
+                       "--denoiser gaussian)")
+    _gem_defaults(args)
+    args.sigma = 1.0 if args.sigma is None else args.sigma
     if args.variance or args.denoiser == "gem":
         _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
@@ -525,6 +555,10 @@ def cmd_progressive(args) -> int:
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
+    if args.denoiser != "gem":
+        _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
+                       "set --denoiser gem's scale selection)")
+    _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
@@ -565,6 +599,10 @@ def _combine_bins_file(args) -> int:
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
+    if args.weights != "gaussian":
+        _refuse_unused(args, ["sigma"], f"with --weights {args.weights} (it is the width of "
+                       "--weights gaussian)")
+    args.sigma = 3.0 if args.sigma is None else args.sigma
     if args.z is None:
         return _combine_bins_file(args)
     _check_out_file(args.out, [args.y, args.z])
@@ -769,8 +807,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
-    _add_gem_options(d, "--denoiser gem")
-    d.add_argument("--sigma", type=POSITIVE, default=1.0,
+    _add_gem_options(d, "--denoiser gem", refuse_unused=True)
+    d.add_argument("--sigma", type=POSITIVE, default=None,
                    help="standard deviation of --denoiser gaussian in pixels (default 1)")
     d.add_argument("--seed", type=SEED, default=0, help="seed of --variance's random probes")
     d.add_argument("-q", "--quiet", action="store_true", help="no summary line")
@@ -783,7 +821,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="default oidn")
     pg.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     pg.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
-    _add_gem_options(pg, "--denoiser gem")
+    _add_gem_options(pg, "--denoiser gem", refuse_unused=True)
     pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     pg.set_defaults(func=cmd_progressive)
@@ -800,7 +838,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=15, help="odd window width (default 15)")
-    c.add_argument("--sigma", type=POSITIVE, default=3.0,
+    c.add_argument("--sigma", type=POSITIVE, default=None,
                    help="spatial σ of --weights gaussian in pixels (default 3)")
     c.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     c.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")

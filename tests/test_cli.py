@@ -863,3 +863,37 @@ def test_bin_progress_goes_to_stderr(capsys):
     render_bins(make_renderer("toy:edges", width=8, height=8), 4, 2, seed=1, progress=True)
     out, err = capsys.readouterr()
     assert out == "" and "bin 1/2" in err and "bin 2/2" in err
+
+
+def test_cli_gamma_default_is_gems():
+    from statmc import cli, gem
+    assert cli.DEFAULT_GAMMA == gem.DEFAULT_GAMMA
+
+
+@pytest.mark.parametrize("args, bad", [
+    (("denoise", "--denoiser", "oidn", "--gamma", "0.1"), "--gamma"),
+    (("denoise", "--denoiser", "gaussian", "--gem-bias", "paper"), "--gem-bias"),
+    (("denoise", "--denoiser", "gem", "--sigma", "2"), "--sigma"),
+    (("progressive", "--denoiser", "oidn", "--gamma", "0.1", "--gem-bias", "paper"),
+     "--gamma and --gem-bias"),
+    (("combine", "--weights", "statistical", "--sigma", "2"), "--sigma"),
+])
+def test_options_without_effect_are_refused(tmp_path, toy_render, args, bad):
+    """An option the command would ignore is refused in one line, before any output."""
+    out = tmp_path / "o.exr"
+    files = (toy_render, toy_render) if args[0] == "combine" else (toy_render,)
+    code, _, err = run_cli(args[0], *files, *args[1:], "--out", out, "-q")
+    assert code != 0 and bad in err and "no effect" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_options_with_effect_are_accepted(tmp_path, toy_render):
+    for args in (("denoise", toy_render, "--denoiser", "gem", "--gamma", "0.1", "--gem-bias",
+                  "paper"),
+                 ("denoise", toy_render, "--denoiser", "gaussian", "--sigma", "2"),
+                 ("progressive", toy_render, "--denoiser", "gem", "--gem-bias", "paper"),
+                 ("combine", toy_render, toy_render, "--weights", "gaussian", "--sigma", "2")):
+        out = tmp_path / f"{args[0]}-{len(args)}.exr"
+        code, _, err = run_cli(*args, "--out", out, "-q")
+        assert code == 0, err
+        assert out.exists()
