@@ -24,8 +24,16 @@ call beside its wall time (CPU time / wall time close to 2 means both cores were
    references, with the issue's check (combiner < min(OIDN, raw) at >= 64 spp, <= 1.05
    OIDN below); the table in ``docs/combine.md``.
 
+5. Memory (``--part memory``): peak RSS above the inputs, wall and CPU time of one
+   ``combine_denoised`` and one ``combine_bins`` (B = 4) call at 1920x1080x3 (defaults,
+   GEM's ``SelectedFilter``, a synthetic smooth image plus Gaussian noise), each in its own
+   subprocess (``--memory-child``; the peak is ``VmHWM`` after a reset through
+   ``/proc/self/clear_refs``).  Before the moment stencils were banded: 5.34 and 4.87 GiB
+   above 0.64 GiB of inputs; now 1.89 GiB each (docs/combine.md, "Memory").
+   ``--memory-child denoised --save out.npy`` keeps the output, to compare versions.
+
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_combine.py [--part
-kernel|weights|quality|all] [--seeds 0 1 2]``
+kernel|weights|memory|quality|all] [--seeds 0 1 2] [--height 1080 --width 1920]``
 """
 
 from __future__ import annotations
@@ -206,7 +214,7 @@ def weights_speed():
     t, c = time.perf_counter() - t0, time.process_time() - c0
     print(f"  {'1920x1080, B = 1, 15x15, 5x5 stencils':40s} numba {t:6.2f} s ({c:.2f} s CPU), "
           f"weights {w.nbytes / 2 ** 30:.2f} GiB; load average {_load():.2f}")
-    del w, cov_z, cov_yz
+    w = cov_z = cov_yz = None                            # free 3.6 GB before OIDN
     try:
         from statmc import denoisers
         from statmc.combine import combine_denoised
@@ -222,6 +230,85 @@ def weights_speed():
               f"9 calls for 8 probes); load average {_load():.2f}")
     except ImportError as e:                         # pragma: no cover - OIDN missing
         print(f"  (OIDN unavailable: {e})")
+
+
+# --------------------------------------------------------------------------- memory
+def _status_kib(field):
+    """``VmRSS`` / ``VmHWM`` of this process from ``/proc/self/status``, in KiB."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    return -1
+
+
+def _synthetic_render(h, w, c=3, bins=4, seed=0):
+    """Bins of a smooth image plus Gaussian noise: ``(ys (B, h, w, c), mean_var)`` with
+    ``mean_var`` the variance of the mean of ``ys.mean(0)`` (the bins' noise / B)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    base = 0.5 + 0.3 * np.sin(9 * xx)[..., None] * np.cos(7 * yy)[..., None] * np.arange(1, c + 1) / c
+    base[:, w // 3:w // 2] += 0.4                          # an edge GEM must not blur over
+    mean_var = (0.002 + 0.01 * base * base) / 4.0           # per-bin variance 4·mean_var
+    ys = base + np.sqrt(bins * mean_var) * rng.standard_normal((bins, h, w, c))
+    return ys, mean_var
+
+
+def memory_child(which, h=H, w=W, save=None):
+    """One ``combine_denoised`` (``which="denoised"``) or ``combine_bins`` (``"bins"``) call
+    at ``h x w x 3`` with GEM's ``SelectedFilter``; prints a JSON line with the RSS after the
+    inputs, the peak RSS of the call (``VmHWM`` reset by ``/proc/self/clear_refs``), its
+    wall and CPU time.  ``save``: write the output to that ``.npy`` (to compare versions)."""
+    import json
+
+    from statmc import gem
+    from statmc.combine import combine_bins, combine_denoised
+
+    ys, mv = _synthetic_render(h, w)
+    y = ys.mean(axis=0)
+    _, f = gem.selected_filter(y.astype(np.float32), mv.astype(np.float32))
+    small_ys, small_mv = _synthetic_render(24, 20, seed=1)
+    _, fs = gem.selected_filter(small_ys.mean(0).astype(np.float32), small_mv.astype(np.float32))
+    combine_denoised(small_ys.mean(0), small_mv, fs, rng=0)        # compile / load kernels
+    combine_bins(small_ys, small_mv, fs, rng=0)
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:             # reset VmHWM to VmRSS
+            fh.write("5")
+    except OSError:                  # pragma: no cover - not Linux: the peak includes setup
+        print("warning: could not reset the peak RSS; it includes the setup", flush=True)
+    base = _status_kib("VmRSS")
+    c0, t0 = time.process_time(), time.perf_counter()
+    if which == "denoised":
+        out = combine_denoised(y, mv, f, rng=0)
+    else:
+        out = combine_bins(ys, mv, f, rng=0)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    peak = _status_kib("VmHWM")
+    if save:
+        np.save(save, out)
+    print(json.dumps({"which": which, "base_mib": base / 1024, "peak_mib": peak / 1024,
+                      "wall_s": wall, "cpu_s": cpu}), flush=True)
+
+
+def memory(h=H, w=W):
+    """Peak RSS above the inputs of ``combine_denoised`` and ``combine_bins`` at ``h x w``
+    (GEM's SelectedFilter; each in its own subprocess, so one does not inherit the other's
+    peak), with wall time and load average."""
+    import json
+    import subprocess
+    import sys
+
+    print(f"\nmemory of combine_denoised / combine_bins (B = 4) at {w}x{h}x3, 15x15 windows, "
+          f"5x5 stencils, GEM's SelectedFilter, synthetic render; load average {_load():.2f}:")
+    for which in ("denoised", "bins"):
+        res = subprocess.run([sys.executable, __file__, "--memory-child", which,
+                              "--height", str(h), "--width", str(w)],
+                             capture_output=True, text=True, check=True)
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        print(f"  combine_{which:8s} peak RSS {r['peak_mib'] / 1024:5.2f} GiB = inputs "
+              f"{r['base_mib'] / 1024:4.2f} GiB + {(r['peak_mib'] - r['base_mib']) / 1024:4.2f} GiB; "
+              f"{r['wall_s']:6.1f} s wall ({r['cpu_s']:.1f} s CPU); load average {_load():.2f}",
+              flush=True)
 
 
 QUALITY_SCENES = ("toy:mixed", "cornell-box", "glossy-spheres", "glass-caustic", "textured-dof")
@@ -289,13 +376,23 @@ if __name__ == "__main__":
     import argparse
 
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", choices=["kernel", "weights", "quality", "all"], default="all")
+    ap.add_argument("--part", choices=["kernel", "weights", "memory", "quality", "all"],
+                    default="all")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--memory-child", choices=["denoised", "bins"], help=argparse.SUPPRESS)
+    ap.add_argument("--height", type=int, default=H)
+    ap.add_argument("--width", type=int, default=W)
+    ap.add_argument("--save", help="--memory-child: save the output to this .npy")
     args = ap.parse_args()
+    if args.memory_child:
+        memory_child(args.memory_child, args.height, args.width, args.save)
+        raise SystemExit
     if args.part in ("kernel", "all"):
         main()
         quality()
     if args.part in ("weights", "all"):
         weights_speed()
+    if args.part in ("memory", "all"):
+        memory(args.height, args.width)
     if args.part in ("quality", "all"):
         quality_table(tuple(args.seeds))
