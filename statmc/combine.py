@@ -1404,7 +1404,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     ``J v`` as float64 and ``v`` as signs).  Steps 1–3 then run in bands of rows, as in
     :func:`combine_bins` (within :data:`BAND_BYTES`, ``k // 2 + patch`` rows of margin):
     the smoothed stencils and the weights of the whole image would take
-    ``2 H W (m² C 8 + k² 4)`` bytes, 5 GB at 1920x1080.  The output is the one-piece
+    ``H W (2 · 8 m² C + 4 k²)`` bytes, 4.4 GB at 1920x1080.  The output is the one-piece
     output to the bit (tested); at 1920x1080 with the defaults and GEM's kernel the peak
     is the inputs plus 1.9 GiB (5.3 GiB before; ``bench/bench_combine.py --part memory``).
 
@@ -1438,8 +1438,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     J = 1 if mix is None else len(models)
     betas = np.empty((J, H, W, C))
     nums = np.empty((H, W, J))
-    # Steps 1-3 in bands of rows (the stencils and weights of the whole image would take
-    # 2 H W (m² C 8 + k² 4) bytes, 5 GB at 1080p): a band's smoothed stencils need the
+    # Steps 1-3 in bands of rows (the smoothed stencils and weights of the whole image
+    # would take H W (2 m² C 8 + k² 4) bytes, 4.4 GB at 1080p, and the raw stencils 2.5 GB
+    # more while smoothing): a band's smoothed stencils need the
     # rows above it (the box's running sums, carried by _SmoothedRows), and its weights,
     # β̂ and SURE terms read k // 2 + patch rows on either side.
     margin = _band_margin(k, int(patch))
