@@ -1487,7 +1487,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
 
 def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
                  probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, rng=None,
-                 extra_output=False):
+                 extra_output=False, return_denoised=False):
     """Multi-buffer combination (Eq. 14 of Back et al. 2020 [1]_) of ``B`` sample bins
     and their per-bin denoised images, with classical statistical weights.
 
@@ -1523,6 +1523,10 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     extra_output : bool
         Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
         weights of the whole image at once, whatever their size).
+    return_denoised : bool
+        Also return the denoised bins ``(B, H, W, C)``, as ``(out, z_b)``, keeping the
+        weights in bands (``extra_output`` forms the weights of the whole image: about
+        7.5 GB at 1080p with ``B = 4``).
 
     Returns
     -------
@@ -1576,6 +1580,8 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     out, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=extra_output)
     if extra_output:
         return out, {"denoised": zs, "weights": w}
+    if return_denoised:
+        return out, zs
     return out
 
 

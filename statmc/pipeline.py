@@ -184,9 +184,9 @@ def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed
     else:
         from .progressive import bind_denoiser
         f = bind_denoiser("oidn", full)
-    img, info = combine_bins(ys, full.mean_var, f, rng=seed, extra_output=True)
+    img, zs = combine_bins(ys, full.mean_var, f, rng=seed, return_denoised=True)
     if return_bins:
-        return img.astype(np.float32), maps, (ys, info["denoised"])
+        return img.astype(np.float32), maps, (ys, zs)
     return img.astype(np.float32), maps
 
 

@@ -1002,6 +1002,32 @@ def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
                               whole)
 
 
+def test_combine_bins_return_denoised_keeps_the_bands(monkeypatch):
+    """``return_denoised`` gives the denoised bins without forming the whole image's
+    weights (reconstruct_bins used extra_output, which needs 7.5 GB of weights at 1080p)."""
+    import statmc.combine as cbm
+    from statmc.pipeline import reconstruct_bins
+    bins, full, f = _bins_and_kernel(seed=4)
+    ys = np.stack([b.mean for b in bins])
+    whole, info = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
+                                   extra_output=True)
+    B, H, W, _ = ys.shape
+    monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(10, W, B, 7, 5))
+    seen = []
+    real = cbm.statistical_weights
+    monkeypatch.setattr(cbm, "statistical_weights",
+                        lambda ys, *a, **k: seen.append(ys.shape[1]) or real(ys, *a, **k))
+    out, zs = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
+                               return_denoised=True)
+    np.testing.assert_array_equal(out, whole)
+    np.testing.assert_array_equal(zs, info["denoised"])
+    assert len(seen) > 1 and max(seen) < H          # banded
+    seen.clear()
+    img, _, (ys2, zs2) = reconstruct_bins(bins, "gem+bins", return_bins=True)
+    assert len(seen) > 1 and max(seen) < H
+    np.testing.assert_array_equal(ys2, ys)
+
+
 def test_combine_bin_images_is_eq14_with_moments_from_the_bin_spread(monkeypatch):
     """Bins made elsewhere: buffer_moments over the bins (smoothed), coherent statistical
     weights and Eq. 14 — the same numbers assembled by hand, in one piece and in bands."""
