@@ -517,7 +517,7 @@ def cmd_denoise(args) -> int:
     _refuse_crn(stats, args.input, f"statmc denoise {_ASSUMES_INDEPENDENT}")
     if args.denoiser != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
-                       "set --denoiser gem's scale selection)")
+                       "are options of --denoiser gem's scale selection)")
     if args.denoiser != "gaussian":
         _refuse_unused(args, ["sigma"], f"on --denoiser {args.denoiser} (it is the width of "
                        "--denoiser gaussian)")
@@ -557,7 +557,7 @@ def cmd_progressive(args) -> int:
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     if args.denoiser != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
-                       "set --denoiser gem's scale selection)")
+                       "are options of --denoiser gem's scale selection)")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,

@@ -19,11 +19,17 @@ is the same whatever the counts of the other pixels, and ``render(..., first_sam
 continues a pixel's sequence where an earlier pass stopped.  So an adaptive render and a
 uniform render with the same seed share the first samples of every pixel (common random
 numbers between samplers), and moving one sample leaves every other pixel as it was.
+A stream is set by one 32-bit word, a keyed bijection of ``j · P + p`` (P pixels), so no
+two samples of a render share a stream while ``j < 2**32 / P``.  Renders whose seeds
+differ are independent, but renders with the same seed are not: give a reference and the
+renders it scores different seeds.
 
 Mitsuba's fast ``llvm_ad_rgb`` variant needs LLVM >= 16 at run time
 (:func:`find_libllvm`, :func:`setup_mitsuba`).  Without it the backend falls back to
-``scalar_rgb``, which renders per-pixel counts as ``max(counts)`` one-sample passes of
-``mi.render`` (correct, much slower).
+``scalar_rgb``, which renders per-pixel counts as one-sample passes of ``mi.render``,
+pass ``j`` giving sample ``j`` of every pixel (correct, much slower; a render continuing
+sequences with ``first_sample`` needs ``max(first + counts) − min(first)`` passes, about
+3× ``max(counts)`` for an adaptive GEM pass).
 
 Mitsuba is imported here only, and only when a function of this module is called.
 """
@@ -239,22 +245,26 @@ def _fmix32(h: np.ndarray) -> np.ndarray:
     return _xorshift_multiply(h, _FMIX32, np.uint32)
 
 
-def _pixel_keys(seed: int, salt: int, pixels: int) -> np.ndarray:
-    """A pseudo-random 32-bit base per pixel, a function of (seed, salt, pixel)."""
-    key = np.random.SeedSequence([seed, salt]).generate_state(1, np.uint64)[0]
-    p = np.arange(pixels, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-    return (_xorshift_multiply(p ^ key, _SPLITMIX64, np.uint64) >> np.uint64(32)).astype(np.uint32)
+def _seed_keys(seed: int, salt: int) -> tuple[int, int]:
+    """Two 32-bit keys ``(k1, k2)`` of a render seed (and a salt)."""
+    k = np.random.SeedSequence([seed, salt]).generate_state(2, np.uint32)
+    return int(k[0]), int(k[1])
 
 
-def _sample_seeds(keys: np.ndarray, pix: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Sampler seed of sample ``index`` of pixel ``pix``: ``fmix32(keys[pix] + index)``.
+def _sample_seeds(keys, pixels: int, pix: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Sampler seed of sample ``index`` of pixel ``pix`` (of ``pixels``):
+    ``fmix32(index · pixels + pix + k1) ^ k2``, a keyed bijection of the word
+    ``index · pixels + pix`` (modulo 2**32).
 
-    Within a pixel the seeds are distinct for up to 2**32 samples (a bijection of
-    distinct words); two pixels share a stream only if their ranges of words overlap,
-    which for ``n`` samples each happens with probability about ``2n / 2**32``.
+    So within one render no two samples share a stream while every index stays below
+    ``2**32 / pixels`` (2048 samples per pixel at 1920×1080, 349,525 at 128×96); beyond
+    that the words wrap around.  (NumPy reference of the seeds that
+    :meth:`MitsubaRenderer._render_jit` forms inside Dr.Jit.)
     """
+    k1, k2 = keys
+    w = (index.astype(np.uint64) * np.uint64(pixels) + pix.astype(np.uint64) + np.uint64(k1))
     with np.errstate(over="ignore"):
-        return _fmix32(keys[pix] + index.astype(np.uint32))
+        return _fmix32((w % np.uint64(1 << 32)).astype(np.uint32)) ^ np.uint32(k2)
 
 
 def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
@@ -277,8 +287,7 @@ def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
 def _chunk_samples(counts_flat: np.ndarray, first_flat: np.ndarray, chunk: int):
     """Like :func:`_chunk_pixels`, yielding ``(pixel, index)``: the pixel of every sample
     and its index in that pixel's sequence, ``first_flat[pixel] + (its rank in this
-    render)``.  (NumPy reference of the seeds :meth:`MitsubaRenderer._render_jit` forms
-    inside Dr.Jit.)"""
+    render)``."""
     start = np.cumsum(counts_flat) - counts_flat
     a = 0
     for pix in _chunk_pixels(counts_flat, chunk):
@@ -287,14 +296,16 @@ def _chunk_samples(counts_flat: np.ndarray, first_flat: np.ndarray, chunk: int):
         a += pix.size
 
 
-def _seed_bases(keys: np.ndarray, counts_flat: np.ndarray, first_flat: np.ndarray) -> np.ndarray:
-    """``keys[p] + first[p] − start[p]`` modulo 2**32, where ``start`` is the position of
-    pixel p's first sample in the render's sample order: then the sample at position
-    ``g`` (in pixel p) has index ``first[p] + g − start[p]`` and seed
-    ``fmix32(base[p] + g)``."""
+def _seed_bases(k1: int, counts_flat: np.ndarray, first_flat: np.ndarray) -> np.ndarray:
+    """``(first[p] − start[p]) · P + p + k1`` modulo 2**32 per pixel, where ``start[p]``
+    is the position of pixel p's first sample in the render's sample order and ``P`` the
+    number of pixels: the sample at position ``g`` (in pixel p, index ``first[p] + g −
+    start[p]``) then has the word ``base[p] + g · P`` of :func:`_sample_seeds`."""
+    P = counts_flat.size
     start = np.cumsum(counts_flat) - counts_flat
-    b = keys.astype(np.int64) + first_flat - start
-    return (b % (1 << 32)).astype(np.uint32)
+    d = ((first_flat - start) % (1 << 32)).astype(np.uint64)        # < 2**32
+    w = d * np.uint64(P) + np.arange(P, dtype=np.uint64) + np.uint64(k1)   # < 2**64
+    return (w % np.uint64(1 << 32)).astype(np.uint32)
 
 
 def _fmix32_drjit(mi, h):
@@ -696,9 +707,10 @@ class MitsubaRenderer:
         mi, dr = self._mi, self._dr
         hw = self.height * self.width
         flat = counts.ravel()
-        # per-sample seeds fmix32(base[p] + g), formed inside the traced kernel (forming
-        # them in NumPy cost about 12 % of the render's time)
-        base = mi.UInt32(_seed_bases(_pixel_keys(seed, _SALT_MAIN, hw), flat, first.ravel()))
+        # per-sample seeds fmix32(base[p] + g·P) ^ k2 (_sample_seeds), formed inside the
+        # traced kernel (forming them in NumPy cost about 12 % of the render's time)
+        k1, k2 = _seed_keys(seed, _SALT_MAIN)
+        base = mi.UInt32(_seed_bases(k1, flat, first.ravel()))
         s1 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s2 = [dr.zeros(mi.Float64, hw) for _ in range(3)]
         s3 = [dr.zeros(mi.Float64, hw) for _ in _PAIRS] if cross else []
@@ -714,8 +726,9 @@ class MitsubaRenderer:
             pos = 0                     # position of the chunk's first sample in the render
             for pix in _chunk_pixels(flat, self.chunk_samples):
                 def seeds(idx, pos=pos, size=pix.size):
-                    g = dr.arange(mi.UInt32, size) + mi.UInt32(pos % (1 << 32))
-                    return _fmix32_drjit(mi, dr.gather(mi.UInt32, base, idx) + g)
+                    g = (dr.arange(mi.UInt32, size) + mi.UInt32(pos % (1 << 32))) * mi.UInt32(hw)
+                    word = dr.gather(mi.UInt32, base, idx) + g
+                    return _fmix32_drjit(mi, word) ^ mi.UInt32(k2)
                 idx, L, _ = self._trace(self._integrator, pix, seeds, scale)
                 pos += pix.size
                 ok = dr.isfinite(L.x) & dr.isfinite(L.y) & dr.isfinite(L.z)

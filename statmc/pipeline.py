@@ -130,9 +130,9 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     for b in range(bins):
         if progress:
             print(f"  bin {b + 1}/{bins}: {spp // bins} spp", file=sys.stderr, flush=True)
-        if slices:
+        if slices:   # one seed: the bins' feature passes would be equal, render one
             out.append(renderer.render(counts, seed=seed, progress=progress,
-                                       first_sample=b * counts))
+                                       first_sample=b * counts, features=b == 0))
         else:
             out.append(renderer.render(counts, seed=bin_seed(seed, b), progress=progress))
     return out

@@ -179,12 +179,18 @@ def test_seeds_give_independent_renders(cornell, pilot, reference):
     # here (skewed, heavy-tailed pixels); a t-test of the scaled products is.  Pixels that
     # see the light (reference >= 1, chosen from the independent reference) are left out:
     # their errors are binomial-skewed and dominate any sum.
+    # Per pixel, the products are averaged over 4 pairs of seeds (1, 2), (3, 4), ... (power).
     ok = (reference < 1).all(-1) & (pilot > 0).all(-1)
-    u = ((a.mean - reference) * (b.mean - reference) / (pilot / spp)).mean(-1)
-    p, msg = _ttest_zero(u[ok], "product of the errors of seeds 1 and 2")
+    pairs = [(a, b)] + [(cornell.render_uniform(spp, seed=s, features=False),
+                         cornell.render_uniform(spp, seed=s + 1, features=False))
+                        for s in (3, 5, 7)]
+    u = np.mean([((x.mean - reference) * (y.mean - reference) / (pilot / spp)).mean(-1)
+                 for x, y in pairs], axis=0)
+    p, msg = _ttest_zero(u[ok], "product of the errors of seeds 2i+1 and 2i+2")
     assert p > ALPHA, msg
     # ... and the test notices a correlation of 0.5 (half of the samples shared)
-    u_bad = ((a.mean - reference) * (0.5 * (a.mean + b.mean) - reference) / (pilot / spp)).mean(-1)
+    u_bad = np.mean([((x.mean - reference) * (0.5 * (x.mean + y.mean) - reference)
+                      / (pilot / spp)).mean(-1) for x, y in pairs], axis=0)
     assert _ttest_zero(u_bad[ok], "correlated")[0] < ALPHA
 
 
@@ -335,24 +341,28 @@ def test_chunk_samples_index_each_pixels_sequence(chunk):
     np.testing.assert_array_equal(index, want)
 
 
-def test_sample_seeds_distinct_within_a_pixel_and_spread():
-    keys = mb._pixel_keys(3, mb._SALT_MAIN, 64)
-    assert np.unique(keys).size == 64
-    assert not np.array_equal(keys, mb._pixel_keys(4, mb._SALT_MAIN, 64))
-    pix = np.repeat(np.arange(64, dtype=np.uint32), 4096)
-    index = np.tile(np.arange(4096), 64)
-    seeds = mb._sample_seeds(keys, pix, index)
-    for p in range(64):                           # a bijection of distinct words per pixel
-        assert np.unique(seeds[pix == p]).size == 4096
-    # the hashed words look uniform on 32 bits (fmix32 of consecutive words)
+def test_sample_seeds_are_distinct_within_a_render_and_look_uniform():
+    """Seeds are a keyed bijection of index·P + pixel: no two samples of one render share a
+    stream while index < 2**32 / P (the former per-pixel scheme let ~N²/2³³ pairs of
+    samples in different pixels share one); other seeds give other words."""
+    P = 48 * 64
+    pix = np.tile(np.arange(P, dtype=np.uint32), 1024)
+    index = np.repeat(np.arange(1024), P)
+    seeds = mb._sample_seeds(mb._seed_keys(3, mb._SALT_MAIN), P, pix, index)
+    assert np.unique(seeds).size == seeds.size               # 3.1 M distinct words
+    other = mb._sample_seeds(mb._seed_keys(4, mb._SALT_MAIN), P, pix, index)
+    assert np.mean(seeds == other) < 1e-5
+    # the words look uniform on 32 bits, also between consecutive pixels and indices
     bits = ((seeds[:, None] >> np.arange(32, dtype=np.uint32)) & 1).mean(0)
-    assert np.all(np.abs(bits - 0.5) < 0.01), bits
-    assert np.unique(seeds).size > 0.999 * seeds.size
+    assert np.all(np.abs(bits - 0.5) < 0.002), bits
+    flips = ((seeds[1:] ^ seeds[:-1])[:, None] >> np.arange(32, dtype=np.uint32)) & 1
+    assert np.all(np.abs(flips.mean(0) - 0.5) < 0.002)
 
 
 def test_drjit_sample_seeds_equal_the_numpy_reference(cornell):
-    """The seeds _render_jit forms inside Dr.Jit, fmix32(base[p] + g), equal
-    _sample_seeds(keys, pixel, first + rank) of the NumPy reference, chunk by chunk."""
+    """The seeds _render_jit forms inside Dr.Jit, fmix32(base[p] + g·P) ^ k2, equal
+    _sample_seeds(pixel, first + rank) of the NumPy reference, chunk by chunk, also where
+    the words wrap modulo 2**32."""
     if not cornell._jit:
         pytest.skip("needs a JIT variant")
     mi, dr = cornell._mi, cornell._dr
@@ -360,14 +370,15 @@ def test_drjit_sample_seeds_equal_the_numpy_reference(cornell):
     rng = np.random.default_rng(8)
     counts = rng.integers(0, 9, size=500)
     first = rng.integers(0, 2 ** 31 - 10, size=500)
-    keys = mb._pixel_keys(17, mb._SALT_MAIN, 500)
-    base = mi.UInt32(mb._seed_bases(keys, counts, first))
+    k1, k2 = mb._seed_keys(17, mb._SALT_MAIN)
+    base = mi.UInt32(mb._seed_bases(k1, counts, first))
     a = 0
     for (pix, index), pix2 in zip(mb._chunk_samples(counts, first, 97),
                                   mb._chunk_pixels(counts, 97)):
-        g = dr.arange(mi.UInt32, len(pix2)) + mi.UInt32(a)
-        got = np.asarray(mb._fmix32_drjit(mi, dr.gather(mi.UInt32, base, mi.UInt32(pix2)) + g))
-        np.testing.assert_array_equal(got, mb._sample_seeds(keys, pix, index))
+        g = (dr.arange(mi.UInt32, len(pix2)) + mi.UInt32(a)) * mi.UInt32(500)
+        word = dr.gather(mi.UInt32, base, mi.UInt32(pix2)) + g
+        got = np.asarray(mb._fmix32_drjit(mi, word) ^ mi.UInt32(k2))
+        np.testing.assert_array_equal(got, mb._sample_seeds((k1, k2), 500, pix, index))
         a += pix2.size
 
 
