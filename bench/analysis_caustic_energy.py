@@ -25,17 +25,20 @@ It prints, over ``--seeds`` renders each:
    filter: energy-conserving) instead of a gather (each pixel averages its neighbours
    with its selected filter, as in [1]).
 
-Findings (session 6, 32 renders per 16-spp row, 8 above; docs/gem.md §5b):
+Findings (session 6, final per-sample seeds; 32 renders per 16-spp row, 8 above;
+docs/gem.md §5b):
 
-* Uniform+GEM at 16 spp: relMSE 0.01577 = spot 0.01019 + rest 0.00557, where the rest
+* Uniform+GEM at 16 spp: relMSE 0.01561 = spot 0.01046 + rest 0.00514, where the rest
   includes the reference noise of 0.00293.  The spot's part stays near 0.010 at 16, 64,
-  256 and 1024 spp, and GEM keeps 28, 32, 43 and 78 % of the spot's energy.
-* Spot × 0.25 / 0.5 / 4 / 8 / 16 / 32: 1.209 / 1.158 / 1.013 / 1.052 / 1.063 / 1.244 ×
-  uniform+GEM.  The library's adaptive GEM gives the spot 1.96× the mean density and
-  lands at 1.048 [0.96, 1.14].
-* Bound: removing all of the rest but the reference noise would give 0.832.  Uniform at
-  256 spp (16× the budget) gives 0.893× the relMSE of 16 spp.
-* Splat: keeps 77 % of the spot's energy but is 24× worse.
+  256 and 1024 spp (0.0105 / 0.0101 / 0.0088 / 0.0149), and GEM keeps 28, 34, 47 and 79 %
+  of the spot's energy.
+* Spot × 0.25 / 0.5 / 4 / 8 / 16 / 32: 1.189 / 1.047 / 1.052 / 1.047 / 1.075 / 1.273 ×
+  uniform+GEM.  The library's adaptive GEM gives the spot 2.01× the mean density and
+  lands at 1.010 [0.96, 1.07].
+* Bound: removing all of the rest but the reference noise would give 0.858; 0.9 needs
+  about 70 % of the method's rest error removed by placement, about what uniform
+  sampling at 16× the budget (256 spp) removes (69 %).
+* Splat: keeps 92 % of the spot's energy but is 39× worse.
 
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_caustic_energy.py``
 (about 2 minutes on 2 cores).
