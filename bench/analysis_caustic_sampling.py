@@ -71,8 +71,8 @@ own relMSE is 0.0029):
   / ^1 gives 1.310 / 1.997 at 16 spp.  No fixed map beats uniform.
 * Session 6, ``--crn`` (per-sample streams of the Mitsuba backend: a uniform and an
   adaptive render of one seed share their first samples per pixel), 192 seeds 500–691,
-  16 spp: GEM 1.012 [0.945, 1.090], median 0.970, 137/192 wins, p = 1.6e-5.  Seeds
-  500–563 alone: 0.894 [0.81, 0.98]; 564–691: 1.075 [0.98, 1.18].
+  16 spp, final seeds: GEM 0.993 [0.95, 1.04], median 0.978, 122/192 wins, p = 0.127
+  (an earlier version of the seeds: 1.012 [0.945, 1.090], median 0.970, 137/192).
 * toy:mixed at 4 spp (2-spp pilot): DA+OIDN / uniform+OIDN = 0.782 [0.71, 0.85], 24/32
   wins, p < 0.001 — the table's 1.11 was one render.
 
