@@ -663,23 +663,28 @@ def _self_term(var_y, cov_z, cov_yz, has_yz):
 
 
 def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, method, k, patch,
-                              out, *, loo=False, band_bytes=1 << 28):
+                              out, *, loo=False, band_bytes=1 << 28, rows=None):
     """Compiled "coherent"/"diagonal" statistical weights into ``out`` ``(H, W, B, k, k)``.
 
     Rows are processed in bands so that the squared-bias planes ``(k², rows, W, C)`` of
-    ``bias_mode`` 0 stay under ``band_bytes``.
+    ``bias_mode`` 0 stay under ``band_bytes``.  ``rows = (r0, r1)``: only the weights of
+    rows ``r0 .. r1 − 1`` are computed (the others of ``out`` are left as they are); each
+    row's weights are those of the whole computation to the bit (a row's bias planes and
+    weights read the inputs, never other rows' results).
     """
     B, H, W, C = ys.shape
+    r0, r1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
     has_yz = cov_yz is not None
     if not has_yz:
         cov_yz = np.zeros((1, 1, 1, 1, 1, C))
     if zb is None:
         zb = np.zeros((1, 1, 1, C))
-    rows = H if bias_mode != BIAS_ESTIMATE else max(1, min(H, band_bytes // (k * k * W * C * 8)))
+    n = max(1, r1 - r0)
+    rows = n if bias_mode != BIAS_ESTIMATE else max(1, min(n, band_bytes // (k * k * W * C * 8)))
     s2 = np.zeros((k * k, rows, W, C) if bias_mode == BIAS_ESTIMATE else (1, 1, 1, C))
     P = _self_term(var_y, cov_z, cov_yz, has_yz)
-    for y0 in range(0, H, rows):
-        y1 = min(H, y0 + rows)
+    for y0 in range(r0, r1, rows):
+        y1 = min(r1, y0 + rows)
         if bias_mode == BIAS_ESTIMATE:
             _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2)
         _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,

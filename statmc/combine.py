@@ -727,19 +727,24 @@ def _unbroadcast(a):
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
-def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo):
-    """The numba path of :func:`statistical_weights` ("coherent", "diagonal")."""
+def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo, rows=None):
+    """The numba path of :func:`statistical_weights` ("coherent", "diagonal"); ``rows``:
+    see :func:`_statistical_weights`."""
     B, H, W, C = ys.shape
     if zb is not None:
         mode = _ck.BIAS_ARRAY
     else:
         mode = _ck.BIAS_ZERO if z_bias == "zero" else _ck.BIAS_ESTIMATE
-    out = np.empty((H, W, B, k, k), np.float32)
+    if rows is None:
+        out = np.empty((H, W, B, k, k), np.float32)
+    else:
+        out = np.zeros((H, W, B, k, k), np.float32)
+        out[:, :, :, k // 2, k // 2] = 1.0       # the rows not asked for: the identity
     code = _ck.METHOD_COHERENT if method == "coherent" else _ck.METHOD_DIAGONAL
     _ck.statistical_weights_numba(np.ascontiguousarray(ys), np.ascontiguousarray(zs),
                                   _unbroadcast(mom.var_y), _unbroadcast(mom.cov_z),
                                   _unbroadcast(mom.cov_yz), _unbroadcast(zb), mode, code, k,
-                                  patch, out, loo=loo)
+                                  patch, out, loo=loo, rows=rows)
     return out
 
 
@@ -825,6 +830,18 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
     (``_combine_kernels.statistical_weights_numba``); ``_reference=True`` runs the plain
     NumPy path instead, which tests compare against (``"full"`` always uses NumPy).
     """
+    return _statistical_weights(y, z, var_y, cov_z, size, method=method, z_bias=z_bias,
+                                cov_yz=cov_yz, patch=patch, leave_centre_out=leave_centre_out,
+                                ridge=ridge, reference=_reference)
+
+
+def _statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="estimate",
+                         cov_yz=None, patch=2, leave_centre_out=False, ridge=1e-9,
+                         reference=False, rows=None):
+    """:func:`statistical_weights`; ``rows = (r0, r1)``: the compiled path computes the
+    weights of rows ``r0 .. r1 − 1`` only (each to the bit as on all rows) and gives the
+    other rows the identity (centre tap 1), so :func:`combine` still runs on them; for the
+    banded callers, whose margin rows' outputs are thrown away."""
     multi = np.ndim(y) == 4
     ys, zs, _ = _pair("y", y, "z", z, multi=multi)
     B, H, W, C = ys.shape
@@ -847,9 +864,9 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
         zb = _image_moment("z_bias", z_bias, B, H, W, C)
     ys64, zs64 = ys.astype(np.float64), zs.astype(np.float64)
     loo = bool(leave_centre_out)
-    if method != "full" and not _reference:
+    if method != "full" and not reference:
         return _statistical_weights_compiled(ys64, zs64, mom, zb, z_bias, method, k, int(patch),
-                                             loo)
+                                             loo, rows)
     mean, sq = _bias_vectors(ys64, zs64, mom, zb, z_bias, k, int(patch), loo)
     if method == "coherent":
         return _coherent_weights(mom, sq, k, B, H, W)
@@ -1453,8 +1470,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
         yb, zb = yy[lo:hi], z[lo:hi]
         V = np.stack([pr.v(i, lo, hi) for i in range(pr.K)]) if mix is not None else None
         for j in range(J):
-            w = statistical_weights(yb, zb, var_w[models[j]][lo:hi], cov_z, k, cov_yz=cov_yz,
-                                    patch=int(patch), leave_centre_out=True)
+            w = _statistical_weights(yb, zb, var_w[models[j]][lo:hi], cov_z, k,
+                                     cov_yz=cov_yz, patch=int(patch), leave_centre_out=True,
+                                     rows=(a - lo, b - lo))
             beta = combine(yb, zb, w)
             betas[j, a:b] = beta[a - lo:b - lo]
             if mix is not None:
@@ -1616,8 +1634,9 @@ def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False):
         lo, hi = max(0, a - margin), min(H, b + margin)
         w = None                           # free the previous band's weights first
         cov_z, cov_yz = moments.rows(lo, hi)
-        w = statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z, k,
-                                cov_yz=cov_yz, patch=patch)
+        w = _statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z, k,
+                                 cov_yz=cov_yz, patch=patch,
+                                 rows=None if whole else (a - lo, b - lo))
         del cov_z, cov_yz
         out[a:b] = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
     return out, (w if whole else None)

@@ -557,6 +557,43 @@ def test_statistical_weights_numba_bands_match_one_band():
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("loo", [False, True])
+def test_statistical_weights_rows_match_all_rows(loo):
+    """``rows=(r0, r1)`` (the banded combinations skip their margin rows) computes those
+    rows to the bit as on all rows, leaves ``out`` elsewhere untouched, and
+    ``_statistical_weights(rows=...)`` gives the other rows the identity; the NumPy
+    reference path agrees on the rows computed."""
+    import statmc.combine as cbm
+
+    rng = np.random.default_rng(9)
+    H, W, C, k = 17, 11, 3, 5
+    K = rng.random((H, W, 3, 3))
+    K /= K.sum(axis=(2, 3), keepdims=True)
+    vy = rng.gamma(2.0, 0.5, (1, H, W, C))
+    y = rng.gamma(2.0, 0.5, (1, H, W, C))
+    z = apply_kernels(K, y[0])[None]
+    cz, cyz = (np.ascontiguousarray(a[None]) for a in filter_covariance(K, vy[0], cross=True))
+    full = np.empty((H, W, 1, k, k), np.float32)
+    ck.statistical_weights_numba(y, z, vy, cz, cyz, None, ck.BIAS_ESTIMATE,
+                                 ck.METHOD_COHERENT, k, 2, full, loo=loo)
+    for r0, r1, band in ((4, 9, 1 << 40), (0, 6, k * k * W * C * 8 * 2), (12, 17, 1 << 40)):
+        o = np.full((H, W, 1, k, k), -7.0, np.float32)
+        ck.statistical_weights_numba(y, z, vy, cz, cyz, None, ck.BIAS_ESTIMATE,
+                                     ck.METHOD_COHERENT, k, 2, o, loo=loo, band_bytes=band,
+                                     rows=(r0, r1))
+        np.testing.assert_array_equal(o[r0:r1], full[r0:r1])
+        assert (np.delete(o, np.s_[r0:r1], axis=0) == -7.0).all()
+        w = cbm._statistical_weights(y[0], z[0], vy[0], cz[0], k, cov_yz=cyz[0], patch=2,
+                                     leave_centre_out=loo, rows=(r0, r1))
+        np.testing.assert_array_equal(w[r0:r1], full[r0:r1])
+        ident = np.zeros((k, k), np.float32)
+        ident[k // 2, k // 2] = 1.0
+        assert (np.delete(w, np.s_[r0:r1], axis=0) == ident).all()
+        ref = cbm.statistical_weights(y[0], z[0], vy[0], cz[0], k, cov_yz=cyz[0], patch=2,
+                                      leave_centre_out=loo, _reference=True)
+        np.testing.assert_allclose(w[r0:r1], ref[r0:r1], rtol=1e-5, atol=1e-7)
+
+
 
 @pytest.mark.parametrize("loo", [False, True])
 def test_statistical_weights_numba_column_tiles_match_numpy_reference(loo):
@@ -870,13 +907,13 @@ def test_combine_bins_gives_the_weights_per_bin_moments(monkeypatch):
     B = len(bins)
     ys = np.stack([b.mean for b in bins])
     seen = {}
-    real = cbm.statistical_weights
+    real = cbm._statistical_weights        # the banded path's (statistical_weights + rows)
 
     def spy(y, z, var_y, cov_z, size, **kw):
         seen.update(var_y=var_y, cov_z=cov_z, cov_yz=kw["cov_yz"])
         return real(y, z, var_y, cov_z, size, **kw)
 
-    monkeypatch.setattr(cbm, "statistical_weights", spy)
+    monkeypatch.setattr(cbm, "_statistical_weights", spy)
     cbm.combine_bins(ys, full.mean_var, f, size=3, stencil=3, probes=400, smooth=0, rng=2)
     np.testing.assert_allclose(seen["var_y"], B * cbm._box(full.mean_var, 2), rtol=1e-12)
     H, W, C = full.mean.shape
@@ -1014,8 +1051,8 @@ def test_combine_bins_return_denoised_keeps_the_bands(monkeypatch):
     B, H, W, _ = ys.shape
     monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(10, W, B, 7, 5))
     seen = []
-    real = cbm.statistical_weights
-    monkeypatch.setattr(cbm, "statistical_weights",
+    real = cbm._statistical_weights        # the banded path's (statistical_weights + rows)
+    monkeypatch.setattr(cbm, "_statistical_weights",
                         lambda ys, *a, **k: seen.append(ys.shape[1]) or real(ys, *a, **k))
     out, zs = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
                                return_denoised=True)
