@@ -498,6 +498,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
         valid = np.zeros(n, np.bool_)
         act = np.zeros(n, np.bool_)
         nzu = np.zeros(n, np.bool_)
+        lst = np.empty(n, np.int64)
         a = np.zeros(n)
         U = np.empty((n, C))
         G = np.empty((C, C))
@@ -609,6 +610,19 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                                 rhs0[c] += U[i, c] * di[i]
                                 for d in range(C):
                                     G0[c, d] += U[i, c] * di[i] * U[i, d]
+                # The active taps with U_i != 0 in ascending order (``lst[:nl]``): with a
+                # finite solution only they can change or turn negative; the others keep
+                # a_i = d_i (> 0).  (``a`` of inactive taps is never read.)  Each dropped
+                # tap's update of G0, rhs0 comes in ascending order after its a_i, from
+                # the same solution, as when all a are formed first: bit for bit the same.
+                nl = 0
+                for i in range(n):
+                    if act[i]:
+                        a[i] = di[i]
+                        if nzu[i]:
+                            lst[nl] = i
+                            nl += 1
+                stale = False             # a_i of taps without U_i overwritten (not fin)
                 for it in range(MAX_ACTIVE_SET_ITER):
                     for c in range(C):
                         rhs[c] = rhs0[c]
@@ -619,25 +633,51 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                     for c in range(C):
                         fin = fin and np.isfinite(sol[c])
                     neg = False
-                    for i in range(n):
-                        if act[i]:
-                            if nzu[i] or not fin:
+                    if fin:
+                        if stale:
+                            for i in range(n):
+                                if act[i] and not nzu[i]:
+                                    a[i] = di[i]
+                            stale = False
+                        m = 0
+                        for li in range(nl):
+                            i = lst[li]
+                            s = 0.0
+                            for c in range(C):
+                                s += U[i, c] * sol[c]
+                            a[i] = di[i] * (1.0 - s)
+                            if a[i] < 0.0:
+                                act[i] = False
+                                neg = True
+                                for c in range(C):
+                                    rhs0[c] -= U[i, c] * di[i]
+                                    for d in range(C):
+                                        G0[c, d] -= U[i, c] * di[i] * U[i, d]
+                            else:
+                                lst[m] = i
+                                m += 1
+                        nl = m
+                    else:
+                        # a non-finite solution: every active tap as in the plain loop
+                        stale = True
+                        for i in range(n):
+                            if act[i]:
                                 s = 0.0
                                 for c in range(C):
                                     s += U[i, c] * sol[c]
                                 a[i] = di[i] * (1.0 - s)
-                            else:
-                                a[i] = di[i]
-                        else:
-                            a[i] = 0.0
-                    for i in range(n):
-                        if act[i] and a[i] < 0.0:
-                            act[i] = False
-                            neg = True
-                            for c in range(C):
-                                rhs0[c] -= U[i, c] * di[i]
-                                for d in range(C):
-                                    G0[c, d] -= U[i, c] * di[i] * U[i, d]
+                        nl = 0
+                        for i in range(n):
+                            if act[i] and a[i] < 0.0:
+                                act[i] = False
+                                neg = True
+                                for c in range(C):
+                                    rhs0[c] -= U[i, c] * di[i]
+                                    for d in range(C):
+                                        G0[c, d] -= U[i, c] * di[i] * U[i, d]
+                            elif act[i] and nzu[i]:
+                                lst[nl] = i
+                                nl += 1
                     if not neg:
                         break
             tot = 0.0
