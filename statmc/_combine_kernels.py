@@ -607,9 +607,10 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                             nzu[i] = True        # 0 · inf must stay nan, as in the sum
                         if nzu[i]:
                             for c in range(C):
-                                rhs0[c] += U[i, c] * di[i]
+                                ud = U[i, c] * di[i]
+                                rhs0[c] += ud
                                 for d in range(C):
-                                    G0[c, d] += U[i, c] * di[i] * U[i, d]
+                                    G0[c, d] += ud * U[i, d]
                 # The active taps with U_i != 0 in ascending order (``lst[:nl]``): with a
                 # finite solution only they can change or turn negative; the others keep
                 # a_i = d_i (> 0).  (``a`` of inactive taps is never read.)  Each dropped
@@ -650,9 +651,10 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                                 act[i] = False
                                 neg = True
                                 for c in range(C):
-                                    rhs0[c] -= U[i, c] * di[i]
+                                    ud = U[i, c] * di[i]
+                                    rhs0[c] -= ud
                                     for d in range(C):
-                                        G0[c, d] -= U[i, c] * di[i] * U[i, d]
+                                        G0[c, d] -= ud * U[i, d]
                             else:
                                 lst[m] = i
                                 m += 1
@@ -672,9 +674,10 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                                 act[i] = False
                                 neg = True
                                 for c in range(C):
-                                    rhs0[c] -= U[i, c] * di[i]
+                                    ud = U[i, c] * di[i]
+                                    rhs0[c] -= ud
                                     for d in range(C):
-                                        G0[c, d] -= U[i, c] * di[i] * U[i, d]
+                                        G0[c, d] -= ud * U[i, d]
                             elif act[i] and nzu[i]:
                                 lst[nl] = i
                                 nl += 1
