@@ -733,3 +733,40 @@ def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, metho
         _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
                       out)
     return out
+
+
+# =========================================================================== moment smoothing
+RUN_TILE = 2048            # columns per task of :func:`running_rows` (the sums stay in L1)
+
+
+@njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def running_rows(x, add, sub, n, t, out):  # pragma: no cover - compiled
+    """The rows pass of a box mean of width ``n`` as a running sum, continued from ``t``.
+
+    ``x`` ``(rows, L)``, ``t`` ``(L,)`` the running sums so far (updated), ``out``
+    ``(len(add), L)``: for ``j = 0, 1, ...`` in order, ``t += x[add[j]] − x[sub[j]]`` and
+    ``out[j] = t / n`` (:class:`statmc.combine._SmoothedRows`, SciPy's ``uniform_filter1d``
+    update).  Each element does the same subtraction, addition and division in the same
+    order as :func:`running_rows_numpy`, so the two agree to the bit.
+    """
+    L = t.shape[0]
+    nr = add.shape[0]
+    for tile in prange((L + RUN_TILE - 1) // RUN_TILE):
+        j0 = tile * RUN_TILE
+        j1 = min(L, j0 + RUN_TILE)
+        for r in range(nr):
+            xa = x[add[r]]
+            xb = x[sub[r]]
+            o = out[r]
+            for j in range(j0, j1):
+                t[j] += xa[j] - xb[j]
+                o[j] = t[j] / n
+
+
+def running_rows_numpy(x, add, sub, n, t, out):
+    """NumPy reference of :func:`running_rows` (one row at a time)."""
+    for r in range(len(add)):
+        t += x[add[r]] - x[sub[r]]
+        np.divide(t, n, out=out[r])
+    return out
+

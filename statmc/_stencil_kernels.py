@@ -34,6 +34,31 @@ def add_neighbour_products(prod, a, b, R):
                         prod[y, x, R + dy, R + dx, c] += a[y, x, c] * b[yy, x + dx, c]
 
 
+@njit(parallel=True, cache=True)
+def add_neighbour_products_sum(prod, a, b, R, use):
+    """Compiled ``add_neighbour_products(prod, a[i], b[i], R)`` for every ``i`` with
+    ``use[i]``, in order (``a``, ``b`` ``(K, H, W, C)``): each element of ``prod`` is read
+    once, gets its ``K`` products added one by one in the same order, and is written once,
+    so the sums are those of the ``K`` calls to the bit (``prod`` makes one trip through
+    memory instead of ``K``)."""
+    K, H, W, C = a.shape
+    for y in prange(H):
+        for dy in range(-R, R + 1):
+            yy = y + dy
+            if yy < 0 or yy >= H:
+                continue
+            for x in range(W):
+                lo = max(-R, -x)
+                hi = min(R, W - 1 - x)
+                for dx in range(lo, hi + 1):
+                    for c in range(C):
+                        t = prod[y, x, R + dy, R + dx, c]
+                        for i in range(K):
+                            if use[i]:
+                                t += a[i, y, x, c] * b[i, yy, x + dx, c]
+                        prod[y, x, R + dy, R + dx, c] = t
+
+
 def shift_slices(H, W, oy, ox):
     """Slices ``(dst, src)`` with ``dst[p] <- src[p + (oy, ox)]`` where both are inside an
     ``H x W`` image (empty when the offset is at least the image size)."""
@@ -55,4 +80,14 @@ def add_neighbour_products_numpy(prod, a, b, R):
     return prod
 
 
-__all__ = ["add_neighbour_products", "add_neighbour_products_numpy", "shift_slices"]
+def add_neighbour_products_sum_numpy(prod, a, b, R, use):
+    """NumPy reference of :func:`add_neighbour_products_sum`: the reference above once per
+    used ``i``, in order."""
+    for i in range(a.shape[0]):
+        if use[i]:
+            add_neighbour_products_numpy(prod, a[i], b[i], R)
+    return prod
+
+
+__all__ = ["add_neighbour_products", "add_neighbour_products_numpy", "add_neighbour_products_sum",
+           "add_neighbour_products_sum_numpy", "shift_slices"]

@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _combine_kernels as _ck
-from ._stencil_kernels import add_neighbour_products, shift_slices
+from ._stencil_kernels import add_neighbour_products_sum, shift_slices
 from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
 
 __all__ = [
@@ -1127,12 +1127,13 @@ class _Probes:
         s0, s1 = max(0, r0 - R), min(H, r1 + R)
         cov_z = np.zeros((s1 - s0, W, m, m, C))
         cov_yz = np.zeros((s1 - s0, W, m, m, C))
-        for i in range(self.K):
-            if not self.used[i]:
-                continue                  # no noise (or a black image): zero moments
-            jv = self.jv[i, s0:s1]
-            add_neighbour_products(cov_z, jv, jv, R)       # cov_z[p, R+u] += (Jv)_p (Jv)_{p+u}
-            add_neighbour_products(cov_yz, self.v(i, s0, s1), jv, R)   # += v_p (Jv)_{p+u}
+        # probe by probe in order, skipping those without noise (zero moments), with each
+        # stencil element in a register: the sums of one add_neighbour_products per probe
+        jv = self.jv[:, s0:s1]
+        V = np.stack([self.v(i, s0, s1) for i in range(self.K)])
+        add_neighbour_products_sum(cov_z, jv, jv, R, self.used)   # += (Jv)_p (Jv)_{p+u}
+        add_neighbour_products_sum(cov_yz, V, jv, R, self.used)   # += v_p (Jv)_{p+u}
+        del V
         out = []
         for a in (cov_z, cov_yz):
             a = a[r0 - s0:r1 - s0]
@@ -1242,14 +1243,19 @@ class _SmoothedRows:
                 keep[j] = None
             o = full[nk:]
             t = self.sums[j]
-            for y in range(n0, n1):
-                if y == 0:
-                    t = np.zeros(x.shape[1:])
-                    for e in range(-s, s + 1):
-                        t += x[_reflect(e, H) - r0]
-                else:
-                    t += x[_reflect(y + s, H) - r0] - x[_reflect(y - s - 1, H) - r0]
-                np.divide(t, n, out=o[y - n0])
+            y = n0
+            if y == 0:
+                t = np.zeros(x.shape[1:])
+                for e in range(-s, s + 1):
+                    t += x[_reflect(e, H) - r0]
+                np.divide(t, n, out=o[0])
+                y = 1
+            if y < n1:                     # t += x[y + s] - x[y - s - 1], o[y] = t / n
+                add = np.array([_reflect(e + s, H) - r0 for e in range(y, n1)], np.int64)
+                sub = np.array([_reflect(e - s - 1, H) - r0 for e in range(y, n1)], np.int64)
+                L = t.size
+                _ck.running_rows(np.ascontiguousarray(x).reshape(len(x), L), add, sub, n,
+                                 t.reshape(L), o[y - n0:].reshape(n1 - y, L))
             self.sums[j] = t
             raw[j] = x = None              # free each raw stencil once summed
             uniform_filter1d(o, n, axis=1, output=o, mode="reflect")

@@ -836,6 +836,29 @@ def test_combine_denoised_bad_input():
         denoiser_moments("oidn", y, y)
 
 
+def test_neighbour_products_sum_kernel_equals_numpy_reference_to_the_bit():
+    """``add_neighbour_products_sum`` (``denoiser_moments``' probes in one pass) equals its
+    NumPy reference and K calls of ``add_neighbour_products`` exactly, skipped probes and
+    borders included."""
+    from statmc import _stencil_kernels as sk
+
+    rng = np.random.default_rng(12)
+    for K, h, w, R in ((4, 7, 5, 2), (3, 6, 9, 3), (1, 3, 4, 4), (5, 1, 1, 1)):
+        a = rng.normal(size=(K, h, w, 3))
+        b = rng.normal(size=(K, h, w, 3))
+        use = rng.random(K) < 0.7
+        use[0] = True
+        start = rng.normal(size=(h, w, 2 * R + 1, 2 * R + 1, 3))
+        fast = start.copy()
+        sk.add_neighbour_products_sum(fast, a, b, R, use)
+        ref = sk.add_neighbour_products_sum_numpy(start.copy(), a, b, R, use)
+        np.testing.assert_array_equal(fast, ref)
+        calls = start.copy()
+        for i in np.flatnonzero(use):
+            sk.add_neighbour_products(calls, a[i], b[i], R)
+        np.testing.assert_array_equal(fast, calls)
+
+
 def test_neighbour_products_kernel_equals_numpy_reference_to_the_bit():
     """``statmc._stencil_kernels``: the compiled ``prod[p, R+v] += a_p · b_{p+v}`` equals the
     NumPy reference exactly (same operations, no fused multiply-add), borders and offsets
@@ -1153,6 +1176,24 @@ def test_reconstruct_bins_refuses_pixels_without_a_variance():
 
 
 # --------------------------------------------------------------------------- banded moments
+def test_running_rows_kernel_equals_numpy_reference_to_the_bit():
+    """``_combine_kernels.running_rows`` (the rows pass of _SmoothedRows) equals its NumPy
+    reference exactly: the same update ``t += x[a] − x[b]``, ``out = t / n`` per row, over
+    several column tiles and with repeated (reflected) rows."""
+    rng = np.random.default_rng(13)
+    for rows, L, n in ((9, 5, 5), (12, 2 * ck.RUN_TILE + 37, 3), (1, 1, 1)):
+        x = rng.normal(size=(rows, L)) * 10.0 ** rng.integers(-3, 3, size=(rows, L))
+        add = rng.integers(0, rows, 2 * rows).astype(np.int64)
+        sub = rng.integers(0, rows, 2 * rows).astype(np.int64)
+        t0 = rng.normal(size=L)
+        t1, t2 = t0.copy(), t0.copy()
+        o1, o2 = np.empty((2 * rows, L)), np.empty((2 * rows, L))
+        ck.running_rows(x, add, sub, n, t1, o1)
+        ck.running_rows_numpy(x, add, sub, n, t2, o2)
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(t1, t2)
+
+
 def test_smoothed_rows_equal_scipys_box_of_the_whole_image_to_the_bit():
     """_SmoothedRows hands out box-smoothed stencils band after band, carrying SciPy's
     running sums from band to band: bit for bit ``scale · _box(stencil, radius)`` of the
