@@ -735,11 +735,11 @@ def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo
         mode = _ck.BIAS_ARRAY
     else:
         mode = _ck.BIAS_ZERO if z_bias == "zero" else _ck.BIAS_ESTIMATE
-    if rows is None:
-        out = np.empty((H, W, B, k, k), np.float32)
-    else:
-        out = np.zeros((H, W, B, k, k), np.float32)
-        out[:, :, :, k // 2, k // 2] = 1.0       # the rows not asked for: the identity
+    out = np.empty((H, W, B, k, k), np.float32)
+    if rows is not None:                         # the rows not asked for: the identity
+        for part in (out[:max(0, rows[0])], out[max(0, rows[1]):]):
+            part[:] = 0.0
+            part[:, :, :, k // 2, k // 2] = 1.0
     code = _ck.METHOD_COHERENT if method == "coherent" else _ck.METHOD_DIAGONAL
     _ck.statistical_weights_numba(np.ascontiguousarray(ys), np.ascontiguousarray(zs),
                                   _unbroadcast(mom.var_y), _unbroadcast(mom.cov_z),
