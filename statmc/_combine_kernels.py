@@ -591,6 +591,10 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                     for d in range(C):
                         G0[c, d] = 1.0 if c == d else 0.0
                 cv = C * vmin
+                # C = 3: the sums in registers (the same additions in the same order)
+                g00, g01, g02, g10, g11, g12, g20, g21, g22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, \
+                    0.0, 0.0, 1.0
+                q0 = q1 = q2 = 0.0
                 for i in range(n):
                     act[i] = valid[i]
                     nzu[i] = False
@@ -605,12 +609,36 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                                 U[i, c] = 0.0
                         if not np.isfinite(di[i]):
                             nzu[i] = True        # 0 · inf must stay nan, as in the sum
-                        if nzu[i]:
+                        if nzu[i] and C == 3:
+                            u0 = U[i, 0]
+                            u1 = U[i, 1]
+                            u2 = U[i, 2]
+                            ud = u0 * di[i]
+                            q0 += ud
+                            g00 += ud * u0
+                            g01 += ud * u1
+                            g02 += ud * u2
+                            ud = u1 * di[i]
+                            q1 += ud
+                            g10 += ud * u0
+                            g11 += ud * u1
+                            g12 += ud * u2
+                            ud = u2 * di[i]
+                            q2 += ud
+                            g20 += ud * u0
+                            g21 += ud * u1
+                            g22 += ud * u2
+                        elif nzu[i]:
                             for c in range(C):
                                 ud = U[i, c] * di[i]
                                 rhs0[c] += ud
                                 for d in range(C):
                                     G0[c, d] += ud * U[i, d]
+                if C == 3:
+                    rhs0[0], rhs0[1], rhs0[2] = q0, q1, q2
+                    G0[0, 0], G0[0, 1], G0[0, 2] = g00, g01, g02
+                    G0[1, 0], G0[1, 1], G0[1, 2] = g10, g11, g12
+                    G0[2, 0], G0[2, 1], G0[2, 2] = g20, g21, g22
                 # The active taps with U_i != 0 in ascending order (``lst[:nl]``): with a
                 # finite solution only they can change or turn negative; the others keep
                 # a_i = d_i (> 0).  (``a`` of inactive taps is never read.)  Each dropped
