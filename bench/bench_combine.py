@@ -30,7 +30,10 @@ call beside its wall time (CPU time / wall time close to 2 means both cores were
    subprocess (``--memory-child``; the peak is ``VmHWM`` after a reset through
    ``/proc/self/clear_refs``).  Before the moment stencils were banded: 5.34 and 4.87 GiB
    above 0.64 GiB of inputs; now 1.89 GiB each (docs/combine.md, "Memory").
-   ``--memory-child denoised --save out.npy`` keeps the output, to compare versions.
+   ``--memory-child denoised --save out.npy`` keeps the output, to compare versions;
+   ``--part memory --baseline DIR [--which denoised]`` runs an older checkout
+   (``git archive <commit> statmc bench | tar -x -C DIR``) first in the same session and
+   prints both times, their ratio and whether the outputs are equal to the bit.
 
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_combine.py [--part
 kernel|weights|memory|quality|all] [--seeds 0 1 2] [--height 1080 --width 1920]``
@@ -290,25 +293,54 @@ def memory_child(which, h=H, w=W, save=None):
                       "wall_s": wall, "cpu_s": cpu}), flush=True)
 
 
-def memory(h=H, w=W):
-    """Peak RSS above the inputs of ``combine_denoised`` and ``combine_bins`` at ``h x w``
-    (GEM's SelectedFilter; each in its own subprocess, so one does not inherit the other's
-    peak), with wall time and load average."""
+def _memory_run(which, h, w, root=None, save=None):
+    """One ``--memory-child`` subprocess; ``root``: a checkout whose ``statmc`` (and this
+    script) to run instead of the current one.  Returns its JSON record."""
     import json
     import subprocess
     import sys
 
+    script, env = __file__, None
+    if root is not None:
+        script = os.path.join(root, "bench", "bench_combine.py")
+        env = dict(os.environ, PYTHONPATH=os.path.abspath(root))
+    cmd = [sys.executable, script, "--memory-child", which, "--height", str(h),
+           "--width", str(w)] + (["--save", save] if save else [])
+    res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def memory(h=H, w=W, baseline=None, which=("denoised", "bins")):
+    """Peak RSS above the inputs of ``combine_denoised`` and ``combine_bins`` at ``h x w``
+    (GEM's SelectedFilter; each in its own subprocess, so one does not inherit the other's
+    peak), with wall time and load average.  ``baseline``: a checkout of an older version
+    (``git archive <commit> statmc bench | tar -x -C DIR``), run first in the same session;
+    prints both, the time ratio and whether the outputs are equal to the bit."""
+    import tempfile
+
     print(f"\nmemory of combine_denoised / combine_bins (B = 4) at {w}x{h}x3, 15x15 windows, "
           f"5x5 stencils, GEM's SelectedFilter, synthetic render; load average {_load():.2f}:")
-    for which in ("denoised", "bins"):
-        res = subprocess.run([sys.executable, __file__, "--memory-child", which,
-                              "--height", str(h), "--width", str(w)],
-                             capture_output=True, text=True, check=True)
-        r = json.loads(res.stdout.strip().splitlines()[-1])
-        print(f"  combine_{which:8s} peak RSS {r['peak_mib'] / 1024:5.2f} GiB = inputs "
-              f"{r['base_mib'] / 1024:4.2f} GiB + {(r['peak_mib'] - r['base_mib']) / 1024:4.2f} GiB; "
-              f"{r['wall_s']:6.1f} s wall ({r['cpu_s']:.1f} s CPU); load average {_load():.2f}",
-              flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in which:
+            runs = [("baseline", baseline), ("current", None)] if baseline else [("", None)]
+            rec = {}
+            for label, root in runs:
+                load0 = _load()
+                save = os.path.join(tmp, f"{name}-{label}.npy") if baseline else None
+                r = rec[label] = _memory_run(name, h, w, root, save)
+                print(f"  combine_{name:8s} {label:8s} peak RSS {r['peak_mib'] / 1024:5.2f} GiB "
+                      f"= inputs {r['base_mib'] / 1024:4.2f} GiB + "
+                      f"{(r['peak_mib'] - r['base_mib']) / 1024:4.2f} GiB; {r['wall_s']:6.1f} s "
+                      f"wall ({r['cpu_s']:.1f} s CPU); load average {load0:.2f} -> {_load():.2f}",
+                      flush=True)
+            if baseline:
+                a, b = (np.load(os.path.join(tmp, f"{name}-{x}.npy"))
+                        for x in ("baseline", "current"))
+                print(f"  combine_{name:8s} current / baseline: wall "
+                      f"{rec['current']['wall_s'] / rec['baseline']['wall_s']:.3f}, CPU "
+                      f"{rec['current']['cpu_s'] / rec['baseline']['cpu_s']:.3f}; outputs equal "
+                      f"to the bit: {np.array_equal(a, b)} (max |diff| {np.abs(a - b).max():.3g})",
+                      flush=True)
 
 
 QUALITY_SCENES = ("toy:mixed", "cornell-box", "glossy-spheres", "glass-caustic", "textured-dof")
@@ -383,6 +415,10 @@ if __name__ == "__main__":
     ap.add_argument("--height", type=int, default=H)
     ap.add_argument("--width", type=int, default=W)
     ap.add_argument("--save", help="--memory-child: save the output to this .npy")
+    ap.add_argument("--baseline", help="--part memory: also run this older checkout "
+                    "(a directory holding its statmc/ and bench/) first, and compare")
+    ap.add_argument("--which", nargs="+", choices=["denoised", "bins"],
+                    default=["denoised", "bins"], help="--part memory: the calls to run")
     args = ap.parse_args()
     if args.memory_child:
         memory_child(args.memory_child, args.height, args.width, args.save)
@@ -393,6 +429,6 @@ if __name__ == "__main__":
     if args.part in ("weights", "all"):
         weights_speed()
     if args.part in ("memory", "all"):
-        memory(args.height, args.width)
+        memory(args.height, args.width, args.baseline, tuple(args.which))
     if args.part in ("quality", "all"):
         quality_table(tuple(args.seeds))
