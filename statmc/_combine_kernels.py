@@ -474,6 +474,16 @@ def _solve_small(G, rhs, sol):  # pragma: no cover - compiled
         sol[i] = s / G[i, i]
 
 
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _drop_tap(U, di, i, C, rhs0, G0):  # pragma: no cover - compiled
+    """Remove tap ``i``'s terms ``U_i d_i`` from the active-set sums ``rhs0``, ``G0``."""
+    for c in range(C):
+        ud = U[i, c] * di[i]
+        rhs0[c] -= ud
+        for d in range(C):
+            G0[c, d] -= ud * U[i, d]
+
+
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
                   out):  # pragma: no cover - compiled
@@ -678,11 +688,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                             if a[i] < 0.0:
                                 act[i] = False
                                 neg = True
-                                for c in range(C):
-                                    ud = U[i, c] * di[i]
-                                    rhs0[c] -= ud
-                                    for d in range(C):
-                                        G0[c, d] -= ud * U[i, d]
+                                _drop_tap(U, di, i, C, rhs0, G0)
                             else:
                                 lst[m] = i
                                 m += 1
@@ -701,11 +707,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                             if act[i] and a[i] < 0.0:
                                 act[i] = False
                                 neg = True
-                                for c in range(C):
-                                    ud = U[i, c] * di[i]
-                                    rhs0[c] -= ud
-                                    for d in range(C):
-                                        G0[c, d] -= ud * U[i, d]
+                                _drop_tap(U, di, i, C, rhs0, G0)
                             elif act[i] and nzu[i]:
                                 lst[nl] = i
                                 nl += 1

@@ -14,24 +14,14 @@ same order (no fused multiply-add), so they agree to the bit.
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit, prange
 
 
-@njit(parallel=True, cache=True)
 def add_neighbour_products(prod, a, b, R):
-    """Compiled; rows of the output in parallel (each row writes only its own slots)."""
-    H, W, C = a.shape
-    for y in prange(H):
-        for dy in range(-R, R + 1):
-            yy = y + dy
-            if yy < 0 or yy >= H:
-                continue
-            for x in range(W):
-                lo = max(-R, -x)
-                hi = min(R, W - 1 - x)
-                for dx in range(lo, hi + 1):
-                    for c in range(C):
-                        prod[y, x, R + dy, R + dx, c] += a[y, x, c] * b[yy, x + dx, c]
+    """Compiled ``prod[y, x, R + dy, R + dx, c] += a[y, x, c] · b[y + dy, x + dx, c]`` for
+    ``|dy|, |dx| <= R`` inside the image: :func:`add_neighbour_products_sum` with one pair."""
+    add_neighbour_products_sum(prod, a[None], b[None], R, np.ones(1, np.bool_))
 
 
 @njit(parallel=True, cache=True)
