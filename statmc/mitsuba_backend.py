@@ -631,29 +631,25 @@ class MitsubaRenderer:
         return stats, cov
 
     # ------------------------------------------------------------------ internals
-    def _check_counts(self, counts) -> np.ndarray:
-        a = as_float_array("counts", counts, ndim=2)
+    def _whole_map(self, name: str, value, whole: str) -> np.ndarray:
+        """An (H, W) float map of whole numbers >= 0 (``whole`` names what they count)."""
+        a = as_float_array(name, value, ndim=2)
         if a.shape != (self.height, self.width):
-            raise InputError(f"`counts` must have the image shape (H, W) = "
+            raise InputError(f"`{name}` must have the image shape (H, W) = "
                              f"{(self.height, self.width)}; got {a.shape}.")
-        check_finite("counts", a)
-        check_nonnegative("counts", a)
+        check_finite(name, a)
+        check_nonnegative(name, a)
         if np.any(a != np.floor(a)):
-            raise InputError("`counts` must hold whole numbers of samples; got fractional values.")
-        return a.astype(np.int64)
+            raise InputError(f"`{name}` must hold {whole}; got fractional values.")
+        return a
+
+    def _check_counts(self, counts) -> np.ndarray:
+        return self._whole_map("counts", counts, "whole numbers of samples").astype(np.int64)
 
     def _check_first(self, first_sample, counts) -> np.ndarray:
         if first_sample is None:
             return np.zeros_like(counts)
-        a = as_float_array("first_sample", first_sample, ndim=2)
-        if a.shape != counts.shape:
-            raise InputError(f"`first_sample` must have the image shape (H, W) = "
-                             f"{counts.shape}; got {a.shape}.")
-        check_finite("first_sample", a)
-        check_nonnegative("first_sample", a)
-        if np.any(a != np.floor(a)):
-            raise InputError("`first_sample` must hold whole sample indices; got fractional "
-                             "values.")
+        a = self._whole_map("first_sample", first_sample, "whole sample indices")
         if np.any(a + counts >= 2 ** 31):
             raise InputError("`first_sample + counts` must stay below 2**31 samples per pixel.")
         return a.astype(np.int64)
