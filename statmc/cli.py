@@ -504,7 +504,11 @@ def _refuse_unused(args, names, why: str) -> None:
 
 
 def _gem_defaults(args) -> None:
-    """Fill in --gamma and --gem-bias after :func:`_refuse_unused` has seen them."""
+    """Refuse --gamma / --gem-bias given with another --denoiser than gem, then fill in
+    their defaults (``denoise`` and ``progressive``)."""
+    if args.denoiser != "gem":
+        _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
+                       "are options of --denoiser gem's scale selection)")
     args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
     args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
 
@@ -515,13 +519,10 @@ def cmd_denoise(args) -> int:
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     _refuse_crn(stats, args.input, f"statmc denoise {_ASSUMES_INDEPENDENT}")
-    if args.denoiser != "gem":
-        _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
-                       "are options of --denoiser gem's scale selection)")
+    _gem_defaults(args)
     if args.denoiser != "gaussian":
         _refuse_unused(args, ["sigma"], f"on --denoiser {args.denoiser} (it is the width of "
                        "--denoiser gaussian)")
-    _gem_defaults(args)
     args.sigma = 1.0 if args.sigma is None else args.sigma
     if args.variance or args.denoiser == "gem":
         _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
@@ -555,9 +556,6 @@ def cmd_progressive(args) -> int:
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
-    if args.denoiser != "gem":
-        _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
-                       "are options of --denoiser gem's scale selection)")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
