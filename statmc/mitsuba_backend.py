@@ -20,9 +20,9 @@ continues a pixel's sequence where an earlier pass stopped.  So an adaptive rend
 uniform render with the same seed share the first samples of every pixel (common random
 numbers between samplers), and moving one sample leaves every other pixel as it was.
 A stream is set by one 32-bit word, a keyed bijection of ``j · P + p`` (P pixels), so no
-two samples of a render share a stream while ``j < 2**32 / P``.  Renders whose seeds
-differ are independent, but renders with the same seed are not: give a reference and the
-renders it scores different seeds.
+two samples of a render share a stream while ``j < 2**32 / P`` (beyond that the words wrap
+and ``render`` warns).  Renders whose seeds differ are independent, but renders with the
+same seed are not: give a reference and the renders it scores different seeds.
 
 Mitsuba's fast ``llvm_ad_rgb`` variant needs LLVM >= 16 at run time
 (:func:`find_libllvm`, :func:`setup_mitsuba`).  Without it the backend falls back to
@@ -258,13 +258,34 @@ def _sample_seeds(keys, pixels: int, pix: np.ndarray, index: np.ndarray) -> np.n
 
     So within one render no two samples share a stream while every index stays below
     ``2**32 / pixels`` (2048 samples per pixel at 1920×1080, 349,525 at 128×96); beyond
-    that the words wrap around.  (NumPy reference of the seeds that
+    that the words wrap around (:meth:`MitsubaRenderer.render` warns).  (NumPy reference of the seeds that
     :meth:`MitsubaRenderer._render_jit` forms inside Dr.Jit.)
     """
     k1, k2 = keys
     w = (index.astype(np.uint64) * np.uint64(pixels) + pix.astype(np.uint64) + np.uint64(k1))
     with np.errstate(over="ignore"):
         return _fmix32((w % np.uint64(1 << 32)).astype(np.uint32)) ^ np.uint32(k2)
+
+
+def _warn_if_words_wrap(first: np.ndarray, counts: np.ndarray) -> bool:
+    """Warn (and return True) when a sample's word ``index · P + pixel`` of
+    :func:`_sample_seeds` reaches 2**32: it then wraps around onto the word, hence the
+    random stream, of another sample of the same seed (sample 0 of pixel 0 for the word
+    2**32), so the render is no longer made of independent samples."""
+    used = counts.ravel() > 0
+    if not used.any():
+        return False
+    P = counts.size
+    last = (first.ravel()[used] + counts.ravel()[used] - 1) * P + np.flatnonzero(used)
+    top = int(last.max())                     # < 2**31 · P, exact in int64
+    if top < 2 ** 32:
+        return False
+    warnings.warn(f"statmc: this render uses sample indices up to {top // P} with {P} pixels; "
+                  f"from index {2 ** 32 // P} on (2**32 / pixels) the 32-bit seed words wrap "
+                  "around, so some samples repeat the random stream of others with the same "
+                  "seed and are not independent.  Render fewer samples per pixel per seed, or "
+                  "merge renders with different seeds.", RuntimeWarning, stacklevel=3)
+    return True
 
 
 def _chunk_pixels(counts_flat: np.ndarray, chunk: int):
@@ -487,6 +508,7 @@ class MitsubaRenderer:
         """
         counts = self._check_counts(counts)
         first = self._check_first(first_sample, counts)
+        _warn_if_words_wrap(first, counts)
         seed = _check_int("seed", seed, minimum=0)
         feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
         if self._mi.variant() != self.variant:

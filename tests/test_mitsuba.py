@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -703,3 +704,25 @@ def test_crn_render_draws_other_numbers_than_render_with_the_same_seed(cornell):
     a, _ = cornell.render_crn(1, seed=1, stencil=1, features=False)
     b, _ = cornell.render_crn(1, seed=2, stencil=1, features=False)
     assert not np.array_equal(a.mean, b.mean)
+
+
+def test_words_wrapping_around_warn_and_repeat_a_stream():
+    """Sample j of pixel p has the word j·P + p (mod 2**32): on a 2x2 image (P = 4) sample
+    2**30 of pixel 0 has the word 2**32 ≡ 0, the word of sample 0 of pixel 0, so it repeats
+    that sample exactly, and ``render`` says so; one index lower nothing wraps."""
+    r = mb.MitsubaRenderer("cornell-box", width=2, height=2)
+    one = np.zeros((2, 2), np.int64)
+    one[0, 0] = 1
+    first = np.zeros((2, 2), np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a = r.render(one, seed=7, features=False)
+        first[0, 0] = 2 ** 30 - 1               # word (2**30 - 1)·4 = 2**32 - 4: no wrap
+        b = r.render(one, seed=7, features=False, first_sample=first)
+        full = np.ones((2, 2), np.int64)        # last word (2**30 - 1)·4 + 3 = 2**32 - 1
+        r.render(full, seed=7, features=False, first_sample=first * 0 + 2 ** 30 - 1)
+    first[0, 0] = 2 ** 30
+    with pytest.warns(RuntimeWarning, match="wrap around"):
+        c = r.render(one, seed=7, features=False, first_sample=first)
+    assert not np.array_equal(a.mean[0, 0], b.mean[0, 0])
+    np.testing.assert_array_equal(a.mean[0, 0], c.mean[0, 0])
