@@ -26,7 +26,11 @@ to overwrite any path listed in ``protect``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
+import tempfile
 
 import numpy as np
 
@@ -56,6 +60,88 @@ def _name(path) -> str:
     return os.fspath(path) if not isinstance(path, (bytes, bytearray)) else path.decode()
 
 
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_OTHER_FORMATS = ((b"\x89PNG\r\n\x1a\n", "PNG"), (b"\xff\xd8\xff", "JPEG"),
+                  (b"#?RADIANCE", "Radiance HDR"), (b"#?RGBE", "Radiance HDR"),
+                  (b"II*\x00", "TIFF"), (b"MM\x00*", "TIFF"), (b"\x93NUMPY", "NumPy .npy"),
+                  (b"PK\x03\x04", "ZIP (e.g. .npz)"))
+
+
+def _check_magic(p: str) -> None:
+    """Refuse an empty file or one without OpenEXR's magic number, naming what it is."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(16)
+    except OSError as e:
+        raise FileFormatError(f"cannot read EXR file {p!r}: {e.strerror}.") from None
+    if not head:
+        raise FileFormatError(f"{p!r} is not a readable OpenEXR file: it is empty (0 bytes).")
+    if not head.startswith(_EXR_MAGIC):
+        what = next((f"a {name} file" for sig, name in _OTHER_FORMATS if head.startswith(sig)),
+                    "another format")
+        raise FileFormatError(f"{p!r} is not a readable OpenEXR file: it is {what} (it does not "
+                              "start with OpenEXR's magic number 76 2f 31 01).")
+
+
+def _flush_c_stdio() -> None:
+    """Flush C's stdio buffers (fully buffered when not a terminal)."""
+    import ctypes
+    with contextlib.suppress(Exception):
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextlib.contextmanager
+def _captured_c_output():
+    """Collect what is written to ``sys.stdout``/``sys.stderr`` and to file descriptors
+    1 and 2 meanwhile, as one string appended to the yielded list: OpenEXR prints its
+    diagnosis of a corrupt file there (a warning on ``sys.stdout``, the core library's
+    errors on fd 2), around the one-line error of the command."""
+    said = []
+    saved = {}
+    try:
+        for s in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                s.flush()
+        _flush_c_stdio()
+        for fd in (1, 2):
+            saved[fd] = os.dup(fd)
+    except OSError:                          # no usable descriptor: capture nothing
+        for d in saved.values():
+            os.close(d)
+        yield said
+        return
+    py = io.StringIO()                       # the binding's warning goes to sys.stdout
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            for fd in saved:
+                os.dup2(tmp.fileno(), fd)
+            try:
+                with contextlib.redirect_stdout(py), contextlib.redirect_stderr(py):
+                    yield said
+            finally:
+                _flush_c_stdio()
+                for fd, d in saved.items():
+                    os.dup2(d, fd)
+                tmp.seek(0)
+                said.append(py.getvalue() + tmp.read().decode("utf-8", "replace"))
+    finally:
+        for d in saved.values():
+            os.close(d)
+
+
+def _openexr_diagnosis(p: str, text: str) -> str:
+    """OpenEXR's first error line in ``text`` (the file name prefix removed), or "".
+    Other text it printed is passed on to stderr."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if "EXR_ERR" in ln or ln.startswith("Warning: Exception")]
+    if not errors:
+        if text:
+            sys.stderr.write(text)
+        return ""
+    first = next((ln for ln in errors if "EXR_ERR" in ln), errors[0])
+    return first.split(": ", 1)[1] if first.startswith(p + ": ") else first
+
+
 def _open(path):
     """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``."""
     import OpenEXR
@@ -65,14 +151,22 @@ def _open(path):
         raise FileFormatError(f"EXR file {p!r} does not exist.")
     if os.path.isdir(p):
         raise FileFormatError(f"{p!r} is a directory, not an EXR file.")
-    try:
-        f = OpenEXR.File(p, separate_channels=True)
-        n_parts = len(f.parts)
-        header = f.header(0)
-        chans = f.channels(0)
-    except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
+    _check_magic(p)
+    err = None
+    with _captured_c_output() as said:
+        try:
+            f = OpenEXR.File(p, separate_channels=True)
+            n_parts = len(f.parts)
+            header = f.header(0)
+            chans = f.channels(0)
+        except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
+            err = e
+    # OpenEXR reports a corrupt chunk on stdout and stderr (three lines) and then drops the
+    # part, so the exception only says "file has 0 parts": give its own diagnosis instead.
+    diag = _openexr_diagnosis(p, said[0] if said else "")
+    if err is not None or diag:
         raise FileFormatError(f"{p!r} is not a readable OpenEXR file (corrupt, truncated or "
-                              f"another format): {e}") from None
+                              f"another format): {diag or err}") from None
     storage = str(header.get("type", ""))
     if "deep" in storage:
         raise FileFormatError(f"{p!r} is a deep EXR ({storage}); only flat images are supported.")

@@ -621,3 +621,44 @@ def test_read_bins_refuses_a_bin_gap_without_listing_every_missing_channel(tmp_p
     write_exr(p, ys[0], extra=ch)
     with pytest.raises(FileFormatError, match="up to 100000 but none for bin 2 "):
         read_bins(p)
+
+
+def test_corrupt_chunk_is_one_error_without_openexr_chatter(tmp_path, capfd):
+    """A damaged chunk made OpenEXR print two lines on stderr and a warning on stdout (after
+    the command's JSON), and the error said only "file has 0 parts"; now the error carries
+    OpenEXR's diagnosis and nothing else reaches the terminal."""
+    y, x = np.mgrid[0:256, 0:64]
+    img = np.repeat((np.sin(x / 7.0) * np.cos(y / 9.0))[..., None], 3, axis=2)
+    good = tmp_path / "good.exr"
+    write_exr(good, img)
+    data = bytearray(good.read_bytes())
+    for k, name in ((len(data) // 2, "corrupt"), (len(data) - 100, "tail")):
+        bad = tmp_path / f"{name}.exr"
+        d = bytearray(data)
+        d[k:k + 16] = b"\x55" * 16
+        bad.write_bytes(bytes(d))
+        capfd.readouterr()
+        for fn in (read_exr, read_image, exr_info, read_channels):
+            with pytest.raises(FileFormatError, match=r"not a readable OpenEXR file.*EXR_ERR") as e:
+                fn(bad)
+            assert "0 parts" not in str(e.value) and str(bad) in str(e.value)
+        out, err = capfd.readouterr()
+        assert out == "" and err == ""
+    assert read_image(good).shape == (256, 64, 3)      # descriptors restored: reads still work
+    print("still printing")
+    assert capfd.readouterr().out == "still printing\n"
+
+
+@pytest.mark.parametrize("head, what", [(b"", "empty (0 bytes)"),
+                                        (b"\x89PNG\r\n\x1a\n" + b"\0" * 40, "a PNG file"),
+                                        (b"\x93NUMPY" + b"\0" * 40, "a NumPy .npy file"),
+                                        (b"#?RADIANCE\n" + b"\0" * 40, "a Radiance HDR file"),
+                                        (b"hello world" * 5, "another format")])
+def test_foreign_file_is_named(tmp_path, head, what):
+    """An empty file, or another format renamed .exr, is named as such (it was "Unable to
+    open ... for read")."""
+    p = tmp_path / "x.exr"
+    p.write_bytes(head)
+    with pytest.raises(FileFormatError, match="not a readable OpenEXR file") as e:
+        read_exr(p)
+    assert what in str(e.value)
