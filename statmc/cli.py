@@ -166,9 +166,14 @@ def load_sample_map(path: str) -> np.ndarray:
     if path.lower().endswith(".npy"):
         try:
             m = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            why = "not a NumPy .npy array file" if "pickle" in str(e) else str(e)
+        except (ValueError, OSError, EOFError) as e:  # EOFError: an empty file
+            why = ("not a NumPy .npy array file" if "pickle" in str(e) or isinstance(e, EOFError)
+                   else str(e))
             raise InputError(f"cannot read sample map {path}: {why}.") from None
+        if not isinstance(m, np.ndarray):  # a .npz archive renamed .npy
+            m.close()
+            raise InputError(f"sample map {path} is a .npz archive of arrays {sorted(m.files)}; "
+                             "expected one (H, W) array saved with numpy.save.")
     elif path.lower().endswith(".exr"):
         from .exr import read_channels
         ch = read_channels(path)
@@ -186,8 +191,9 @@ def load_sample_map(path: str) -> np.ndarray:
     m = np.asarray(m)
     if m.ndim == 3 and m.shape[2] == 1:
         m = m[..., 0]
-    if m.ndim != 2 or not np.issubdtype(m.dtype, np.number):
-        raise InputError(f"sample map {path} must be a numeric (H, W) array; got {m.dtype} {m.shape}.")
+    if m.ndim != 2 or not (np.issubdtype(m.dtype, np.integer) or np.issubdtype(m.dtype, np.floating)):
+        raise InputError(f"sample map {path} must be a real-valued (H, W) array of integers or "
+                         f"floats; got {m.dtype} {m.shape}.")
     m = m.astype(np.float64)
     bad = ~np.isfinite(m)
     if bad.any():
@@ -306,6 +312,7 @@ def cmd_render(args) -> int:
         raise InputError(f"--denoiser chooses the denoiser of --sampler denoising-aware / "
                          f"expected-error and of --reconstruct progressive; it has no effect on "
                          f"--sampler {args.sampler} with --reconstruct {args.reconstruct}.")
+    _render_gem_defaults(args)
     binned = args.reconstruct in BIN_RECONSTRUCTIONS
     if args.bins is not None and not binned:
         raise InputError(f"--bins is the number of sample bins of --reconstruct "
@@ -509,6 +516,31 @@ def _gem_defaults(args) -> None:
     if args.denoiser != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
                        "are options of --denoiser gem's scale selection)")
+    args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
+    args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
+
+
+def _render_gem_defaults(args) -> None:
+    """Refuse render's --gamma / --gem-bias when no part of the render reads them, then fill
+    in their defaults.  γ drives the adaptive --sampler gem, the GEM pilot kernels of
+    --sampler expected-error, and every GEM final selection (--reconstruct gem / gem+bins,
+    a --denoiser gem of --sampler denoising-aware or --reconstruct progressive); the bias
+    estimate only the final selections."""
+    gem_denoiser = args.denoiser == "gem" and (args.sampler == "denoising-aware"
+                                               or args.reconstruct == "progressive")
+    final = args.reconstruct in ("gem", "gem+bins") or gem_denoiser
+    uses_gamma = final or args.sampler == "gem" or (args.sampler == "expected-error"
+                                                    and args.denoiser in (None, "gem"))
+    where = f"on --sampler {args.sampler} with --reconstruct {args.reconstruct}" + (
+        f" and --denoiser {args.denoiser}" if args.denoiser else "")
+    if not uses_gamma:
+        _refuse_unused(args, ["gamma", "gem_bias"], f"{where} (--gamma and --gem-bias are "
+                       "read by GEM only: --sampler gem or expected-error, --reconstruct gem or "
+                       "gem+bins, --denoiser gem)")
+    elif not final:
+        _refuse_unused(args, ["gem_bias"], f"{where} (--gem-bias is read by GEM's final "
+                       "selection only: --reconstruct gem or gem+bins, --denoiser gem; "
+                       f"--sampler {args.sampler} reads --gamma only)")
     args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
     args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
 
@@ -754,7 +786,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "4, the paper's; --spp must be a multiple of it)")
     _add_gem_options(r, "--reconstruct gem and --denoiser gem",
                      "by the adaptive --sampler gem and the pilot kernels of --sampler "
-                     "expected-error always, and ")
+                     "expected-error always, and ", refuse_unused=True)
     r.add_argument("--crn", action="store_true",
                    help="common-random-number render (Mitsuba scenes, uniform --spp >= 2): sample "
                         "j of every pixel uses the same random sequence, so neighbouring errors "

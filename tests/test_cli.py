@@ -897,3 +897,55 @@ def test_options_with_effect_are_accepted(tmp_path, toy_render):
         code, _, err = run_cli(*args, "--out", out, "-q")
         assert code == 0, err
         assert out.exists()
+
+
+@pytest.mark.parametrize("opts, bad", [
+    (("--spp", "4", "--gamma", "0.1"), "--gamma has no effect on --sampler uniform"),
+    (("--spp", "4", "--reconstruct", "oidn", "--gem-bias", "paper"), "--gem-bias has no effect"),
+    (("--spp", "4", "--reconstruct", "gaussian", "--gamma", "0.1", "--gem-bias", "paper"),
+     "--gamma and --gem-bias have no effect"),
+    (("--spp", "8", "--sampler", "gem", "--gem-bias", "paper"), "--sampler gem reads --gamma only"),
+    (("--spp", "8", "--sampler", "expected-error", "--denoiser", "gaussian", "--gamma", "0.1"),
+     "--gamma has no effect on --sampler expected-error"),
+    (("--spp", "8", "--sampler", "denoising-aware", "--gamma", "0.1"), "--gamma has no effect"),
+])
+def test_render_refuses_gem_options_it_would_ignore(tmp_path, opts, bad):
+    """`render --gamma` / `--gem-bias` were accepted and dropped when nothing in the render
+    reads them (no GEM sampler, reconstruction or denoiser); refused like denoise's."""
+    out = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", *opts, "--out", out, "-q")
+    _assert_one_line_error(code, err, bad)
+    assert not out.exists()
+
+
+def test_render_accepts_gem_options_where_they_are_read(tmp_path):
+    for opts in (("--spp", "4", "--reconstruct", "gem", "--gamma", "0.1", "--gem-bias", "paper"),
+                 ("--spp", "8", "--sampler", "gem", "--gamma", "0.1"),
+                 ("--spp", "4", "--reconstruct", "progressive", "--denoiser", "gem",
+                  "--gem-bias", "paper")):
+        out = tmp_path / str(len(os.listdir(tmp_path)))
+        code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", *opts, "--out", out, "-q")
+        assert code == 0, err
+        rep = json.loads((out / "report.json").read_text())
+        assert rep["gamma"] == (0.1 if "--gamma" in opts else 0.2)
+        assert rep["gem_bias"] == ("paper" if "--gem-bias" in opts else "pooled")
+
+
+@pytest.mark.parametrize("kind, needle", [
+    ("empty", "not a NumPy .npy array file"),           # was an EOFError traceback
+    ("complex", "real-valued (H, W) array"),            # was cast to real with a warning
+    ("npz", "is a .npz archive of arrays ['a']"),       # was "got <U1 (1,)"
+])
+def test_bad_sample_map_files_are_one_line_errors(tmp_path, kind, needle):
+    path = tmp_path / "map.npy"
+    if kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "complex":
+        np.save(path, np.ones((6, 8), complex))
+    else:
+        with open(path, "wb") as f:
+            np.savez(f, a=np.ones((6, 8)))
+    out = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", path, "--out", out, "-q")
+    _assert_one_line_error(code, err, needle)
+    assert not out.exists()
