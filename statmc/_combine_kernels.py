@@ -484,6 +484,17 @@ def _drop_tap(U, di, i, C, rhs0, G0):  # pragma: no cover - compiled
             G0[c, d] -= ud * U[i, d]
 
 
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _identity(out, y, x, B, k):  # pragma: no cover - compiled
+    """The fallback weights of pixel ``(y, x)``: ``1 / B`` on each bin's centre tap."""
+    r = k // 2
+    wc = np.float32(1.0 / B)
+    for b in range(B):
+        for dy in range(k):
+            for dx in range(k):
+                out[y, x, b, dy, dx] = wc if (dy == r and dx == r) else np.float32(0.0)
+
+
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
                   out):  # pragma: no cover - compiled
@@ -492,6 +503,13 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
     ``Var(e_t)`` of ``e_t = y_t + z_c − z_t`` is ``var_y(c)`` for the centre and
     ``P_t + var_z(c) − 2 cov(z_c, z_t) + 2 cov(y_t, z_c)`` otherwise (the NumPy
     ``_Moments.pair`` regrouped with ``P = var_y + var_z − 2 cov(y, z)``).
+
+    Fallback (as the NumPy ``_to_weights``): a pixel gets :func:`_identity` (``1 / B`` on
+    each bin's centre tap) when a tap inside the image has a non-finite ``Var(e_t)`` or
+    squared bias, when the ``C x C`` solve of "coherent" is not finite, or when the weights
+    do not sum to a positive finite number.  Inputs within the limits that
+    :func:`statmc.combine.statistical_weights` enforces keep every moment finite, so
+    there only a numerically singular solve could get here.
     """
     H = out.shape[0]
     W = out.shape[1]
@@ -519,6 +537,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
         cz0 = np.empty(C)
         for x in range(W):
             top = 0.0
+            bad = False               # a tap's Var(e_t) or squared bias is not finite
             for b in range(B):
                 bv = b if var_y.shape[0] > 1 else 0
                 bp = b if P.shape[0] > 1 else 0
@@ -567,6 +586,11 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                         t = v[i] + bm / C
                         if t > top:
                             top = t
+                        if not np.isfinite(t):
+                            bad = True
+            if bad:
+                _identity(out, y, x, B, k)
+                continue
             floor = max(1e-12 * top, 1e-300)
             vmin = np.inf
             for i in range(n):
@@ -617,8 +641,6 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                                 nzu[i] = True
                             else:
                                 U[i, c] = 0.0
-                        if not np.isfinite(di[i]):
-                            nzu[i] = True        # 0 · inf must stay nan, as in the sum
                         if nzu[i] and C == 3:
                             u0 = U[i, 0]
                             u1 = U[i, 1]
@@ -661,62 +683,43 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                         if nzu[i]:
                             lst[nl] = i
                             nl += 1
-                stale = False             # a_i of taps without U_i overwritten (not fin)
                 for it in range(MAX_ACTIVE_SET_ITER):
                     for c in range(C):
                         rhs[c] = rhs0[c]
                         for d in range(C):
                             G[c, d] = G0[c, d]
                     _solve_small(G, rhs, sol)
-                    fin = True
                     for c in range(C):
-                        fin = fin and np.isfinite(sol[c])
+                        bad = bad or not np.isfinite(sol[c])
+                    if bad:
+                        # G = I + Σ d_i U_i U_iᵀ is positive definite, so only a numerically
+                        # singular elimination gets here: the pixel falls back (below)
+                        break
                     neg = False
-                    if fin:
-                        if stale:
-                            for i in range(n):
-                                if act[i] and not nzu[i]:
-                                    a[i] = di[i]
-                            stale = False
-                        m = 0
-                        for li in range(nl):
-                            i = lst[li]
-                            s = 0.0
-                            for c in range(C):
-                                s += U[i, c] * sol[c]
-                            a[i] = di[i] * (1.0 - s)
-                            if a[i] < 0.0:
-                                act[i] = False
-                                neg = True
-                                _drop_tap(U, di, i, C, rhs0, G0)
-                            else:
-                                lst[m] = i
-                                m += 1
-                        nl = m
-                    else:
-                        # a non-finite solution: every active tap as in the plain loop
-                        stale = True
-                        for i in range(n):
-                            if act[i]:
-                                s = 0.0
-                                for c in range(C):
-                                    s += U[i, c] * sol[c]
-                                a[i] = di[i] * (1.0 - s)
-                        nl = 0
-                        for i in range(n):
-                            if act[i] and a[i] < 0.0:
-                                act[i] = False
-                                neg = True
-                                _drop_tap(U, di, i, C, rhs0, G0)
-                            elif act[i] and nzu[i]:
-                                lst[nl] = i
-                                nl += 1
+                    m = 0
+                    for li in range(nl):
+                        i = lst[li]
+                        s = 0.0
+                        for c in range(C):
+                            s += U[i, c] * sol[c]
+                        a[i] = di[i] * (1.0 - s)
+                        if a[i] < 0.0:
+                            act[i] = False
+                            neg = True
+                            _drop_tap(U, di, i, C, rhs0, G0)
+                        else:
+                            lst[m] = i
+                            m += 1
+                    nl = m
                     if not neg:
                         break
             tot = 0.0
             for i in range(n):
                 if act[i] and a[i] > 0.0:
                     tot += a[i]
+            if bad or not (0.0 < tot < np.inf):
+                _identity(out, y, x, B, k)
+                continue
             for b in range(B):
                 for dy in range(k):
                     for dx in range(k):

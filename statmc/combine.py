@@ -60,8 +60,40 @@ __all__ = [
 _BIAS_MODES = ("estimate", "zero")
 _METHODS = ("coherent", "diagonal", "full")
 
+#: The largest magnitudes :func:`statistical_weights` accepts: ``VALUE_LIMIT`` in the
+#: images ``y``, ``z`` and ``z_bias``, ``MOMENT_LIMIT`` in ``var_y``, ``cov_z`` and
+#: ``cov_yz``.  The weights square differences of four image values (``δ² <= 16 max|y,
+#: z|²``) and add up to 14 moments per term, then sum such terms over the bias box and the
+#: channels: below these limits a term stays under 1.4e291, so sums of up to 1e17 terms
+#: stay finite in float64 (max 1.8e308).  Above them squares overflowed to Inf and the
+#: weights came out wrong (the compiled kernel all zeros, the NumPy reference ignoring
+#: the bias), so such input is refused.  A common scale does not change the weights
+#: (``y, z, z_bias`` times ``s``, the moments times ``s²``), so rescaling is the fix.
+VALUE_LIMIT = 1e140
+MOMENT_LIMIT = 1e290
+
 
 # =========================================================================== validation
+def _check_limit(name, a, limit):
+    """:func:`check_finite`, and ``|a| <= limit`` (see ``VALUE_LIMIT``), in one min/max pass."""
+    if a is None or a.size == 0:
+        return
+    lo, hi = float(np.min(a)), float(np.max(a))
+    if -limit <= lo and hi <= limit:
+        return
+    check_finite(name, a)
+    big = max(-lo, hi)
+    moment = limit == MOMENT_LIMIT
+    ratio = np.log10(big / limit) / (2.0 if moment else 1.0)
+    s = 10.0 ** -np.ceil(ratio + 1e-9)
+    raise InputError(
+        f"`{name}` holds values up to {big:.3g} in magnitude; the statistical weights accept "
+        f"at most {VALUE_LIMIT:.0e} in `y`, `z` and `z_bias` and {MOMENT_LIMIT:.0e} in the "
+        "moments `var_y` (`mean_var`), `cov_z` and `cov_yz` (their squares and sums must "
+        "stay finite in float64).  The weights do not change when the images are scaled by "
+        f"s and the moments by s²: rescale the input (e.g. s = {s:.0e}).")
+
+
 def _buffers(name, a, *, multi):
     """``a`` as ``(B, H, W, C)`` (float32/float64 kept) and whether a channel axis was added."""
     arr = as_float_array(name, a, ndim=(3, 4) if multi else (2, 3))
@@ -387,8 +419,9 @@ class _Moments:
         return q
 
 
-def _stencil(name, a, B, H, W, C, *, required=True):
-    """A covariance stencil as a ``(B, H, W, m, m, C)`` view (``(H, W, C)``: variances only)."""
+def _stencil(name, a, B, H, W, C, *, required=True, limit=None):
+    """A covariance stencil as a ``(B, H, W, m, m, C)`` view (``(H, W, C)``: variances only);
+    ``limit``: see :func:`_check_limit`."""
     if a is None:
         if not required:
             return None
@@ -397,7 +430,10 @@ def _stencil(name, a, B, H, W, C, *, required=True):
                          "from `filter_covariance` or `buffer_moments`, or its variances "
                          f"({H}, {W}, {C}) if its pixels are uncorrelated.")
     arr = as_float_array(name, a, ndim=(3, 5, 6), dtype=np.float64)
-    check_finite(name, arr)
+    if limit is None:
+        check_finite(name, arr)
+    else:
+        _check_limit(name, arr, limit)
     if arr.ndim == 3:
         arr = arr[:, :, None, None, :]
     if arr.ndim == 5:
@@ -412,7 +448,7 @@ def _stencil(name, a, B, H, W, C, *, required=True):
     return np.broadcast_to(arr, (B,) + arr.shape[1:])
 
 
-def _image_moment(name, a, B, H, W, C, *, required=True, nonneg=False):
+def _image_moment(name, a, B, H, W, C, *, required=True, nonneg=False, limit=None):
     if a is None:
         if not required:
             return None
@@ -421,7 +457,10 @@ def _image_moment(name, a, B, H, W, C, *, required=True, nonneg=False):
                          "`PixelStats.mean_var`), or one per buffer "
                          f"({B}, {H}, {W}, {C}).")
     arr = as_float_array(name, a, ndim=(3, 4), dtype=np.float64)
-    check_finite(name, arr)
+    if limit is None:
+        check_finite(name, arr)
+    else:
+        _check_limit(name, arr, limit)
     if nonneg:
         check_nonnegative(name, arr)
     if arr.ndim == 3:
@@ -633,7 +672,9 @@ def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch, loo=False):
 
 def _tap_moments(mom, sq, k, B, H, W):
     """Per-tap ``Var(e_t)`` (channel mean), squared biases and validity, tap-major:
-    ``(n, H, W)``, ``(n, H, W, C)``, ``(n, H, W)`` with ``n = B k²``."""
+    ``(n, H, W)``, ``(n, H, W, C)``, ``(n, H, W)`` with ``n = B k²``, and the pixels that
+    fall back (a tap inside the image with a non-finite ``Var(e_t)`` or squared bias;
+    their moments are replaced by harmless ones, the weights by :func:`_to_weights`)."""
     offs = _offsets(k)
     n = B * len(offs)
     v = np.empty((n, H, W))
@@ -645,28 +686,58 @@ def _tap_moments(mom, sq, k, B, H, W):
             v[i] = mom.pair(b, o, o).mean(axis=-1)      # Var(y_t + z_c − z_t)
             b2[i] = sq[o][b]
             valid[i] = _valid(H, W, *o) > 0
+    with np.errstate(invalid="ignore", over="ignore"):
+        t = v + b2.mean(axis=-1)
+    bad = (valid & ~np.isfinite(t)).any(axis=0)
+    if bad.any():
+        v[:, bad], b2[:, bad], t[:, bad] = 1.0, 0.0, 1.0
     # floor: a zero-variance tap must not divide by zero (relative to the largest MSE)
-    top = np.where(valid, v + b2.mean(axis=-1), 0.0).max(axis=0)
+    top = np.where(valid, t, 0.0).max(axis=0)
     v = np.where(valid, np.maximum(v, np.maximum(1e-12 * top, 1e-300)), np.inf)
-    return v, b2, valid
+    return v, b2, valid, bad
 
 
-def _to_weights(a, valid, k, B, H, W):
+def _to_weights(a, valid, k, B, H, W, bad):
+    """Normalised weights ``(H, W, B, k, k)``; the fallback where ``bad`` or where the
+    weights do not sum to a positive finite number: ``1 / B`` on each bin's centre tap."""
     a = np.where(valid, np.maximum(a, 0.0), 0.0)
-    a /= a.sum(axis=0)
-    return np.moveaxis(a.reshape(B, k, k, H, W), (3, 4), (0, 1)).astype(np.float32)
+    tot = a.sum(axis=0)
+    bad = bad | ~(np.isfinite(tot) & (tot > 0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a /= tot
+    a = np.moveaxis(a.reshape(B, k, k, H, W), (3, 4), (0, 1)).astype(np.float32)
+    a[bad] = 0.0
+    a[bad, :, k // 2, k // 2] = np.float32(1.0 / B)
+    return a
 
 
 def _diagonal_weights(mom, sq, k, B, H, W):
-    v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
+    v, b2, valid, bad = _tap_moments(mom, sq, k, B, H, W)
     mse = v + b2.mean(axis=-1)
     # inverse-MSE weights, scaled by the smallest MSE so nothing overflows
-    return _to_weights(mse.min(axis=0) / mse, valid, k, B, H, W)
+    return _to_weights(mse.min(axis=0) / mse, valid, k, B, H, W, bad)
+
+
+def _solve_or_nan(G, rhs):
+    """``G⁻¹ rhs`` per pixel; NaN for a pixel whose ``G`` LAPACK finds singular."""
+    try:
+        return np.linalg.solve(G, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full(rhs.shape, np.nan)
+        for p in np.ndindex(G.shape[:-2]):
+            try:
+                out[p] = np.linalg.solve(G[p], rhs[p])
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
 def _coherent_weights(mom, sq, k, B, H, W, max_iter=20):
-    """Minimise ``aᵀ(D + U Uᵀ)a`` s.t. ``Σa = 1, a ≥ 0``: Woodbury plus an active set."""
-    v, b2, valid = _tap_moments(mom, sq, k, B, H, W)
+    """Minimise ``aᵀ(D + U Uᵀ)a`` s.t. ``Σa = 1, a ≥ 0``: Woodbury plus an active set.
+
+    ``G = I + Σ d_i U_i U_iᵀ`` is positive definite; a pixel whose solve is nevertheless
+    not finite (a numerically singular elimination) falls back (:func:`_to_weights`)."""
+    v, b2, valid, bad = _tap_moments(mom, sq, k, B, H, W)
     C = b2.shape[-1]
     vmin = v.min(axis=0)
     d_inv = vmin / v                                     # D⁻¹ up to a per-pixel scale
@@ -677,13 +748,16 @@ def _coherent_weights(mom, sq, k, B, H, W, max_iter=20):
         di = np.where(active, d_inv, 0.0)
         G = eye + np.einsum("nhwc,nhw,nhwd->hwcd", U, di, U, optimize=True)
         rhs = np.einsum("nhwc,nhw->hwc", U, di)
-        sol = np.linalg.solve(G, rhs[..., None])[..., 0]
+        sol = _solve_or_nan(G, rhs)
+        fail = ~np.isfinite(sol).all(axis=-1)
+        bad |= fail
+        sol[fail] = 0.0                                   # the pixel falls back anyway
         a = di * (1.0 - np.einsum("nhwc,hwc->nhw", U, sol))
         neg = active & (a < 0)
         if not neg.any():
             break
         active &= ~neg
-    return _to_weights(a, active, k, B, H, W)
+    return _to_weights(a, active, k, B, H, W, bad)
 
 
 def _full_weights(mom, mean, k, B, H, W, ridge):
@@ -818,8 +892,27 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
         Normalised to sum to one over the taps inside the image (``B = 1`` for a single
         buffer, accepted by :func:`combine`); zero on taps outside the image.
 
+    Raises
+    ------
+    InputError
+        Bad shapes or options, non-finite input, negative ``var_y``, and magnitudes the
+        weights cannot handle in float64: ``|y|``, ``|z|``, ``|z_bias|`` above
+        ``VALUE_LIMIT = 1e140`` or ``|var_y|``, ``|cov_z|``, ``|cov_yz|`` above
+        ``MOMENT_LIMIT = 1e290`` (the weights square differences of the images; beyond these
+        the squares and their sums overflow).  The weights are invariant to ``y, z,
+        z_bias -> s y, s z, s z_bias`` with the moments times ``s²``, so rescale such input.
+
     Notes
     -----
+    Fallback: a pixel whose weights cannot be formed finitely gets weight ``1 / B`` on
+    each bin's centre tap and zero elsewhere (the combination then returns the mean of
+    the bins' ``y_c``, the unbiased independent estimate).  That happens when a tap
+    inside the window has a non-finite ``Var(e_t)`` or squared bias, when the ``C x C``
+    solve of ``"coherent"`` is not finite, or when the weights do not sum to a positive
+    finite number.  Input within the limits above keeps every moment finite, so only a
+    numerically singular solve of ``G = I + Σ d_i U_i U_iᵀ`` (positive definite, ``>= I``)
+    could trigger it; the compiled kernel and the NumPy path apply the same rule.
+
     The paper fits the weights with a network because the moments are unknown (§4.3).
     Given estimated moments (``PixelStats.mean_var``, :func:`buffer_moments`,
     :func:`filter_covariance`), these weights are the classical plug-in answer; their
@@ -853,15 +946,17 @@ def _statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias=
     if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)) or patch < 0:
         raise InputError(f"`patch` must be an integer >= 0; got {patch!r}.")
     ridge = as_number("ridge", ridge, lo=0.0)
-    mom = _Moments(_image_moment("var_y", var_y, B, H, W, C, nonneg=True),
-                   _stencil("cov_z", cov_z, B, H, W, C),
-                   _stencil("cov_yz", cov_yz, B, H, W, C, required=False))
+    _check_limit("y", ys, VALUE_LIMIT)
+    _check_limit("z", zs, VALUE_LIMIT)
+    mom = _Moments(_image_moment("var_y", var_y, B, H, W, C, nonneg=True, limit=MOMENT_LIMIT),
+                   _stencil("cov_z", cov_z, B, H, W, C, limit=MOMENT_LIMIT),
+                   _stencil("cov_yz", cov_yz, B, H, W, C, required=False, limit=MOMENT_LIMIT))
     zb = None
     if isinstance(z_bias, str):
         if z_bias not in _BIAS_MODES:
             raise InputError(f"`z_bias` must be 'estimate', 'zero' or an array; got {z_bias!r}.")
     else:
-        zb = _image_moment("z_bias", z_bias, B, H, W, C)
+        zb = _image_moment("z_bias", z_bias, B, H, W, C, limit=VALUE_LIMIT)
     ys64, zs64 = ys.astype(np.float64), zs.astype(np.float64)
     loo = bool(leave_centre_out)
     if method != "full" and not reference:
@@ -1406,6 +1501,13 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     -------
     out : (H, W, C) float64 ndarray
 
+    Raises
+    ------
+    InputError
+        Besides bad shapes and options: ``|y|`` above ``VALUE_LIMIT`` (1e140) or
+        ``mean_var`` above ``MOMENT_LIMIT`` (1e290), the limits of
+        :func:`statistical_weights`, checked before the denoiser runs.
+
     Notes
     -----
     *Why the plain statistical weights failed with OIDN* (toy ``mixed``, 4–64 spp:
@@ -1441,7 +1543,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
        https://doi.org/10.1111/cgf.14454
     """
     yy = as_float_array("y", y, ndim=3, dtype=np.float64)
-    check_finite("y", yy)
+    _check_limit("y", yy, VALUE_LIMIT)                 # statistical weights: up front
+    _check_limit("mean_var", as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64),
+                 MOMENT_LIMIT)
     models = (var,) if isinstance(var, str) else tuple(var)
     if not 1 <= len(models) <= 3 or any(m not in ("smooth", "raw", "max") for m in models):
         raise InputError(f"`var` must be 'smooth', 'raw', 'max' or a sequence of 1 to 3 of "
@@ -1556,6 +1660,13 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     -------
     out : (H, W, C) float64 ndarray
 
+    Raises
+    ------
+    InputError
+        Besides bad shapes and options: ``|ys|`` above ``VALUE_LIMIT`` (1e140) or
+        ``mean_var`` above ``MOMENT_LIMIT`` (1e290), the limits of
+        :func:`statistical_weights`, checked before the denoiser runs.
+
     Notes
     -----
     The weights, ``H·W·B·k²`` float32 values (7.5 GB at 1920x1080 with ``B = 4``, 15x15),
@@ -1582,7 +1693,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     :func:`combine_denoised`): ``β̂`` is returned as it is.
     """
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
-    check_finite("ys", yb)
+    _check_limit("ys", yb, VALUE_LIMIT)                # statistical weights: up front
     B = yb.shape[0]
     if B < 2:
         raise InputError(f"`ys` must hold B >= 2 sample bins (B, H, W, C); got B = {B}.")
@@ -1590,7 +1701,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     if mv.shape != yb.shape[1:]:
         raise InputError(f"`mean_var` must have the shape of one bin {yb.shape[1:]} (the "
                          f"variance of the mean of the full render); got {mv.shape}.")
-    check_finite("mean_var", mv)
+    _check_limit("mean_var", mv, MOMENT_LIMIT)
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
@@ -1673,8 +1784,16 @@ def combine_bin_images(ys, zs, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
     Returns
     -------
     out : (H, W, C) float64 ndarray (``(H, W)`` for ``(B, H, W)`` bins)
+
+    Raises
+    ------
+    InputError
+        Besides bad shapes and options: ``|ys|`` or ``|zs|`` above ``VALUE_LIMIT``
+        (1e140), the limit of :func:`statistical_weights`.
     """
     ysa, zsa, squeeze = _pair("ys", ys, "zs", zs, multi=True)
+    _check_limit("ys", ysa, VALUE_LIMIT)               # statistical weights: up front
+    _check_limit("zs", zsa, VALUE_LIMIT)
     k = _check_window_options(size, stencil, smooth, patch)
     ysa, zsa = ysa.astype(np.float64), zsa.astype(np.float64)
     H, m = ysa.shape[1], int(stencil)

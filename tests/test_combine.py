@@ -612,6 +612,169 @@ def test_statistical_weights_numba_column_tiles_match_numpy_reference(loo):
     ref = statistical_weights(y, z, var, cov_z, k, _reference=True, **kw)
     np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-7)
 
+# --------------------------------------------------------------------------- magnitude limits, fallback
+def _extreme_inputs(seed=41, H=9, W=10, C=3, k=5):
+    """Inputs that push every term of the weights to its bound: ``|y| = |z| <= 1`` with
+    random signs and ``z = −y`` on 30 % of the pixels (``|δ|`` up to 4), variances from 1e-3 up to 1e10 (the
+    largest moment that fits ``MOMENT_LIMIT`` after the scaling of
+    :func:`test_statistical_weights_are_scale_free_up_to_the_limits`), a stencil of a
+    filter of them, and a ``z_bias`` array with ``|z_bias| <= 1``."""
+    rng = np.random.default_rng(seed)
+    y = rng.choice([-1.0, 1.0], (H, W, C)) * rng.uniform(0.5, 1.0, (H, W, C))
+    y[0, 0] = 1.0                                      # the bounds reached exactly
+    z = np.where(rng.random((H, W, 1)) < 0.3, -y, y)  # flipped pixels: |δ| up to 4
+    var = rng.gamma(2.0, 0.5, (H, W, C)) * 1e-3
+    var[rng.random((H, W)) < 0.1] = 1e10
+    K = rng.random((H, W, 3, 3))
+    K /= K.sum(axis=(2, 3), keepdims=True)
+    cov_z, cov_yz = filter_covariance(K, var, cross=True)
+    zb = rng.uniform(-1.0, 1.0, (H, W, C))
+    return y, z, var, cov_z, cov_yz, zb, k
+
+
+@pytest.mark.parametrize("method, bias", [("coherent", "estimate"), ("diagonal", "estimate"),
+                                          ("coherent", "array")])
+def test_statistical_weights_are_scale_free_up_to_the_limits(method, bias):
+    """Scaling ``y, z, z_bias`` by ``s = 2**465`` (values up to 9.5e139 < ``VALUE_LIMIT``)
+    and the moments by ``s²`` (up to 9.1e289 < ``MOMENT_LIMIT``) leaves the weights equal
+    to the bit in both paths: every square and sum stays finite up to the limits (an
+    overflow would put Inf into the bias planes and change or drop the weights, as it
+    did at 1e170), and the compiled weights still equal the NumPy reference."""
+    from statmc.combine import MOMENT_LIMIT, VALUE_LIMIT
+
+    y, z, var, cov_z, cov_yz, zb, k = _extreme_inputs()
+    s = 2.0 ** 465
+    assert 0.9 * VALUE_LIMIT < s < VALUE_LIMIT and 0.9 * MOMENT_LIMIT < var.max() * s * s < MOMENT_LIMIT
+    out = {}
+    for scale in (1.0, s):
+        kw = dict(method=method, cov_yz=cov_yz * scale ** 2,
+                  z_bias=zb * scale if bias == "array" else bias)
+        with np.errstate(all="raise"):                # no overflow in the NumPy path either
+            out[scale] = [statistical_weights(y * scale, z * scale, var * scale ** 2,
+                                              cov_z * scale ** 2, k, _reference=ref, **kw)
+                          for ref in (False, True)]
+    (fast, ref), (fast_s, ref_s) = out[1.0], out[s]
+    np.testing.assert_array_equal(fast_s, fast)
+    np.testing.assert_array_equal(ref_s, ref)
+    assert np.isfinite(fast).all()
+    np.testing.assert_allclose(fast.sum(axis=(2, 3, 4)), 1.0, rtol=1e-5)
+    # not degenerate (the fallback, or all weight on the centres): most pixels average
+    assert (fast[:, :, 0, k // 2, k // 2] < 0.99).mean() > 0.5
+    np.testing.assert_allclose(fast_s, ref_s, rtol=1e-5, atol=1e-7)   # as the tests above
+
+
+def test_statistical_weights_refuse_magnitudes_beyond_the_limits():
+    """Regression: with ``y`` at 1e170 the squares of the bias estimate overflowed; the
+    compiled weights became all zeros (Eq. 8 then 0/0) while the NumPy reference dropped
+    the bias (up to 0.84 apart, measured).  Now both paths refuse such input with an
+    ``InputError`` naming the argument and the limit, just above each limit, and accept
+    it at the limit."""
+    from statmc.combine import MOMENT_LIMIT, VALUE_LIMIT
+
+    rng = np.random.default_rng(3)
+    H, W, C = 5, 6, 3
+    y = rng.gamma(2.0, 0.5, (H, W, C))
+    base = dict(y=y, z=0.9 * y, var_y=0.1 * y, cov_z=0.1 * y, size=3, cov_yz=0.01 * y,
+                z_bias=np.zeros((H, W, C)))
+    for name, limit in (("y", VALUE_LIMIT), ("z", VALUE_LIMIT), ("z_bias", VALUE_LIMIT),
+                        ("var_y", MOMENT_LIMIT), ("cov_z", MOMENT_LIMIT),
+                        ("cov_yz", MOMENT_LIMIT)):
+        for ref in (False, True):
+            kw = dict(base, _reference=ref)
+            a = np.array(kw[name], dtype=np.float64)
+            a[2, 3, 1] = limit * (1 if name == "var_y" else -1)     # the sign does not matter
+            kw[name] = a
+            w = statistical_weights(**kw)                # at the limit: accepted
+            assert np.isfinite(w).all()
+            kw[name] = a = a.copy()
+            a[2, 3, 1] *= 1.01
+            with pytest.raises(InputError, match=rf"`{name}` holds values up to 1.01e\+{int(np.log10(limit))}"
+                                                 rf".* at most 1e\+140 in `y`, `z` and `z_bias` and "
+                                                 r"1e\+290 in the moments .* rescale"):
+                statistical_weights(**kw)
+    for ref in (False, True):                              # the case that was seen
+        with pytest.raises(InputError, match=r"`y` holds values up to .*e\+170"):
+            statistical_weights(y * 1e170, 0.9 * y * 1e170, y, y, 3, _reference=ref)
+    with pytest.raises(InputError, match="NaN"):         # non-finite keeps its own message
+        statistical_weights(np.full((H, W, C), np.nan), y, y, y, 3)
+
+
+def test_combination_pipelines_refuse_magnitudes_before_the_denoiser_runs():
+    """``combine_denoised``, ``combine_bins`` and ``combine_bin_images`` check the limits of
+    the statistical weights on their input first (not after the denoiser's probes, and
+    not in some band of rows, under the name of an internal moment)."""
+    from statmc.combine import combine_bin_images, combine_bins
+
+    def denoiser(c):
+        raise AssertionError("the denoiser ran")
+
+    y = np.ones((6, 7, 3))
+    with pytest.raises(InputError, match=r"`y` holds values up to 2e\+150"):
+        combine_denoised(2e150 * y, y, denoiser)
+    with pytest.raises(InputError, match=r"`mean_var` holds values up to 2e\+300"):
+        combine_denoised(y, 2e300 * y, denoiser)
+    with pytest.raises(InputError, match=r"`ys` holds values up to 2e\+150"):
+        combine_bins(2e150 * np.stack([y, y]), y, denoiser)
+    with pytest.raises(InputError, match=r"`mean_var` holds values up to 2e\+300"):
+        combine_bins(np.stack([y, y]), 2e300 * y, denoiser)
+    with pytest.raises(InputError, match=r"`zs` holds values up to 2e\+150"):
+        combine_bin_images(np.stack([y, y]), 2e150 * np.stack([y, y]))
+
+
+@pytest.mark.parametrize("method", ["coherent", "diagonal"])
+@pytest.mark.parametrize("B", [1, 2])
+def test_weight_fallback_is_the_centre_tap_in_both_paths(method, B):
+    """The documented fallback, engineered: a non-finite squared bias (here Inf and NaN in
+    a ``z_bias`` array, which the public function refuses, so the private paths are
+    called) makes exactly the pixels whose window holds the bad pixel fall back to ``1/B``
+    on each bin's centre tap, in the compiled kernel and in the NumPy reference alike; every
+    other pixel keeps, to the bit, the weights of the same input without the bad values.
+    Without the fallback the compiled kernel gave all-zero weights there, the reference
+    NaN."""
+    import statmc.combine as cbm
+
+    rng = np.random.default_rng(17 + B)
+    H, W, C, k = 9, 11, 3, 3
+    r = k // 2
+    ys = rng.gamma(2.0, 0.5, (B, H, W, C))
+    zs = 0.8 * ys + 0.1
+    var = rng.gamma(2.0, 0.5, (B, H, W, C))
+    cz = np.ascontiguousarray(np.broadcast_to(0.05 * var[..., None, None, :], (B, H, W, 3, 3, C)))
+    zb = rng.normal(size=(B, H, W, C))
+    bad_px = [(1, 2, np.inf), (6, 7, np.nan), (8, 0, -np.inf)]
+    zb_bad = zb.copy()
+    for yy, xx, val in bad_px:
+        zb_bad[B - 1, yy, xx, 1] = val
+    code = ck.METHOD_COHERENT if method == "coherent" else ck.METHOD_DIAGONAL
+    ref_fn = cbm._coherent_weights if method == "coherent" else cbm._diagonal_weights
+
+    def both(zbias):
+        fast = np.full((H, W, B, k, k), -7.0, np.float32)
+        ck.statistical_weights_numba(ys, zs, var, cz, None, zbias, ck.BIAS_ARRAY, code, k, 2,
+                                     fast)
+        mom = cbm._Moments(var, cz, None)
+        with np.errstate(invalid="ignore", over="ignore"):
+            _, sq = cbm._bias_vectors(ys, zs, mom, zbias, zbias, k, 2)
+            ref = ref_fn(mom, sq, k, B, H, W)
+        return fast, ref
+
+    fast, ref = both(zb_bad)
+    clean, clean_ref = both(zb)
+    hit = np.zeros((H, W), bool)
+    for yy, xx, _ in bad_px:
+        hit[max(0, yy - r):yy + r + 1, max(0, xx - r):xx + r + 1] = True
+    ident = np.zeros((B, k, k), np.float32)
+    ident[:, r, r] = np.float32(1.0 / B)
+    for w in (fast, ref):
+        assert (w[hit] == ident).all()
+        np.testing.assert_array_equal(w[~hit], (clean if w is fast else clean_ref)[~hit])
+    np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-7)
+    assert not np.array_equal(clean[hit], fast[hit])      # the fallback did change them
+    # Eq. 14 with the fallback weights returns the mean of the bins' y there
+    out = combine_multi(ys, zs, fast)
+    np.testing.assert_allclose(out[hit], ys.mean(axis=0)[hit], rtol=1e-12)
+
+
 # --------------------------------------------------------------------------- moment helpers
 def test_buffer_moments_are_unbiased():
     """E over renders of the bin-spread covariance estimates equals the exact moments."""
