@@ -7,9 +7,11 @@ Every command validates its input and exits non-zero with one line naming what i
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import numbers
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -265,12 +267,64 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
+@contextlib.contextmanager
+def _staged_outputs(directory, inputs=()):
+    """Write a command's files as one set: yield ``stage(path)``, which names a file in a
+    hidden staging directory inside ``directory`` (created if missing) to write instead of
+    ``path``.  When the block ends without an error every staged file is renamed onto its
+    path (keeping the permissions of a file it replaces); on any error or Ctrl-C none is,
+    the staging directory (and ``directory`` if this call made it) is removed, so earlier
+    outputs stay as they were, never a mix of old and new files."""
+    import re
+
+    from ._atomic import check_not_input
+    made, d = [], os.path.abspath(directory)
+    while not os.path.lexists(d):
+        made.append(d)
+        d = os.path.dirname(d)
+    os.makedirs(directory, exist_ok=True)
+    tmpdir = tempfile.mkdtemp(prefix=".statmc-", dir=directory)
+    staged = {}
+
+    def stage(path):
+        tmp = os.path.join(tmpdir, f"{len(staged)}-{os.path.basename(path)}")
+        staged[tmp] = os.fspath(path)
+        return tmp
+
+    done = False
+    try:
+        try:
+            yield stage
+        except (OSError, FileFormatError) as e:   # e.g. a full disk: name the output, not the temp
+            target = next(reversed(staged.values()), directory)
+            msg = re.sub(r"""['"]?[^'" ]*\.statmc-[^'" ]*['"]?""", repr(target),
+                         e.strerror if isinstance(e, OSError) and e.strerror else str(e))
+            if target not in msg:
+                msg = f"could not write {target!r}: {msg}"
+            raise type(e)(f"{msg.rstrip('.')}; nothing was written (earlier outputs are "
+                          "unchanged).") from None
+        for tmp, path in staged.items():
+            check_not_input(path, inputs)
+        for tmp, path in staged.items():
+            with contextlib.suppress(OSError):
+                os.chmod(tmp, os.stat(path).st_mode & 0o7777)
+            os.replace(tmp, path)
+        done = True
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+        if not done:
+            for m in made:                    # innermost first; only if still empty
+                with contextlib.suppress(OSError):
+                    os.rmdir(m)
+
+
 def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
-    beside it, never onto one of ``inputs``."""
+    beside it, both or neither, never onto one of ``inputs``."""
     from .exr import write_exr, write_png_preview
-    write_exr(path, data, protect=inputs, extra=extra)
-    write_png_preview(os.path.splitext(path)[0] + ".png", image, protect=inputs)
+    with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
+        write_exr(stage(path), data, protect=inputs, extra=extra)
+        write_png_preview(stage(os.path.splitext(path)[0] + ".png"), image, protect=inputs)
     if not quiet:
         print(f"wrote {path}")
 
@@ -416,24 +470,24 @@ def cmd_render(args) -> int:
                or (f == "bins.exr" and bin_data is not None)]
     report["files"] = written
     stale = [f for f in RENDER_OUTPUTS if f not in written and os.path.exists(os.path.join(args.out, f))]
-    os.makedirs(args.out, exist_ok=True)
-    out = lambda name: os.path.join(args.out, name)  # noqa: E731
-    write_exr(out("render.exr"), stats, protect=inputs, extra=extra)
-    write_png_preview(out("render.png"), stats.mean, protect=inputs)
-    write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
-    write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
-    if args.reconstruct != "none":
-        write_exr(out("reconstruction.exr"), image, protect=inputs,
-                  extra={f"{args.reconstruct}.{k}": v for k, v in maps.items()})
-        write_png_preview(out("reconstruction.png"), image, protect=inputs)
-        if "scale" in maps:
-            write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
-            write_map_png(out("scales.png"), maps["scale"], cmap="magma",
-                          label="selected scale (0 = pixel filter)", protect=inputs)
-        if bin_data is not None:
-            write_exr(out("bins.exr"), stats.mean.astype(np.float32), protect=inputs,
-                      extra=bin_data)
-    _write_json(out("report.json"), report, protect=inputs)
+    with _staged_outputs(args.out, inputs) as stage:  # all files, or none on a failure
+        out = lambda name: stage(os.path.join(args.out, name))  # noqa: E731
+        write_exr(out("render.exr"), stats, protect=inputs, extra=extra)
+        write_png_preview(out("render.png"), stats.mean, protect=inputs)
+        write_exr(out("counts.exr"), stats.n[..., None].astype(np.float32), protect=inputs)
+        write_map_png(out("counts.png"), stats.n, label="samples per pixel", protect=inputs)
+        if args.reconstruct != "none":
+            write_exr(out("reconstruction.exr"), image, protect=inputs,
+                      extra={f"{args.reconstruct}.{k}": v for k, v in maps.items()})
+            write_png_preview(out("reconstruction.png"), image, protect=inputs)
+            if "scale" in maps:
+                write_exr(out("scales.exr"), maps["scale"][..., None], protect=inputs)
+                write_map_png(out("scales.png"), maps["scale"], cmap="magma",
+                              label="selected scale (0 = pixel filter)", protect=inputs)
+            if bin_data is not None:
+                write_exr(out("bins.exr"), stats.mean.astype(np.float32), protect=inputs,
+                          extra=bin_data)
+        _write_json(out("report.json"), report, protect=inputs)
     if not args.quiet:
         msg = f"wrote {args.out}/ ({total} samples, {seconds:.2f} s"
         msg += f", {report['samples_per_second'] / 1e6:.2f} M samples/s)"
@@ -688,7 +742,6 @@ def cmd_combine(args) -> int:
 def cmd_reference(args) -> int:
     from tqdm import tqdm
 
-    from .exr import write_exr, write_png_preview
     from .renderers import make_renderer
 
     width, height = _parse_size(args.size)
@@ -703,8 +756,7 @@ def cmd_reference(args) -> int:
         counts = np.full((renderer.height, renderer.width), s, np.int64)
         part = renderer.render(counts, seed=args.seed + 7919 * k, features=(k == 0))
         stats = part if stats is None else stats.merge(part)
-    write_exr(args.out, stats)
-    write_png_preview(os.path.splitext(args.out)[0] + ".png", stats.mean)
+    _write_result(args.out, stats, stats.mean, inputs=(), quiet=True)
     if not args.quiet:
         print(f"wrote {args.out} ({spp} spp in {len(passes)} passes)")
     return 0

@@ -949,3 +949,49 @@ def test_bad_sample_map_files_are_one_line_errors(tmp_path, kind, needle):
     code, _, err = run_cli("render", "toy:mixed", "--sample-map", path, "--out", out, "-q")
     _assert_one_line_error(code, err, needle)
     assert not out.exists()
+
+
+def _tree(root):
+    """{relative path: bytes} of every file under ``root`` (hidden ones included)."""
+    out = {}
+    for d, _, files in os.walk(root):
+        for f in files:
+            p = os.path.join(d, f)
+            out[os.path.relpath(p, root)] = open(p, "rb").read()
+    return out
+
+
+@pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()])
+def test_failed_write_leaves_earlier_outputs_as_they_were(tmp_path, toy_render, monkeypatch,
+                                                          failure):
+    """Each file was atomic but the set was not: a full disk (or Ctrl-C) at the preview left
+    a new OUT.exr beside the old OUT.png, and a render directory with the new render.exr and
+    the old report.json.  Now all files of a command are renamed into place together."""
+    import statmc.exr
+    import statmc.plots
+    d = tmp_path / "o"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", "--spp", 4, "--out", d / "r", "-q")
+    assert code == 0, err
+    code, _, err = run_cli("reconstruct", toy_render, "--out", d / "rc.exr", "-q")
+    assert code == 0, err
+    before = _tree(tmp_path)
+
+    def fail(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr(statmc.plots, "write_map_png", fail)       # after render.exr/.png
+    code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", "--spp", 8, "--out", d / "r",
+                           "-q")
+    monkeypatch.setattr(statmc.exr, "write_png_preview", fail)     # after rc.exr
+    code2, _, err2 = run_cli("reconstruct", toy_render, "--out", d / "rc.exr", "-q")
+    code3, _, err3 = run_cli("render", "toy:mixed", "--size", "8x6", "--spp", 4,
+                             "--out", d / "new" / "r", "-q")
+    assert _tree(tmp_path) == before                # nothing replaced, no temporary left
+    assert not (d / "new").exists()                 # nor a directory made for the outputs
+    if isinstance(failure, KeyboardInterrupt):
+        assert (code, code2, code3) == (130, 130, 130)
+    else:
+        _assert_one_line_error(code, err, "could not write")
+        assert f"{d / 'r' / 'counts.png'}" in err and "nothing was written" in err
+        _assert_one_line_error(code2, err2, f"could not write {str(d / 'rc.png')!r}")
+        assert ".statmc-" not in err + err2 + err3
