@@ -449,9 +449,12 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
                         out[xi * C + c] = m if m > 0.0 else 0.0
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
 def _solve_small(G, rhs, sol):  # pragma: no cover - compiled
-    """``G sol = rhs`` for a small dense system (Gaussian elimination, partial pivoting)."""
+    """``G sol = rhs`` for a small dense system (Gaussian elimination, partial pivoting).
+
+    A zero pivot gives Inf/NaN (``error_model="numpy"``: IEEE division, no
+    ``ZeroDivisionError``), which sends the pixel to the weights' fallback."""
     n = G.shape[0]
     for i in range(n):
         p = i
