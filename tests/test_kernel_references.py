@@ -102,6 +102,42 @@ def test_split_by_scale_equals_numpy(hw):
     np.testing.assert_array_equal(parts, ref)
 
 
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 9, 3), (8, 1, 3)])
+def test_filter_bank_float32_on_degenerate_images(shape):
+    """``sep_filter`` in float32 (the float64 degenerate shapes are in ``test_filters``)
+    against the dense float64 reference, zero variances included.  Tolerances those of
+    ``test_filters.test_bank_float32_matches_reference_and_keeps_dtype``: atol 2e-6 on
+    values of size ~1 (float32 sums of normalised weights, ~16 ulp), rtol 1e-5 on the
+    variances."""
+    rng = np.random.default_rng(sum(shape))
+    m = rng.normal(size=shape).astype(np.float32)
+    v = rng.uniform(0, 1, size=shape).astype(np.float32)
+    v[rng.random(shape[:2]) < 0.3] = 0.0
+    vals, vars_ = F.filter_bank(m, v, F.FINAL_SIGMAS)
+    assert vals.dtype == vars_.dtype == np.float32
+    rv, rvar = F.filter_bank_reference(m, v, F.FINAL_SIGMAS)
+    np.testing.assert_allclose(vals, rv, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(vars_, rvar, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("hw", DEGENERATE)
+def test_greedy_allocation_on_degenerate_images(hw):
+    """``allocate_rounds`` (with ``_rank_key``, ``_start_chunk``, ``_assign_chunk``) equals
+    ``gem._allocate_rounds`` on single-pixel/row/column maps with zero gains (ties) and
+    budgets below, at and far above the pixel count.  Exact: both hand out whole samples
+    by the same (gain, index) order."""
+    H, W = hw
+    rng = np.random.default_rng(H * 5 + W)
+    rel = np.where(rng.random((H, W)) < 0.4, 0.0, rng.lognormal(-2, 1, (H, W)))
+    n = rng.integers(2, 20, (H, W)).astype(float)
+    for budget in (0, 1, H * W, 7 * H * W + 3):
+        for batch, rounds in ((1, 1), (3, 4)):
+            ref = gem._allocate_rounds(rel, n, budget, batch, rounds)
+            got = gem._allocate_rounds_fast(rel, n, budget, batch, rounds)
+            np.testing.assert_array_equal(got, ref)
+            assert got.sum() == budget
+
+
 # --------------------------------------------------------------------------- GEM on degenerate images
 def _noisy(truth, n, sd, rng):
     x = truth[None] + rng.normal(0.0, sd, (n,) + truth.shape)
@@ -259,6 +295,42 @@ def test_combine_kernel_on_degenerate_images(hw, k):
     w = rng.uniform(0.1, 1.0, (H, W, B, k, k))
     np.testing.assert_allclose(combine_multi(ys, zs, w), ck.combine_numpy(w, ys, zs),
                                rtol=1e-12, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- _analytic_kernels
+@pytest.mark.parametrize("shape", [(1, 8, 3, 3), (8, 1, 2, 5), (1, 1, 3, 3)])
+def test_analytic_kernels_on_degenerate_images(shape):
+    """``evaluate_numba`` (``_moments_planar``, ``_bias_var_group``, ``_adjoint_weights``,
+    ``_adjoint_group``), ``column_weights_numba`` and ``apply_numba`` against their NumPy
+    references on single-row/column/pixel images with zero variances and zero sample
+    counts (``test_analytic`` has one 1x1 case).  Tolerances those of ``test_analytic``:
+    rtol 1e-12 (float64 sums of at most k² terms in another order), the gradient's atol
+    1e-14 of its largest entry."""
+    from statmc import _analytic_kernels as ak
+
+    h, w, c, k = shape
+    rng = np.random.default_rng(sum(shape) + 100)
+    kern = rng.normal(size=(h, w, k, k))
+    x_t, x_g, var_g = rng.random((3, h, w, c))
+    var_g[rng.random((h, w)) < 0.4] = 0.0
+    s_bar = rng.integers(0, 9, (h, w)).astype(float)
+    s = rng.uniform(0, 9, (h, w))
+    s.flat[0] = s_bar.flat[0] = 0.0
+    for mvt in (None, rng.random((h, w, c))):
+        for rel in (False, True):
+            fast = ak.evaluate_numba(kern, x_t, s_bar, s, x_g, var_g, mvt, rel, 0.01, True)
+            ref = ak.evaluate_numpy(kern, x_t, s_bar, s, x_g, var_g, mvt, rel, 0.01, True)
+            assert fast[0] == pytest.approx(ref[0], rel=1e-12)
+            for a, b in zip(fast[1:], ref[1:]):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
+    fq, wv = rng.random((2, h, w, c))
+    np.testing.assert_allclose(ak.column_weights_numba(kern, wv, fq),
+                               ak.column_weights_numpy(kern, wv, fq), rtol=1e-12)
+    stack = rng.random((2, h, w, c))
+    o1, o2 = np.empty(stack.shape), np.empty(stack.shape)
+    ak.apply_numba(kern, stack, o1)
+    ak.apply_numpy(kern, stack, o2)
+    np.testing.assert_allclose(o1, o2, rtol=1e-12, atol=1e-14)
 
 
 # --------------------------------------------------------------------------- _stencil_kernels
