@@ -313,6 +313,10 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
     first, in the same order.  The box counts are products of the row and column counts
     of valid centres (sums of ones before).  Every sum keeps its order, so the planes are
     bit for bit those of the plain per-pixel loop.
+
+    Finite input within ``statmc.combine.VALUE_LIMIT`` / ``MOMENT_LIMIT`` keeps every plane
+    finite.  Beyond them (refused by the callers) an overflowed ``δ²`` would stay Inf here
+    while the NumPy ``_box_mean`` sets non-finite box means to 0, so the two would differ.
     """
     B, H, W, C = ys.shape
     r = k // 2
