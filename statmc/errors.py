@@ -24,14 +24,20 @@ def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
                    dtype=None) -> np.ndarray:
     """Return ``a`` as a float ndarray (ints become ``float64``; float32 stays float32).
 
-    Raises :class:`InputError` when it is not numeric or has the wrong number of dims.
+    float16 becomes float32 and extended precision float64: the compiled kernels and most
+    of SciPy have neither (float16 raised numba's ``NotImplementedError``).
+    Raises :class:`InputError` when it is not numeric (complex included) or has the wrong
+    number of dims.
     """
     arr = np.asarray(a)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-        raise InputError(f"`{name}` must be a numeric array; got dtype {arr.dtype}.")
+    if arr.dtype == object or np.iscomplexobj(arr) \
+            or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise InputError(f"`{name}` must be a real numeric array; got dtype {arr.dtype}.")
     if dtype is not None:
         arr = arr.astype(dtype, copy=False)
-    elif not np.issubdtype(arr.dtype, np.floating):
+    elif arr.dtype == np.float16:
+        arr = arr.astype(np.float32)
+    elif not np.issubdtype(arr.dtype, np.floating) or arr.dtype.itemsize > 8:
         arr = arr.astype(np.float64)
     if ndim is not None:
         dims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
@@ -92,3 +98,24 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
         what = {0: "a non-negative integer", 1: "a positive integer"}.get(lo, f"an integer >= {lo}")
         raise InputError(f"`{name}` must be {what}; got {value!r}.")
     return int(value)
+
+
+def as_broadcast_arrays(arrays: dict, *, nonnegative=()) -> list:
+    """The values of ``arrays`` (``{name: array or number}``) as finite float64 arrays that
+    broadcast together, those named in ``nonnegative`` also ``>= 0`` (for element-wise
+    formulas that take scalars or maps); any failure is an :class:`InputError` naming the
+    argument."""
+    out = []
+    for name, a in arrays.items():
+        arr = as_float_array(name, a, dtype=np.float64)
+        check_finite(name, arr)
+        if name in nonnegative:
+            check_nonnegative(name, arr)
+        out.append(arr)
+    try:
+        np.broadcast_shapes(*(a.shape for a in out))
+    except ValueError:
+        shapes = ", ".join(f"`{n}` {a.shape}" for n, a in zip(arrays, out))
+        raise InputError(f"the arrays must have shapes that broadcast together (e.g. all the "
+                         f"same); got {shapes}.") from None
+    return out

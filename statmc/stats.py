@@ -256,6 +256,7 @@ class PixelStats:
         s1 = as_float_array("sum_x", sum_x, ndim=3, dtype=np.float64)
         s2 = as_float_array("sum_x2", sum_x2, ndim=3, dtype=np.float64)
         check_same_shape("sum_x2", s2, "sum_x", s1.shape)
+        check_nonnegative("sum_x2", s2)                  # a sum of squares
         if s1.shape[:2] != n_a.shape:
             raise InputError(f"`sum_x` must be (H, W, C) with (H, W) = {n_a.shape}; got {s1.shape}.")
         safe = np.maximum(n_a, 1)[..., None]
@@ -283,6 +284,7 @@ class PixelStats:
         check_finite("sample_var", var)
         check_nonnegative("sample_var", var)
         n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
+        check_same_shape("n", n_a, "mean[..., 0]", mean.shape[:2])
         m2 = var * np.maximum(n_a - 1, 0)[..., None]
         cross = None
         if sample_cov is not None:

@@ -926,3 +926,17 @@ def test_selected_filter_scales_cannot_change_after_the_range_check():
     np.testing.assert_array_equal(f(m), m)                # still the pixel filter
     with pytest.raises(ValueError, match="read-only"):
         f.scales[0, 0] = 7
+
+
+def test_half_precision_inputs_are_read_as_float32():
+    """float16 mean, variance or counts (e.g. a half-float EXR's channels) raised numba's
+    NotImplementedError('float16'); they are now read as float32."""
+    rng = np.random.default_rng(3)
+    m = rng.uniform(0.1, 1, (10, 12, 3)).astype(np.float16)
+    v = rng.uniform(0.001, 0.02, (10, 12, 3)).astype(np.float16)
+    n = np.full((10, 12), 4.0, np.float16)
+    want = gem.reconstruct(m.astype(np.float32), v.astype(np.float32), n=n.astype(np.float32))
+    got = gem.reconstruct(m, v, n=n)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+    gem.sampling_map(m, v, n, 4 * 120, rng=0)

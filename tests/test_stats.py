@@ -292,3 +292,27 @@ def test_require_variance_names_the_pixels_without_two_samples():
     with pytest.raises(InputError, match=r"`x` must have >= 2 samples in every pixel \(why\); "
                                          r"got 2 pixels with fewer than 2 samples\. Hint\."):
         holed.require_variance("x", why="why", hint=" Hint.")
+
+
+def test_as_float_array_half_extended_and_complex():
+    """float16 became a numba NotImplementedError in the kernels and complex lost its
+    imaginary part with a warning: now float16 -> float32, extended -> float64, complex
+    refused."""
+    from statmc.errors import as_float_array
+    assert as_float_array("a", np.ones(3, np.float16)).dtype == np.float32
+    assert as_float_array("a", np.ones(3, np.longdouble)).dtype == np.float64
+    assert as_float_array("a", np.ones(3, np.float32)).dtype == np.float32
+    with pytest.raises(InputError, match="`a` must be a real numeric array; got dtype complex128"):
+        as_float_array("a", np.ones(3, complex))
+
+
+def test_constructors_refuse_mismatched_counts_and_negative_sums():
+    """from_mean_var with an n of another size was a NumPy broadcasting ValueError; from_sums
+    clipped a negative sum of squares to M2 = 0 (a silently noise-free pixel)."""
+    mean, var, n = np.ones((4, 5, 3)), np.full((4, 5, 3), 0.5), np.full((4, 5), 3)
+    with pytest.raises(InputError, match=r"`n` must have the shape .* \(4, 5\); got \(3, 5\)"):
+        PixelStats.from_mean_var(mean, var, n[:-1])
+    s2 = 3 * (mean ** 2 + var)
+    s2[1, 2, 0] = -1.0
+    with pytest.raises(InputError, match="`sum_x2` must be >= 0; got 1 negative"):
+        PixelStats.from_sums(n, 3 * mean, s2)
