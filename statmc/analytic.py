@@ -40,7 +40,8 @@ import numpy as np
 from scipy import special
 
 from . import _analytic_kernels as _ak
-from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
+from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
+                     check_nonnegative)
 from .sampling import counts_from_density
 
 __all__ = [
@@ -218,9 +219,8 @@ def gamma_parameters(x_g, var_g, s):
     variance ``α/β² = var_g / s``.  Arrays broadcast; undefined (NaN) where
     ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.
     """
-    xg = np.asarray(x_g, np.float64)
-    v = np.asarray(var_g, np.float64)
-    s = np.asarray(s, np.float64)
+    xg, v, s = as_broadcast_arrays({"x_g": x_g, "var_g": var_g, "s": s},
+                                   nonnegative=("var_g", "s"))
     with np.errstate(divide="ignore", invalid="ignore"):
         ok = (xg != 0) & (v > 0) & (s > 0)
         alpha = np.where(ok, xg * xg * s / np.where(ok, v, 1.0), np.nan)

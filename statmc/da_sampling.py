@@ -56,7 +56,7 @@ import numbers
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite
+from .errors import InputError, as_broadcast_arrays, as_float_array, check_finite
 from .stats import PixelStats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -116,7 +116,9 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     >>> float(tonemap(np.array(1.0), "reinhard"))
     0.5
     """
-    x = np.maximum(as_float_array("image", image), 0.0) * _exposure(exposure)
+    xr = as_float_array("image", image)
+    check_finite("image", xr)
+    x = np.maximum(xr, 0.0) * _exposure(exposure)
     if _tm_name(name) == "reinhard":
         return x / (1.0 + x)
     a, b, c, d, e = _ACES
@@ -126,6 +128,7 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
 def tonemap_derivative(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     """``d/dx T(e·x)`` of :func:`tonemap`, per element (0 where clamped)."""
     xr = as_float_array("image", image)
+    check_finite("image", xr)
     ex = _exposure(exposure)
     x = np.maximum(xr, 0.0) * ex
     if _tm_name(name) == "reinhard":
@@ -164,10 +167,13 @@ def mix_variance(alpha, var_x, var_y, *, cov_xy=None) -> np.ndarray:
         covariance it omits.  ``α`` is treated as fixed (its own randomness is ignored, as
         in [1]_).
     """
-    a = np.asarray(alpha, dtype=np.float64)
-    out = (1.0 - a) ** 2 * np.asarray(var_x, np.float64) + a * a * np.asarray(var_y, np.float64)
+    named = {"alpha": alpha, "var_x": var_x, "var_y": var_y}
     if cov_xy is not None:
-        out = out + 2.0 * a * (1.0 - a) * np.asarray(cov_xy, np.float64)
+        named["cov_xy"] = cov_xy
+    a, vx, vy, *cov = as_broadcast_arrays(named, nonnegative=("var_x", "var_y"))
+    out = (1.0 - a) ** 2 * vx + a * a * vy
+    if cov:
+        out = out + 2.0 * a * (1.0 - a) * cov[0]
     return out
 
 
@@ -183,11 +189,10 @@ def njs_variance(rho, alpha, var_fa, var_fb, var_x) -> np.ndarray:
     The notes state it so; the terms are in fact correlated (``x = (x_a + x_b)/2`` feeds
     both denoised buffers), which :func:`mix_variance` can include for the two-term mix.
     """
-    r = np.asarray(rho, dtype=np.float64)
-    a = np.asarray(alpha, dtype=np.float64)
-    return (r * r * (a * a * np.asarray(var_fa, np.float64)
-                     + (1.0 - a) ** 2 * np.asarray(var_fb, np.float64))
-            + (1.0 - r) ** 2 * np.asarray(var_x, np.float64))
+    r, a, va, vb, vx = as_broadcast_arrays(
+        {"rho": rho, "alpha": alpha, "var_fa": var_fa, "var_fb": var_fb, "var_x": var_x},
+        nonnegative=("var_fa", "var_fb", "var_x"))
+    return r * r * (a * a * va + (1.0 - a) ** 2 * vb) + (1.0 - r) ** 2 * vx
 
 
 # =========================================================================== the map

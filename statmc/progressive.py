@@ -27,7 +27,8 @@ import numbers
 
 import numpy as np
 
-from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
+from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
+                     check_nonnegative)
 from .stats import PixelStats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
@@ -142,10 +143,8 @@ def mix_error(alpha, mean_var, sure_y, divergence):
     >>> float(mix_error(0.0, 2.0, 1.0, 0.5)), float(mix_error(1.0, 2.0, 1.0, 0.5))
     (2.0, 1.0)
     """
-    a = np.asarray(alpha, dtype=np.float64)
-    s2 = np.asarray(mean_var, dtype=np.float64)
-    sy = np.asarray(sure_y, dtype=np.float64)
-    d = np.asarray(divergence, dtype=np.float64)
+    a, s2, sy, d = as_broadcast_arrays({"alpha": alpha, "mean_var": mean_var, "sure_y": sure_y,
+                                        "divergence": divergence}, nonnegative=("mean_var",))
     return s2 * (1.0 + a * a - 2.0 * a) + a * a * sy + 2.0 * (a - a * a) * d
 
 
@@ -374,9 +373,14 @@ def auto_sigma_s(mean_var) -> float:
     radiance scale: for an image of values around 0.5 it is ~100 (a flat 11×11 window) at
     a few samples per pixel and shrinks like ``1/√n`` once ``mean Var[x] < 1``.
     """
-    v = np.asarray(mean_var, dtype=np.float64)
+    v = as_float_array("mean_var", mean_var, ndim=(2, 3, 4), dtype=np.float64)
     if v.ndim == 4:
+        if v.shape[2] != v.shape[3]:
+            raise InputError(f"`mean_var` must be (H, W, C), or a covariance (H, W, C, C); "
+                             f"got {v.shape}.")
         v = np.diagonal(v, axis1=-2, axis2=-1)
+    check_finite("mean_var", v)
+    check_nonnegative("mean_var", v)
     return _auto_sigma_s_from_mean(float(v.mean()) if v.size else 0.0)
 
 
@@ -619,6 +623,7 @@ def outlier_alpha(alpha, x, y, mean_var, *, factor: float = DEFAULT_OUTLIER,
     factor = as_number("factor", factor, lo=1.0, lo_open=True)
     sigma = as_number("sigma", sigma, lo=0.0, lo_open=True)
     xa = as_float_array("x", x, ndim=3)
+    check_finite("x", xa)
     ya = _like("y", y, xa.shape)
     s2 = _variance(mean_var, xa.shape)
     al = _like("alpha", alpha, xa.shape, allow_2d=True)

@@ -836,3 +836,17 @@ def test_expected_error_with_pilot_gem_kernels_beats_uniform_on_toy_mixed():
     p_cf = sps.ttest_1samp(d_cf, 0.0, alternative="less").pvalue
     assert p_meas < ALPHA and p_cf < ALPHA, (np.exp(np.mean(d_meas)), p_meas,
                                              np.exp(np.mean(d_cf)), p_cf)
+
+
+def test_gamma_parameters_refuses_bad_input():
+    """Negative or NaN variances and counts became NaN parameters without a word (as if the
+    pixel were a point mass); shapes that do not broadcast were a NumPy ValueError."""
+    x = np.full((3, 4), 0.5)
+    a, b = an.gamma_parameters(x, 0.1, 4.0)
+    np.testing.assert_allclose(a / b, x)
+    with pytest.raises(InputError, match="`var_g` must be >= 0"):
+        an.gamma_parameters(x, -0.1, 4.0)
+    with pytest.raises(InputError, match="`s` holds 1 NaN"):
+        an.gamma_parameters(x, 0.1, np.nan)
+    with pytest.raises(InputError, match="broadcast together"):
+        an.gamma_parameters(x, 0.1, np.ones(3))

@@ -260,3 +260,21 @@ def test_bad_input_raises_input_error():
         da.sampler(stt, 10, None, denoiser=3)
     with pytest.raises(InputError, match="`tonemap`"):
         da.tonemap(np.ones(3), "filmic")
+
+
+def test_variance_formulas_and_tonemap_refuse_bad_input():
+    """mix_variance, njs_variance and the tone maps turned NaN, Inf and negative variances
+    into NaN or a number, and mismatched shapes into NumPy broadcasting errors."""
+    v = np.full((4, 5, 3), 0.1)
+    assert da.mix_variance(0.3, v, v, cov_xy=0.0).shape == v.shape  # scalars broadcast
+    with pytest.raises(InputError, match="`var_y` must be >= 0"):
+        da.mix_variance(0.3, v, -v)
+    with pytest.raises(InputError, match="`cov_xy` holds 0 NaN and 60 Inf"):
+        da.mix_variance(0.3, v, v, cov_xy=v * np.inf)
+    with pytest.raises(InputError, match="broadcast together"):
+        da.njs_variance(0.5, 0.5, v, v[:, :-1], v)
+    with pytest.raises(InputError, match="`var_x` must be >= 0"):
+        da.njs_variance(0.5, 0.5, v, v, -v)
+    for f in (da.tonemap, da.tonemap_derivative):
+        with pytest.raises(InputError, match="`image` holds 1 NaN"):
+            f(np.array([0.5, np.nan]))

@@ -803,3 +803,25 @@ def test_progressive_denoise_refuses_pixels_without_a_variance():
         pg.progressive_denoise(holed, denoisers.gaussian(1.0), rng=0)
     out = pg.progressive_denoise(holed, denoisers.gaussian(1.0), mean_var=st.mean_var, rng=0)
     assert out.shape == st.mean.shape
+
+
+def test_elementwise_helpers_refuse_bad_input():
+    """mix_error and auto_sigma_s took NaN, Inf and negative variances and returned NaN or a
+    number; mismatched shapes were NumPy broadcasting errors; outlier_alpha let a NaN render
+    through (it sits where the variance test cannot see it)."""
+    v = np.full((4, 5, 3), 0.1)
+    assert pg.mix_error(0.5, v, v, v).shape == v.shape                # scalars broadcast
+    for bad, match in ((dict(mean_var=-v), "`mean_var` must be >= 0"),
+                       (dict(sure_y=np.where(v > 0, np.nan, v)), "`sure_y` holds 60 NaN"),
+                       (dict(divergence=v[:-1]), "broadcast together.*`divergence` \\(3, 5, 3\\)")):
+        args = dict(alpha=0.5, mean_var=v, sure_y=v, divergence=v) | bad
+        with pytest.raises(InputError, match=match):
+            pg.mix_error(**args)
+    for bad, match in ((v.ravel(), "2 or 3 or 4 dimensions"), (-v, ">= 0"), (v * np.inf, "Inf"),
+                       (np.ones((4, 5, 3, 2)), "covariance")):
+        with pytest.raises(InputError, match=match):
+            pg.auto_sigma_s(bad)
+    x = np.ones((4, 5, 3))
+    x[1, 1, 1] = np.nan
+    with pytest.raises(InputError, match="`x` holds 1 NaN"):
+        pg.outlier_alpha(np.full((4, 5), 0.5), x, np.ones((4, 5, 3)), v)
