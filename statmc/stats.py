@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import (InputError, as_float_array, check_finite, check_nonnegative,
+from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
                      check_same_shape)
 
 __all__ = ["PixelStats", "replace_nonfinite"]
@@ -175,6 +175,8 @@ class PixelStats:
     @classmethod
     def empty(cls, height: int, width: int, channels: int = 3) -> "PixelStats":
         """Statistics of no samples at all (``n = 0`` everywhere)."""
+        height, width = as_int("height", height, lo=0), as_int("width", width, lo=0)
+        channels = as_int("channels", channels)
         return cls(np.zeros((height, width), np.int64), np.zeros((height, width, channels)),
                    np.zeros((height, width, channels)))
 
@@ -211,7 +213,12 @@ class PixelStats:
         Two passes (means first, then products of deviations), so no cancellation;
         the channel co-moment ``m2_cross`` is computed too.
         """
-        h, w = (int(v) for v in shape)
+        try:
+            h, w = (as_int(f"shape[{k}]", v, lo=0) for k, v in enumerate(shape))
+        except (TypeError, ValueError) as e:   # not a pair (InputError is a ValueError)
+            if isinstance(e, InputError):
+                raise
+            raise InputError(f"`shape` must be (H, W), two integers >= 0; got {shape!r}.") from None
         idx = np.asarray(pixel_index)
         if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
             raise InputError(f"`pixel_index` must be a 1-D integer array; got {idx.dtype} {idx.shape}.")

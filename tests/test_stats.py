@@ -316,3 +316,14 @@ def test_constructors_refuse_mismatched_counts_and_negative_sums():
     s2[1, 2, 0] = -1.0
     with pytest.raises(InputError, match="`sum_x2` must be >= 0; got 1 negative"):
         PixelStats.from_sums(n, 3 * mean, s2)
+
+
+def test_sizes_are_checked():
+    """PixelStats.empty(-1, 2) was NumPy's "negative dimensions" ValueError and a negative
+    `shape` of from_pixel_samples was reported as an index range [0, -5)."""
+    with pytest.raises(InputError, match="`height` must be a non-negative integer; got -1"):
+        PixelStats.empty(-1, 2)
+    with pytest.raises(InputError, match=r"`shape\[0\]` must be a non-negative integer"):
+        PixelStats.from_pixel_samples(np.array([0]), np.ones((1, 3)), (-1, 5))
+    with pytest.raises(InputError, match=r"`shape` must be \(H, W\)"):
+        PixelStats.from_pixel_samples(np.array([0]), np.ones((1, 3)), (2,))
