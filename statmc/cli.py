@@ -960,11 +960,15 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version (0) and argument errors (2, one line printed)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
+    previous = _on_sigterm(_terminate)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("statmc: interrupted", file=sys.stderr)
         return 130
+    except _Terminated:  # `kill`, `timeout`: clean up (staged outputs) as on Ctrl-C
+        print("statmc: terminated", file=sys.stderr)
+        return 143  # 128 + SIGTERM
     except BrokenPipeError:  # `statmc metrics ... | head`: the reader left; stop quietly
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -974,8 +978,35 @@ def main(argv=None) -> int:
     except (ValueError, OSError, MemoryError) as e:  # InputError and FileFormatError are ValueErrors
         if args.debug:
             raise
-        print(f"statmc {args.command}: error: {_cli_message(str(e), args.command)}", file=sys.stderr)
+        msg = _cli_message(str(e), args.command)
+        if isinstance(e, MemoryError):
+            msg = (f"out of memory ({msg or 'MemoryError'}); expected inputs that fit in memory: "
+                   "use a smaller --size, --spp, --stencil or input image.")
+        print(f"statmc {args.command}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        _on_sigterm(previous)
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks (and the removal of
+    staged outputs) run, as for Ctrl-C."""
+
+
+def _terminate(signum, frame):
+    raise _Terminated()
+
+
+def _on_sigterm(handler):
+    """Install ``handler`` for SIGTERM and return the previous one (None, and nothing done,
+    outside the main thread or where it cannot be set)."""
+    import signal
+    if handler is None:
+        return None
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # not the main thread
+        return None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -919,8 +919,9 @@ def test_render_refuses_gem_options_it_would_ignore(tmp_path, opts, bad):
 
 
 def test_render_accepts_gem_options_where_they_are_read(tmp_path):
+    # (--sampler gem / expected-error --gamma: test_expected_error_sampler_gem_kernels_get_gamma
+    # and the adaptive tests above; an adaptive render here would cost ~6 s)
     for opts in (("--spp", "4", "--reconstruct", "gem", "--gamma", "0.1", "--gem-bias", "paper"),
-                 ("--spp", "8", "--sampler", "gem", "--gamma", "0.1"),
                  ("--spp", "4", "--reconstruct", "progressive", "--denoiser", "gem",
                   "--gem-bias", "paper")):
         out = tmp_path / str(len(os.listdir(tmp_path)))
@@ -995,3 +996,40 @@ def test_failed_write_leaves_earlier_outputs_as_they_were(tmp_path, toy_render, 
         assert f"{d / 'r' / 'counts.png'}" in err and "nothing was written" in err
         _assert_one_line_error(code2, err2, f"could not write {str(d / 'rc.png')!r}")
         assert ".statmc-" not in err + err2 + err3
+
+
+def test_sigterm_while_writing_is_cleaned_up_like_ctrl_c(tmp_path, monkeypatch):
+    """SIGTERM (kill, timeout) ended the process without running `finally`, so a staged or
+    temporary output stayed in the output directory; it now unwinds like Ctrl-C (exit 143)."""
+    import signal
+
+    import statmc.plots
+    out = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", "--spp", 4, "--out", out, "-q")
+    assert code == 0, err
+    before = _tree(tmp_path)
+    real = statmc.plots.write_map_png
+
+    def killed(*args, **kwargs):
+        real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(statmc.plots, "write_map_png", killed)
+    handler = signal.getsignal(signal.SIGTERM)
+    code, _, err = run_cli("render", "toy:mixed", "--size", "8x6", "--spp", 8, "--out", out, "-q")
+    assert code == 143 and err.strip() == "statmc: terminated"
+    assert _tree(tmp_path) == before
+    assert signal.getsignal(signal.SIGTERM) is handler      # restored for in-process callers
+
+
+def test_out_of_memory_is_one_line_naming_the_sizes(tmp_path, monkeypatch):
+    import statmc.renderers
+
+    def huge(*args, **kwargs):
+        raise MemoryError("Unable to allocate 74.5 GiB for an array with shape (100000, 100000)")
+
+    monkeypatch.setattr(statmc.renderers, "make_renderer", huge)
+    code, _, err = run_cli("render", "toy:mixed", "--size", "100000x100000", "--spp", 4,
+                           "--out", tmp_path / "r", "-q")
+    _assert_one_line_error(code, err, "out of memory (Unable to allocate 74.5 GiB")
+    assert "smaller --size" in err and not (tmp_path / "r").exists()
