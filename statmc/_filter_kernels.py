@@ -479,21 +479,6 @@ def relative_gain(image, est, C, eps, n, batch, rel, gain):  # pragma: no cover 
             gr[i] = acc * batch / (nr[i] + batch)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def split_by_scale(amount, scales, parts):  # pragma: no cover - compiled
-    """``parts[s, y, x] = amount[y, x]`` where ``scales[y, x] == s``, else 0."""
-    K, H, W = parts.shape
-    for y in prange(H):
-        for k in range(K):
-            row = parts[k, y]
-            for i in range(W):
-                row[i] = 0.0
-        a = amount[y]
-        s = scales[y]
-        for i in range(W):
-            parts[s[i], y, i] = a[i]
-
-
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # pragma: no cover
     """Estimated MSE of the selected scale with noise-corrected bias terms.

@@ -5,8 +5,9 @@ single-column images (every tap a border tap), zero-variance pixels.
 The audit behind this file (each numba kernel of ``statmc/`` and the test that compares
 it with NumPy) is in the session-7 report; in short, the kernels with no comparison
 before were ``_filter_kernels.scan_inputs``, ``relative_gain`` (formula checked only
-through ``sampling_map`` on one float64 image), ``split_by_scale`` (unused) and
-``_combine_kernels._solve_small`` (checked only through the weights).
+through ``sampling_map`` on one float64 image) and ``_combine_kernels._solve_small``
+(checked only through the weights).  (A fourth, ``split_by_scale``, had no caller and was
+removed.)
 
 Tolerances: an exact comparison where both sides do the same float operations in the same
 order; otherwise a bound from the arithmetic, given at each assertion.
@@ -84,22 +85,6 @@ def test_relative_gain_equals_numpy(dtype, hw, C):
     ref = (est.astype(np.float64) / (i64 * i64 + eps)).mean(axis=-1)
     np.testing.assert_allclose(rel, ref, rtol=8 * EPS64, atol=0)
     np.testing.assert_allclose(gain, ref * batch / (n + batch), rtol=8 * EPS64, atol=0)
-
-
-@pytest.mark.parametrize("hw", DEGENERATE)
-def test_split_by_scale_equals_numpy(hw):
-    """``split_by_scale`` (no caller in ``statmc`` at present): ``parts[s] = amount`` where
-    the selected scale is ``s``, else 0.  Exact: copies and zeros only."""
-    H, W = hw
-    K = 4
-    rng = np.random.default_rng(H + 5 * W)
-    amount = rng.uniform(0, 3, (H, W))
-    amount[rng.random((H, W)) < 0.3] = 0.0
-    scales = rng.integers(0, K, (H, W))
-    parts = np.full((K, H, W), np.nan)
-    fk.split_by_scale(amount, scales, parts)
-    ref = np.where(np.arange(K)[:, None, None] == scales[None], amount[None], 0.0)
-    np.testing.assert_array_equal(parts, ref)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 3), (1, 9, 3), (8, 1, 3)])
