@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import numbers
 import os
@@ -15,6 +16,7 @@ import shutil
 import sys
 import tempfile
 import time
+import warnings
 
 import numpy as np
 
@@ -962,7 +964,10 @@ def main(argv=None) -> int:
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     previous = _on_sigterm(_terminate)
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            if not args.debug:  # one line per warning, without the source file and line
+                warnings.showwarning = functools.partial(_show_warning, args.command)
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("statmc: interrupted", file=sys.stderr)
         return 130
@@ -986,6 +991,13 @@ def main(argv=None) -> int:
         return EXIT_USAGE
     finally:
         _on_sigterm(previous)
+
+
+def _show_warning(command, message, category, filename, lineno, file=None, line=None):
+    """``warnings.showwarning`` of the command line: ``statmc CMD: warning: ...`` on stderr."""
+    text = str(message)
+    text = text[len("statmc: "):] if text.startswith("statmc: ") else text
+    print(f"statmc {command}: warning: {text}", file=sys.stderr)
 
 
 class _Terminated(BaseException):

@@ -1033,3 +1033,24 @@ def test_out_of_memory_is_one_line_naming_the_sizes(tmp_path, monkeypatch):
                            "--out", tmp_path / "r", "-q")
     _assert_one_line_error(code, err, "out of memory (Unable to allocate 74.5 GiB")
     assert "smaller --size" in err and not (tmp_path / "r").exists()
+
+
+def test_warnings_are_one_line_naming_the_command(monkeypatch, capsys):
+    """A library warning during a command (e.g. Mitsuba's slow fallback, or sample seeds
+    wrapping around) is printed as ``statmc CMD: warning: ...``, without the source file
+    and line of Python's default format; ``--debug`` keeps Python's format."""
+    import warnings
+
+    import statmc.cli as cli
+
+    def noisy(args):
+        warnings.warn("statmc: seed words wrap around", RuntimeWarning)
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_scenes", noisy)
+    assert main(["scenes"]) == 0
+    err = capsys.readouterr().err
+    assert err == "statmc scenes: warning: seed words wrap around\n"
+    with pytest.warns(RuntimeWarning, match="wrap around"):   # Python's own handling
+        assert main(["--debug", "scenes"]) == 0
+    assert "warning:" not in capsys.readouterr().err
