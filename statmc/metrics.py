@@ -26,6 +26,8 @@ References
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy import ndimage
 
@@ -350,11 +352,35 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
     Returns
     -------
     dict
-        ``{name: value}`` in the order of :data:`METRICS`.
+        ``{name: value}`` in the order of :data:`METRICS`.  ``"logloss"`` is None, with a
+        ``RuntimeWarning`` saying why, when the images are outside its domain (a
+        reference with negative values, such as a noisy render with rounding residue, or
+        a test image <= −1), so that it does not stop the other metrics; call
+        :func:`logloss` directly to get the error instead.
     """
     names = list(METRICS) if include is None else list(include)
     unknown = [n for n in names if n not in METRICS]
     if unknown:
         raise InputError(f"unknown metric(s) {unknown}; expected names from {list(METRICS)}.")
-    _pair(x, ref)                      # validate once with a clear message
-    return {n: METRICS[n](x, ref, per_pixel=per_pixel) for n in METRICS if n in names}
+    xa, ra = _pair(x, ref)             # validate once with a clear message
+    out = {}
+    for n in METRICS:
+        if n not in names:
+            continue
+        why = _logloss_domain(xa, ra) if n == "logloss" else None
+        if why:
+            warnings.warn(f"statmc: logloss left out (null): {why}", RuntimeWarning, stacklevel=2)
+            out[n] = None
+        else:
+            out[n] = METRICS[n](x, ref, per_pixel=per_pixel)
+    return out
+
+
+def _logloss_domain(xa, ra) -> str | None:
+    """Why :func:`logloss` cannot score ``xa`` against ``ra`` (None if it can)."""
+    if ra.min() < 0:
+        return (f"the reference has {int((ra < 0).sum())} negative values (min {ra.min():.4g}); "
+                "logLoss needs a reference >= 0.")
+    if xa.min() <= -1:
+        return f"the image has values <= -1 (min {xa.min():.4g}); logLoss needs x > -1."
+    return None

@@ -210,6 +210,24 @@ def test_all_metrics_keys_and_include(pair):
     assert maps["smape"].shape == (24, 20)
 
 
+def test_all_metrics_leaves_out_logloss_outside_its_domain(pair):
+    """A reference with negative values (a noisy render as the reference) stops logLoss
+    only: it is None with a warning naming the cause, and the other metrics are the
+    direct calls' values; ``logloss`` itself still raises."""
+    x, r = pair
+    r = r.copy()
+    r[0, 0] = -5.55e-17                                   # rounding residue, 3 channels
+    with pytest.warns(RuntimeWarning, match="3 negative values"):
+        out = all_metrics(x, r)
+    assert out["logloss"] is None
+    assert out["relmse"] == relmse(x, r) and out["mse"] == mse(x, r)
+    assert all(isinstance(v, float) for k, v in out.items() if k != "logloss")
+    with pytest.raises(InputError, match=">= 0"):
+        logloss(x, r)
+    with pytest.warns(RuntimeWarning, match="<= -1"):
+        assert all_metrics(np.full_like(x, -1.0), pair[1], include=["logloss"]) == {"logloss": None}
+
+
 # ---------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("name", list(METRICS))
 def test_shape_mismatch_names_both_shapes(name):
