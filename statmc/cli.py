@@ -606,6 +606,9 @@ def cmd_denoise(args) -> int:
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
+    if not np.any(stats.n > 0):
+        raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
+                         "pixel); expected a render with samples.")
     _refuse_crn(stats, args.input, f"statmc denoise {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     if args.denoiser != "gaussian":

@@ -1054,3 +1054,16 @@ def test_warnings_are_one_line_naming_the_command(monkeypatch, capsys):
     with pytest.warns(RuntimeWarning, match="wrap around"):   # Python's own handling
         assert main(["--debug", "scenes"]) == 0
     assert "warning:" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("denoiser", ["gaussian", "oidn"])
+def test_denoise_refuses_a_file_without_samples(tmp_path, denoiser):
+    """A statistics file whose SampleCount is 0 everywhere holds no render: denoise (whose
+    gaussian / oidn paths need no variance) says so instead of writing a denoised zero image."""
+    from statmc.exr import write_exr
+    from statmc.stats import PixelStats
+    write_exr(tmp_path / "empty.exr", PixelStats.empty(12, 16))
+    code, _, err = run_cli("denoise", tmp_path / "empty.exr", "--denoiser", denoiser,
+                           "--out", tmp_path / "den.exr")
+    assert code == 2 and "no samples" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "den.exr").exists() and not (tmp_path / "den.png").exists()
