@@ -216,9 +216,12 @@ def gamma_parameters(x_g, var_g, s):
     """Shape and rate of the gamma law of the mean of ``s`` samples (Eq. 9 of [1]_).
 
     ``α = x_g² s / var_g``, ``β = x_g s / var_g``, so the mean is ``α/β = x_g`` and the
-    variance ``α/β² = var_g / s``.  Arrays broadcast; undefined (NaN) where
+    variance ``α/β² = var_g / s``.  Arrays broadcast, and an ``(H, W)`` count map ``s``
+    goes with ``(H, W, C)`` images as in :func:`future_moments`; undefined (NaN) where
     ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.
     """
+    if np.ndim(s) == 2 and np.ndim(x_g) == 3 and np.shape(s) == np.shape(x_g)[:2]:
+        s = np.asarray(s)[..., None]                    # per-pixel counts, all channels
     xg, v, s = as_broadcast_arrays({"x_g": x_g, "var_g": var_g, "s": s},
                                    nonnegative=("var_g", "s"))
     with np.errstate(divide="ignore", invalid="ignore"):

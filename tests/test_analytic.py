@@ -850,3 +850,18 @@ def test_gamma_parameters_refuses_bad_input():
         an.gamma_parameters(x, 0.1, np.nan)
     with pytest.raises(InputError, match="broadcast together"):
         an.gamma_parameters(x, 0.1, np.ones(3))
+
+
+def test_gamma_parameters_takes_a_count_map_with_colour_images():
+    """An (H, W) count map goes with (H, W, C) images, as in future_moments: per pixel and
+    channel α = x² s / v, β = x s / v (Eq. 9), so α/β = x and α/β² = v / s."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.1, 2.0, (3, 4, 3))
+    v = rng.uniform(0.01, 1.0, (3, 4, 3))
+    s = rng.integers(1, 9, (3, 4)).astype(float)
+    a, b = an.gamma_parameters(x, v, s)
+    np.testing.assert_allclose(a, x * x * s[..., None] / v, rtol=1e-14)
+    np.testing.assert_allclose(a / b ** 2, v / s[..., None], rtol=1e-14)
+    a3, b3 = an.gamma_parameters(x, v, np.repeat(s[..., None], 3, -1))
+    np.testing.assert_array_equal(a, a3)
+    np.testing.assert_array_equal(b, b3)
