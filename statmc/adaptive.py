@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, as_rng
 from .stats import PixelStats
 
 __all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler", "pass_budgets"]
@@ -190,7 +190,7 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     if iterations and first < 2:
         raise InputError("adaptive sampling needs an initial pass of >= 2 spp to estimate variances.")
     pick = get_sampler(sampler, **sampler_options)
-    rng = np.random.default_rng(seed)
+    rng = as_rng(seed, "seed")
     rest = total - first * h * w
     budgets = pass_budgets(total, first * h * w, schedule=schedule,
                            iterations=given if schedule == "doubling" else iterations) \

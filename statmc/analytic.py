@@ -40,8 +40,8 @@ import numpy as np
 from scipy import special
 
 from . import _analytic_kernels as _ak
-from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
-                     check_nonnegative)
+from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, as_rng,
+                     check_finite, check_nonnegative)
 from .sampling import counts_from_density
 
 __all__ = [
@@ -147,10 +147,7 @@ def _check_rel_denominator(loss, eps, xg):
 
 
 def _rng(rng):
-    try:
-        return np.random.default_rng(rng)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`rng` must be None, an int seed or a numpy Generator; got {rng!r}.") from exc
+    return as_rng(rng)
 
 
 # =========================================================================== moments

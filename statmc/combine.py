@@ -48,7 +48,7 @@ import numpy as np
 
 from . import _combine_kernels as _ck
 from ._stencil_kernels import add_neighbour_products_sum, shift_slices
-from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, as_rng, check_finite, check_nonnegative
 
 __all__ = [
     "combine", "combine_multi", "combine_boosting",
@@ -1253,7 +1253,7 @@ def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
-    gen = np.random.default_rng(rng)
+    gen = as_rng(rng)
     sig = np.sqrt(mv)
     z = _denoise(denoiser, xx)
     signs = np.zeros((probes,) + xx.shape, np.int8)

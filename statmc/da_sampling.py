@@ -56,7 +56,7 @@ import numbers
 
 import numpy as np
 
-from .errors import InputError, as_broadcast_arrays, as_float_array, check_finite
+from .errors import InputError, as_broadcast_arrays, as_float_array, as_rng, check_finite
 from .stats import PixelStats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -314,7 +314,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     if progressive_options is not None and not isinstance(progressive_options, dict):
         raise InputError(f"`progressive_options` must be a dict or None; got "
                          f"{type(progressive_options).__name__}.")
-    gen = np.random.default_rng(rng)
+    gen = as_rng(rng)
     f = bind_denoiser(denoiser, stats) if isinstance(denoiser, str) else denoiser
     x = stats.mean
     s2 = stats.mean_var
@@ -383,7 +383,7 @@ def denoising_aware_map(stats: PixelStats, denoiser, budget: int, *, rng=None, *
 
     if isinstance(budget, bool) or not isinstance(budget, numbers.Integral) or budget < 0:
         raise InputError(f"`budget` must be a non-negative integer; got {budget!r}.")
-    gen = np.random.default_rng(rng)
+    gen = as_rng(rng)
     density = denoising_aware_density(stats, denoiser, rng=gen, **options)
     return counts_from_density(density, int(budget), rng=gen)
 

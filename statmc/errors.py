@@ -100,6 +100,17 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
     return int(value)
 
 
+def as_rng(value, name: str = "rng") -> np.random.Generator:
+    """``np.random.default_rng(value)``: None, a non-negative int seed, a SeedSequence or
+    a Generator (returned as it is); anything else is an :class:`InputError` naming
+    ``name``."""
+    try:
+        return np.random.default_rng(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"`{name}` must be None, a non-negative int seed or a numpy "
+                         f"Generator; got {value!r}.") from exc
+
+
 def as_broadcast_arrays(arrays: dict, *, nonnegative=()) -> list:
     """The values of ``arrays`` (``{name: array or number}``) as finite float64 arrays that
     broadcast together, those named in ``nonnegative`` also ``>= 0`` (for element-wise

@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, as_float_array, as_number, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_number, as_rng, check_finite, check_nonnegative
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
@@ -1151,7 +1151,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     density = _spread(amount, scales, sig)
     # density is finite and >= 0 by construction (non-negative weights and amounts):
     # straight to the rounding of counts_from_density, without its input checks
-    counts = _systematic_round(density, budget, 0, np.random.default_rng(rng))
+    counts = _systematic_round(density, budget, 0, as_rng(rng))
     if extra_output:
         return counts, {"density": density, "gain": gain, "rel_mse": rel, "scales": scales,
                         "est_mse": sel["est_mse"], "amount": amount, "batch": batch,

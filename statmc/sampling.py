@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_rng, check_finite, check_nonnegative
 
 __all__ = ["counts_from_density"]
 
@@ -47,7 +47,7 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
         raise InputError(f"`budget` and `min_count` must be >= 0; got {budget} and {min_count}.")
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
-    return _systematic_round(d, budget - base_total, int(min_count), np.random.default_rng(rng))
+    return _systematic_round(d, budget - base_total, int(min_count), as_rng(rng))
 
 
 def _systematic_round(d, rest, min_count, rng):

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .analytic import apply_kernels
-from .errors import InputError, as_float_array, as_int, as_number, check_finite, check_nonnegative
+from .errors import (InputError, as_float_array, as_int, as_number, as_rng, check_finite,
+                     check_nonnegative)
 from .stats import PixelStats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -290,7 +291,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
     k = as_int("k", k)
     f = _check_denoiser(denoiser)
-    gen = np.random.default_rng(rng)
+    gen = as_rng(rng)
     fx = _call(f, xx.astype(np.float32))
     calls = 1
     h = _step(eps, relative, xx, noise)
@@ -408,7 +409,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
     if method == "jvp" and not callable(getattr(f, "jvp", None)):
         raise InputError("`method`='jvp' needs a torch module or statmc.denoisers.torch_module(...) "
                          f"(a denoiser with a `jvp(color, tangent)` method); got {f!r}.")
-    gen = np.random.default_rng(rng)
+    gen = as_rng(rng)
     x32 = xx.astype(np.float32)
     acc = np.zeros_like(xx)
     acc2 = np.zeros_like(xx)

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError, as_float_array, as_int, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, as_int, as_rng, check_finite, check_nonnegative
 from .stats import PixelStats
 
 __all__ = ["ToyRenderer", "FAMILIES", "throughput_central_moments", "sample_throughput",
@@ -160,7 +160,7 @@ def sample_throughput(family, param, rng) -> np.ndarray:
     family, and for ``uniform`` with ``w > 1``.
     """
     fam, par = _family_arrays(family, param)
-    rng = np.random.default_rng(rng)
+    rng = as_rng(rng)
     return _sample_throughput(fam.ravel(), par.ravel(), rng).reshape(fam.shape)
 
 
@@ -464,7 +464,7 @@ class ToyRenderer:
         hw = self.height * self.width
         if idx.size and (idx.min() < 0 or idx.max() >= hw):
             raise InputError(f"`pixel_index` must lie in [0, {hw}); got [{idx.min()}, {idx.max()}].")
-        return self._draw(idx, np.random.default_rng(rng))
+        return self._draw(idx, as_rng(rng))
 
     def _draw(self, idx, rng):
         """Samples ``(N, C)``: the true mean plus :meth:`_draw_dev`."""
@@ -530,7 +530,7 @@ class ToyRenderer:
         """
         n = self.check_counts(counts)
         chunk = as_int("chunk_size", chunk_size)
-        rng = np.random.default_rng(seed)
+        rng = as_rng(seed, "seed")
         h, w, c = self.shape
         flat = n.ravel()
         cum_end = np.cumsum(flat)

@@ -327,3 +327,30 @@ def test_sizes_are_checked():
         PixelStats.from_pixel_samples(np.array([0]), np.ones((1, 3)), (-1, 5))
     with pytest.raises(InputError, match=r"`shape` must be \(H, W\)"):
         PixelStats.from_pixel_samples(np.array([0]), np.ones((1, 3)), (2,))
+
+
+def test_rng_arguments_refuse_what_numpy_cannot_seed():
+    """``rng=``/``seed=`` take None, a non-negative int, a SeedSequence or a Generator; a
+    string, a float or a negative seed is an InputError naming the argument, not NumPy's
+    TypeError/ValueError (errors.as_rng, used by every public function with an rng)."""
+    from statmc.errors import as_rng
+    from statmc.gem import sampling_map
+    from statmc.sampling import counts_from_density
+    from statmc.sure import mc_sure
+    from statmc.toy import ToyRenderer
+
+    g = np.random.default_rng(1)
+    assert as_rng(g) is g
+    assert as_rng(5).random() == np.random.default_rng(5).random()
+    for bad in ("x", 2.5, -1, [1.5]):
+        with pytest.raises(InputError, match="`rng` must be"):
+            as_rng(bad)
+    with pytest.raises(InputError, match="`rng` must be"):
+        counts_from_density(np.ones((4, 4)), 32, rng="x")
+    m = np.ones((8, 8, 3))
+    with pytest.raises(InputError, match="`rng` must be"):
+        sampling_map(m, 0.1 * m, np.full((8, 8), 4), 256, rng="x")
+    with pytest.raises(InputError, match="`rng` must be"):
+        mc_sure(lambda x: x, m, 0.1 * m, rng=-3)
+    with pytest.raises(InputError, match="`seed` must be"):
+        ToyRenderer("mixed", width=4, height=4).render(np.ones((4, 4), np.int64), seed="x")
