@@ -1290,7 +1290,10 @@ class _SmoothedRows:
     of every row above.
     This class runs the same sum with the same operations, row after row over successive
     bands (requests move down the image; a band may overlap the previous one), carrying
-    the running sums across bands; the columns pass is SciPy's own on each new row.
+    the running sums across bands; the columns pass is SciPy's own on each new row.  What
+    the combiners rely on is that any bands give the one-piece result to the bit (they all
+    smooth through this class); equality with another SciPy's ``uniform_filter`` is only up
+    to the rounding of the running sums.
     """
 
     def __init__(self, raw, H, radius, scale=None):
