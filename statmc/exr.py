@@ -31,6 +31,7 @@ import io
 import os
 import sys
 import tempfile
+import threading
 
 import numpy as np
 
@@ -88,6 +89,12 @@ def _flush_c_stdio() -> None:
     import ctypes
     with contextlib.suppress(Exception):
         ctypes.CDLL(None).fflush(None)
+
+
+#: One capture at a time: file descriptors 1 and 2 and ``sys.stdout``/``sys.stderr`` are
+#: process-wide, so overlapping captures from threads restored each other's redirections
+#: and left them on a deleted temporary file (all later output of the process lost).
+_CAPTURE_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -153,7 +160,7 @@ def _open(path):
         raise FileFormatError(f"{p!r} is a directory, not an EXR file.")
     _check_magic(p)
     err = None
-    with _captured_c_output() as said:
+    with _CAPTURE_LOCK, _captured_c_output() as said:
         try:
             f = OpenEXR.File(p, separate_channels=True)
             n_parts = len(f.parts)

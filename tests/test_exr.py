@@ -662,3 +662,34 @@ def test_foreign_file_is_named(tmp_path, head, what):
     with pytest.raises(FileFormatError, match="not a readable OpenEXR file") as e:
         read_exr(p)
     assert what in str(e.value)
+
+
+def test_concurrent_reads_leave_stdout_and_stderr_as_they_were(tmp_path):
+    """Regression: every read redirects file descriptors 1 and 2 and ``sys.stdout`` /
+    ``sys.stderr`` while OpenEXR runs (to catch its diagnosis of a corrupt file).  Reads
+    from several threads restored each other's redirections, so fd 1 and 2 were left
+    pointing at a deleted temporary file: everything the process printed afterwards was
+    lost (4 threads x 300 reads: 3 of 3 runs).  The capture is now one at a time."""
+    import sys
+    import threading
+
+    p = tmp_path / "a.exr"
+    write_exr(p, np.random.default_rng(0).random((8, 8, 3)))
+    before = [os.fstat(fd).st_ino for fd in (1, 2)] + [sys.stdout, sys.stderr]
+    errors = []
+
+    def work():
+        try:
+            for _ in range(150):
+                read_image(p)
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    after = [os.fstat(fd).st_ino for fd in (1, 2)] + [sys.stdout, sys.stderr]
+    assert not errors
+    assert after == before
