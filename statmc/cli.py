@@ -589,14 +589,15 @@ def _render_gem_defaults(args) -> None:
                                                     and args.denoiser in (None, "gem"))
     where = f"on --sampler {args.sampler} with --reconstruct {args.reconstruct}" + (
         f" and --denoiser {args.denoiser}" if args.denoiser else "")
+    gem_den_where = "--sampler denoising-aware or --reconstruct progressive"
     if not uses_gamma:
         _refuse_unused(args, ["gamma", "gem_bias"], f"{where} (--gamma and --gem-bias are "
                        "read by GEM only: --sampler gem or expected-error, --reconstruct gem or "
-                       "gem+bins, --denoiser gem)")
+                       f"gem+bins, --denoiser gem with {gem_den_where})")
     elif not final:
         _refuse_unused(args, ["gem_bias"], f"{where} (--gem-bias is read by GEM's final "
-                       "selection only: --reconstruct gem or gem+bins, --denoiser gem; "
-                       f"--sampler {args.sampler} reads --gamma only)")
+                       f"selection only: --reconstruct gem or gem+bins, --denoiser gem with "
+                       f"{gem_den_where}; --sampler {args.sampler} reads --gamma only)")
     args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
     args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
 

@@ -905,6 +905,11 @@ def test_options_with_effect_are_accepted(tmp_path, toy_render):
     (("--spp", "4", "--reconstruct", "gaussian", "--gamma", "0.1", "--gem-bias", "paper"),
      "--gamma and --gem-bias have no effect"),
     (("--spp", "8", "--sampler", "gem", "--gem-bias", "paper"), "--sampler gem reads --gamma only"),
+    # the reason must not list the --denoiser gem just given: only that of denoising-aware /
+    # progressive reads --gem-bias (the message said "read by ... --denoiser gem")
+    (("--spp", "8", "--sampler", "expected-error", "--denoiser", "gem", "--gem-bias", "paper"),
+     "--denoiser gem with --sampler denoising-aware or --reconstruct progressive; --sampler "
+     "expected-error reads --gamma only"),
     (("--spp", "8", "--sampler", "expected-error", "--denoiser", "gaussian", "--gamma", "0.1"),
      "--gamma has no effect on --sampler expected-error"),
     (("--spp", "8", "--sampler", "denoising-aware", "--gamma", "0.1"), "--gamma has no effect"),
