@@ -94,6 +94,20 @@ def _check_limit(name, a, limit):
         f"s and the moments by s²: rescale the input (e.g. s = {s:.0e}).")
 
 
+#: Black-box denoisers get float32 copies of the images (see ``_denoise``).
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _check_float32_range(name, a):
+    """``|a|`` within float32's range, for an image whose float32 copy goes to a denoiser
+    (larger values would reach it as Inf); ``a`` is finite (:func:`_check_limit` first)."""
+    big = max(-float(np.min(a)), float(np.max(a))) if a.size else 0.0
+    if big > _FLOAT32_MAX:
+        raise InputError(
+            f"`{name}` holds values up to {big:.3g} in magnitude; the denoiser is called on "
+            f"float32 images, which hold at most {_FLOAT32_MAX:.2g}: rescale the input.")
+
+
 def _buffers(name, a, *, multi):
     """``a`` as ``(B, H, W, C)`` (float32/float64 kept) and whether a channel axis was added."""
     arr = as_float_array(name, a, ndim=(3, 4) if multi else (2, 3))
@@ -1507,9 +1521,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     Raises
     ------
     InputError
-        Besides bad shapes and options: ``|y|`` above ``VALUE_LIMIT`` (1e140) or
-        ``mean_var`` above ``MOMENT_LIMIT`` (1e290), the limits of
-        :func:`statistical_weights`, checked before the denoiser runs.
+        Besides bad shapes and options: ``|y|`` above float32's range (3.4e38; the
+        denoiser gets float32 copies) or ``mean_var`` above ``MOMENT_LIMIT`` (1e290, a
+        limit of :func:`statistical_weights`), checked before the denoiser runs.
 
     Notes
     -----
@@ -1547,6 +1561,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     """
     yy = as_float_array("y", y, ndim=3, dtype=np.float64)
     _check_limit("y", yy, VALUE_LIMIT)                 # statistical weights: up front
+    _check_float32_range("y", yy)                      # the denoiser's float32 copies
     _check_limit("mean_var", as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64),
                  MOMENT_LIMIT)
     models = (var,) if isinstance(var, str) else tuple(var)
@@ -1666,9 +1681,9 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     Raises
     ------
     InputError
-        Besides bad shapes and options: ``|ys|`` above ``VALUE_LIMIT`` (1e140) or
-        ``mean_var`` above ``MOMENT_LIMIT`` (1e290), the limits of
-        :func:`statistical_weights`, checked before the denoiser runs.
+        Besides bad shapes and options: ``|ys|`` above float32's range (3.4e38; the
+        denoiser gets float32 copies) or ``mean_var`` above ``MOMENT_LIMIT`` (1e290, a
+        limit of :func:`statistical_weights`), checked before the denoiser runs.
 
     Notes
     -----
@@ -1697,6 +1712,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     """
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
     _check_limit("ys", yb, VALUE_LIMIT)                # statistical weights: up front
+    _check_float32_range("ys", yb)                     # the denoiser's float32 copies
     B = yb.shape[0]
     if B < 2:
         raise InputError(f"`ys` must hold B >= 2 sample bins (B, H, W, C); got B = {B}.")

@@ -721,6 +721,28 @@ def test_combination_pipelines_refuse_magnitudes_before_the_denoiser_runs():
         combine_bin_images(np.stack([y, y]), 2e150 * np.stack([y, y]))
 
 
+def test_denoiser_pipelines_refuse_images_beyond_float32_before_the_denoiser_runs():
+    """Regression: the denoiser is called on float32 copies, so ``|y|`` above float32's
+    3.4e38 (but within ``VALUE_LIMIT``) reached it as Inf, and after the denoiser's calls
+    the error blamed "`denoiser output` holds ... Inf values".  Now ``combine_denoised`` and
+    ``combine_bins`` name the input and float32's range up front; at 3e38 they run."""
+    from statmc.combine import combine_bins
+
+    def denoiser(c):
+        raise AssertionError("the denoiser ran")
+
+    mv = np.ones((6, 7, 3))
+    y = mv.copy()
+    y[2, 3, 1] = -1.0
+    with pytest.raises(InputError, match=r"`y` holds values up to 2e\+50 .*float32.* 3\.4e\+38"):
+        combine_denoised(-2e50 * y, mv, denoiser)
+    with pytest.raises(InputError, match=r"`ys` holds values up to 2e\+50 .*float32"):
+        combine_bins(np.stack([y, 2e50 * y]), mv, denoiser)
+    halve = lambda c: 0.5 * np.asarray(c)  # noqa: E731
+    assert np.isfinite(combine_denoised(3e38 * y, mv, halve, rng=0)).all()
+    assert np.isfinite(combine_bins(np.stack([y, 3e38 * y]), mv, halve, rng=0)).all()
+
+
 @pytest.mark.parametrize("method", ["coherent", "diagonal"])
 @pytest.mark.parametrize("B", [1, 2])
 def test_weight_fallback_is_the_centre_tap_in_both_paths(method, B):
