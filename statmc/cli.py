@@ -968,7 +968,8 @@ def main(argv=None) -> int:
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     previous = _on_sigterm(_terminate)
     try:
-        with warnings.catch_warnings():
+        from .exr import capturing_openexr_output
+        with warnings.catch_warnings(), capturing_openexr_output():  # one-line errors
             if not args.debug:  # one line per warning, without the source file and line
                 warnings.showwarning = functools.partial(_show_warning, args.command)
             return int(args.func(args) or 0)

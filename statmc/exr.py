@@ -40,7 +40,8 @@ from .stats import PixelStats
 
 __all__ = ["read_exr", "read_image", "read_channels", "exr_info", "write_exr",
            "write_png_preview", "to_display", "SAMPLE_COUNT", "spatial_covariance_channels",
-           "read_spatial_covariance", "SPATIAL_COVARIANCE", "bin_channels", "read_bins", "BIN"]
+           "read_spatial_covariance", "SPATIAL_COVARIANCE", "bin_channels", "read_bins", "BIN",
+           "capturing_openexr_output"]
 
 SAMPLE_COUNT = "SampleCount"
 _RGB = ("R", "G", "B")
@@ -95,6 +96,24 @@ def _flush_c_stdio() -> None:
 #: process-wide, so overlapping captures from threads restored each other's redirections
 #: and left them on a deleted temporary file (all later output of the process lost).
 _CAPTURE_LOCK = threading.Lock()
+#: Whether reads capture OpenEXR's console output (:func:`capturing_openexr_output`).
+_capture = False
+
+
+@contextlib.contextmanager
+def capturing_openexr_output():
+    """Within this block, reads capture what OpenEXR prints about a corrupt file (a warning
+    on ``sys.stdout``, errors on file descriptor 2) and put its diagnosis in the
+    :class:`FileFormatError` instead.  The capture redirects the process's stdout and
+    stderr while OpenEXR runs, so only the command line, a single-threaded program that
+    prints nothing meanwhile, turns it on; library reads leave them alone (OpenEXR's lines
+    then reach the console and the error says the file is corrupt)."""
+    global _capture
+    before, _capture = _capture, True
+    try:
+        yield
+    finally:
+        _capture = before
 
 
 @contextlib.contextmanager
@@ -160,7 +179,9 @@ def _open(path):
         raise FileFormatError(f"{p!r} is a directory, not an EXR file.")
     _check_magic(p)
     err = None
-    with _CAPTURE_LOCK, _captured_c_output() as said:
+    capture = _capture
+    with (_CAPTURE_LOCK if capture else contextlib.nullcontext()), \
+            (_captured_c_output() if capture else contextlib.nullcontext([])) as said:
         try:
             f = OpenEXR.File(p, separate_channels=True)
             n_parts = len(f.parts)
@@ -169,8 +190,12 @@ def _open(path):
         except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
             err = e
     # OpenEXR reports a corrupt chunk on stdout and stderr (three lines) and then drops the
-    # part, so the exception only says "file has 0 parts": give its own diagnosis instead.
+    # part, so the exception only says "file has 0 parts": give its own diagnosis instead
+    # (when captured), or say what "0 parts" means.
     diag = _openexr_diagnosis(p, said[0] if said else "")
+    if err is not None and not diag and "0 parts" in str(err):
+        diag = ("OpenEXR could not decode its image part (a corrupt or truncated chunk; "
+                "OpenEXR printed its diagnosis above)")
     if err is not None or diag:
         raise FileFormatError(f"{p!r} is not a readable OpenEXR file (corrupt, truncated or "
                               f"another format): {diag or err}") from None

@@ -1072,3 +1072,20 @@ def test_denoise_refuses_a_file_without_samples(tmp_path, denoiser):
                            "--out", tmp_path / "den.exr")
     assert code == 2 and "no samples" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "den.exr").exists() and not (tmp_path / "den.png").exists()
+
+
+def test_corrupt_exr_is_one_line_with_openexrs_diagnosis(tmp_path):
+    """The command line captures OpenEXR's console lines about a damaged chunk: `info` prints
+    one error line carrying OpenEXR's diagnosis (EXR_ERR_...) and nothing on stdout."""
+    from statmc.exr import write_exr
+    y, x = np.mgrid[0:256, 0:64]
+    good = tmp_path / "good.exr"
+    write_exr(good, np.repeat((np.sin(x / 7.0) * np.cos(y / 9.0))[..., None], 3, axis=2))
+    d = bytearray(good.read_bytes())
+    d[len(d) // 2:len(d) // 2 + 16] = b"\x55" * 16
+    (tmp_path / "bad.exr").write_bytes(bytes(d))
+    exe = os.path.join(os.path.dirname(sys.executable), "statmc")
+    r = subprocess.run([exe, "info", str(tmp_path / "bad.exr")], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stdout == "", r
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "EXR_ERR" in lines[0] and "bad.exr" in lines[0], r.stderr

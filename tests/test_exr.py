@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 import statmc.exr as exr
 from statmc.errors import FileFormatError, InputError
-from statmc.exr import (exr_info, read_channels, read_exr, read_image, to_display, write_exr,
-                        write_png_preview)
+from statmc.exr import (capturing_openexr_output, exr_info, read_channels, read_exr, read_image,
+                        to_display, write_exr, write_png_preview)
 from statmc.stats import PixelStats
 
 # Channels of pbrt-v4's GBufferFilm::GetImage (src/pbrt/film.cpp), in its order.
@@ -625,8 +625,10 @@ def test_read_bins_refuses_a_bin_gap_without_listing_every_missing_channel(tmp_p
 
 def test_corrupt_chunk_is_one_error_without_openexr_chatter(tmp_path, capfd):
     """A damaged chunk made OpenEXR print two lines on stderr and a warning on stdout (after
-    the command's JSON), and the error said only "file has 0 parts"; now the error carries
-    OpenEXR's diagnosis and nothing else reaches the terminal."""
+    the command's JSON), and the error said only "file has 0 parts"; now, within
+    ``capturing_openexr_output`` (the command line), the error carries OpenEXR's diagnosis
+    and nothing else reaches the terminal; outside it (library reads, which leave the
+    process's stdout/stderr alone) the error says what "0 parts" meant."""
     y, x = np.mgrid[0:256, 0:64]
     img = np.repeat((np.sin(x / 7.0) * np.cos(y / 9.0))[..., None], 3, axis=2)
     good = tmp_path / "good.exr"
@@ -639,11 +641,16 @@ def test_corrupt_chunk_is_one_error_without_openexr_chatter(tmp_path, capfd):
         bad.write_bytes(bytes(d))
         capfd.readouterr()
         for fn in (read_exr, read_image, exr_info, read_channels):
-            with pytest.raises(FileFormatError, match=r"not a readable OpenEXR file.*EXR_ERR") as e:
-                fn(bad)
+            with capturing_openexr_output():
+                with pytest.raises(FileFormatError, match=r"not a readable OpenEXR.*EXR_ERR") as e:
+                    fn(bad)
             assert "0 parts" not in str(e.value) and str(bad) in str(e.value)
         out, err = capfd.readouterr()
         assert out == "" and err == ""
+        with pytest.raises(FileFormatError, match="could not decode its image part") as e:
+            read_image(bad)
+        assert "0 parts" not in str(e.value)
+        assert "EXR_ERR" in capfd.readouterr().err        # OpenEXR's own lines, not captured
     assert read_image(good).shape == (256, 64, 3)      # descriptors restored: reads still work
     print("still printing")
     assert capfd.readouterr().out == "still printing\n"
@@ -686,10 +693,11 @@ def test_concurrent_reads_leave_stdout_and_stderr_as_they_were(tmp_path):
             errors.append(e)
 
     threads = [threading.Thread(target=work) for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    with capturing_openexr_output():
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
     after = [os.fstat(fd).st_ino for fd in (1, 2)] + [sys.stdout, sys.stderr]
     assert not errors
     assert after == before
