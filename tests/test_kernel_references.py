@@ -2,12 +2,12 @@
 and on the inputs the other comparisons leave out: single-pixel, single-row and
 single-column images (every tap a border tap), zero-variance pixels.
 
-The audit behind this file (each numba kernel of ``statmc/`` and the test that compares
-it with NumPy) is in the session-7 report; in short, the kernels with no comparison
-before were ``_filter_kernels.scan_inputs``, ``relative_gain`` (formula checked only
-through ``sampling_map`` on one float64 image) and ``_combine_kernels._solve_small``
-(checked only through the weights).  (A fourth, ``split_by_scale``, had no caller and was
-removed.)
+An audit of every numba kernel of ``statmc/`` found these with no NumPy comparison:
+``_filter_kernels.scan_inputs``, ``relative_gain`` (formula checked only through
+``sampling_map`` on one float64 image) and ``_combine_kernels._solve_small`` (checked
+only through the weights); the others are compared in the test file of their module
+(``test_analytic`` and ``test_progressive`` take the degenerate shapes in their own
+parametrisations).
 
 Tolerances: an exact comparison where both sides do the same float operations in the same
 order; otherwise a bound from the arithmetic, given at each assertion.
@@ -282,42 +282,6 @@ def test_combine_kernel_on_degenerate_images(hw, k):
                                rtol=1e-12, atol=1e-12)
 
 
-# --------------------------------------------------------------------------- _analytic_kernels
-@pytest.mark.parametrize("shape", [(1, 8, 3, 3), (8, 1, 2, 5), (1, 1, 3, 3)])
-def test_analytic_kernels_on_degenerate_images(shape):
-    """``evaluate_numba`` (``_moments_planar``, ``_bias_var_group``, ``_adjoint_weights``,
-    ``_adjoint_group``), ``column_weights_numba`` and ``apply_numba`` against their NumPy
-    references on single-row/column/pixel images with zero variances and zero sample
-    counts (``test_analytic`` has one 1x1 case).  Tolerances those of ``test_analytic``:
-    rtol 1e-12 (float64 sums of at most k² terms in another order), the gradient's atol
-    1e-14 of its largest entry."""
-    from statmc import _analytic_kernels as ak
-
-    h, w, c, k = shape
-    rng = np.random.default_rng(sum(shape) + 100)
-    kern = rng.normal(size=(h, w, k, k))
-    x_t, x_g, var_g = rng.random((3, h, w, c))
-    var_g[rng.random((h, w)) < 0.4] = 0.0
-    s_bar = rng.integers(0, 9, (h, w)).astype(float)
-    s = rng.uniform(0, 9, (h, w))
-    s.flat[0] = s_bar.flat[0] = 0.0
-    for mvt in (None, rng.random((h, w, c))):
-        for rel in (False, True):
-            fast = ak.evaluate_numba(kern, x_t, s_bar, s, x_g, var_g, mvt, rel, 0.01, True)
-            ref = ak.evaluate_numpy(kern, x_t, s_bar, s, x_g, var_g, mvt, rel, 0.01, True)
-            assert fast[0] == pytest.approx(ref[0], rel=1e-12)
-            for a, b in zip(fast[1:], ref[1:]):
-                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
-    fq, wv = rng.random((2, h, w, c))
-    np.testing.assert_allclose(ak.column_weights_numba(kern, wv, fq),
-                               ak.column_weights_numpy(kern, wv, fq), rtol=1e-12)
-    stack = rng.random((2, h, w, c))
-    o1, o2 = np.empty(stack.shape), np.empty(stack.shape)
-    ak.apply_numba(kern, stack, o1)
-    ak.apply_numpy(kern, stack, o2)
-    np.testing.assert_allclose(o1, o2, rtol=1e-12, atol=1e-14)
-
-
 # --------------------------------------------------------------------------- _stencil_kernels
 @pytest.mark.parametrize("hw", [(1, 6), (6, 1), (1, 1)])
 @pytest.mark.parametrize("R", [0, 2])
@@ -338,35 +302,6 @@ def test_neighbour_products_on_single_rows_and_columns(hw, R):
 
 
 # --------------------------------------------------------------------------- _progressive_kernels
-@pytest.mark.parametrize("shape", [(1, 1, 1), (1, 9, 3), (9, 1, 2)])
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_gate_kernels_on_degenerate_images(shape, dtype):
-    """The confidence gate (``_gate_bands``, Eq. 12-18 of Firmino et al. 2022) against
-    ``gate_sums_numpy``/``gate_numpy`` on single-pixel/row/column images with zero
-    variances (the existing comparison has no single row).  Tolerances those of
-    ``test_progressive``: 1e-12 in float64, 2e-5 in float32 work (10x for the gate's
-    outputs, which pass through a normal CDF)."""
-    rng = np.random.default_rng(sum(shape))
-    u = rng.standard_normal(shape).astype(dtype)
-    v = rng.random(shape).astype(dtype)
-    v[rng.random(shape) < 0.4] = 0.0
-    alpha = rng.random(shape).astype(dtype)
-    tol = 1e-12 if dtype == np.float64 else 2e-5
-    r, sigma_s = 3, 1.3
-    n1, v1 = pk.gate_sums(u, v, r, sigma_s)
-    n2, v2 = pk.gate_sums_numpy(u, v, r, sigma_s)
-    np.testing.assert_allclose(n1, n2, rtol=tol, atol=tol)
-    np.testing.assert_allclose(v1, v2, rtol=tol, atol=tol)
-    for shared in (True, False):
-        for logistic in (True, False):
-            out1 = pk.gate(u, v, alpha, r, sigma_s, shared=shared, a=2.0, c=0.7, eps=1e-6,
-                           logistic=logistic)
-            out2 = pk.gate_numpy(u, v, alpha, r, sigma_s, shared=shared, a=2.0, c=0.7,
-                                 eps=1e-6, logistic=logistic)
-            for p, q in zip(out1, out2):
-                np.testing.assert_allclose(p, q, rtol=10 * tol, atol=10 * tol)
-
-
 @pytest.mark.parametrize("shape", [(1, 1, 1), (1, 9, 3), (9, 1, 2)])
 def test_prepare_kernel_on_degenerate_images(shape):
     """``_prepare`` (``u = α (y − x)``, the variances, the bad-input counts) against NumPy
