@@ -1456,6 +1456,34 @@ def _mix_gain(y, z, beta, mean_var, w, V, JV):
     return (y - z) * (beta - z) - a_c * mean_var + cross
 
 
+def _pooled_mix(z, betas, nums, rel, mix, sigma):
+    """Step 4 of :func:`combine_denoised` (and the mix of :func:`combine_bins`): ``out =
+    z + Σ_j λ_j ρ_j``, ``ρ_j = β̂_j − z``, with ``λ`` minimising the pooled SURE estimate
+    ``λᵀ G λ − 2 bᵀ λ`` on the simplex (:func:`_simplex_mix`; Eq. 1 and the optimal α of
+    Eq. 9 of Firmino et al. 2022).
+
+    ``betas`` ``(J, H, W, C)``; ``nums`` ``(H, W, J)`` the relMSE-weighted channel sums of
+    the per-pixel estimates of ``b_j = −E[(z − μ) ρ_j]`` (:func:`_mix_gain`); ``rel``
+    ``(H, W, C)`` the relMSE weights ``1 / (z² + 0.01)``, which also weight
+    ``G_ij = Σ_c rel ρ_i ρ_j``.  ``mix="global"`` pools over the image (``λ`` ``(J,)``),
+    ``"local"`` with a Gaussian of σ = ``sigma`` pixels (``λ`` ``(H, W, J)``).
+    """
+    rho = np.stack([b - z for b in betas], axis=-1)                   # (H, W, C, J)
+    G = np.einsum("hwci,hwcj,hwc->hwij", rho, rho, rel)
+    b = nums
+    if mix == "global":
+        lam = _simplex_mix(G.sum(axis=(0, 1)), b.sum(axis=(0, 1)))
+        out = z + np.einsum("hwcj,j->hwc", rho, lam)
+    else:
+        from scipy.ndimage import gaussian_filter
+
+        Gs = gaussian_filter(G, (sigma, sigma, 0, 0), mode="reflect")
+        bs = gaussian_filter(b, (sigma, sigma, 0), mode="reflect")
+        lam = _simplex_mix(Gs, bs)
+        out = z + np.einsum("hwcj,hwj->hwc", rho, lam)
+    return out, lam
+
+
 def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT_PROBES,
                      stencil=DEFAULT_STENCIL, smooth=DEFAULT_MOMENT_SMOOTH, patch=2,
                      var=("smooth", "max"), mix="local", mix_sigma=DEFAULT_MIX_SIGMA, rng=None,
@@ -1613,27 +1641,16 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     if mix is None:
         out = betas[0]
     else:
-        rho = np.stack([b - z for b in betas], axis=-1)                   # (H, W, C, J)
-        G = np.einsum("hwci,hwcj,hwc->hwij", rho, rho, rel)
-        b = nums
-        if mix == "global":
-            lam = _simplex_mix(G.sum(axis=(0, 1)), b.sum(axis=(0, 1)))
-            out = z + np.einsum("hwcj,j->hwc", rho, lam)
-        else:
-            from scipy.ndimage import gaussian_filter
-
-            Gs = gaussian_filter(G, (ms, ms, 0, 0), mode="reflect")
-            bs = gaussian_filter(b, (ms, ms, 0), mode="reflect")
-            lam = _simplex_mix(Gs, bs)
-            out = z + np.einsum("hwcj,hwj->hwc", rho, lam)
+        out, lam = _pooled_mix(z, betas, nums, rel, mix, ms)
     if extra_output:
         return out, {"denoised": z, "combined": betas, "mix": lam}
     return out
 
 
 def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
-                 probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, rng=None,
-                 extra_output=False, return_denoised=False):
+                 probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, mix="local",
+                 mix_sigma=DEFAULT_MIX_SIGMA, rng=None, extra_output=False,
+                 return_denoised=False):
     """Multi-buffer combination (Eq. 14 of Back et al. 2020 [1]_) of ``B`` sample bins
     and their per-bin denoised images, with classical statistical weights.
 
@@ -1653,7 +1670,15 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     2. **Weights** :func:`statistical_weights` (``"coherent"``, per bin, tap biases
        estimated from the bins' ``δ``) with ``var(y_b) = B ·`` ``mean_var`` box-smoothed
        over 5x5 (zero-variance pixels next to lights otherwise take all the weight).
-    3. **Output** Eq. 14, :func:`combine_multi`.
+    3. **Output** Eq. 14, :func:`combine_multi`: ``β̂``.
+    4. **Mix** (``mix="local"`` or ``"global"``) with ``z = f(ȳ)``, the denoiser's output
+       on the merged render (the base point of the probes, so no extra call):
+       ``out = z + λ (β̂ − z)``, ``0 ≤ λ ≤ 1`` minimising a SURE estimate of the relMSE
+       (Eq. 1 and the optimal α of Eq. 9 of Firmino et al. 2022 [2]_), pooled as in
+       :func:`combine_denoised` (relMSE weights, a Gaussian of σ = ``mix_sigma`` pixels
+       or the whole image).  The weights then leave the centre out
+       (``leave_centre_out=True`` of :func:`statistical_weights`), as Stein's lemma
+       needs; see Notes.  ``mix=None`` returns ``β̂`` of the ordinary weights.
 
     Parameters
     ----------
@@ -1666,9 +1691,19 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         Applied to each bin; a :class:`statmc.gem.SelectedFilter` shares GEM's kernel.
     size, stencil, probes, smooth, patch, rng
         As in :func:`combine_denoised`.
+    mix : {"local", "global", None}
+        The SURE mix with ``f(ȳ)`` (step 4), pooled over a Gaussian of σ = ``mix_sigma``
+        pixels (the default: on the four built-in scenes at 16 and 64 spp it gave
+        0.97–1.00x GEM and 0.84–1.00x OIDN, where Eq. 14 alone gave 0.98–5.5x and
+        0.94–6.2x, ``docs/combine.md``) or the whole image (never better than
+        ``"local"`` there); ``None``: Eq. 14 alone.
+    mix_sigma : float
     extra_output : bool
         Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
-        weights of the whole image at once, whatever their size).
+        weights of the whole image at once, whatever their size); with a mix also
+        ``"full_denoised"`` (``z = f(ȳ)``), ``"combined"`` (``β̂``), ``"mix"`` (``λ``,
+        ``(H, W, 1)``, or ``(1,)`` for ``"global"``) and ``"gain"`` (the per-pixel
+        estimate of ``b = −E[(z − μ)(β̂ − z)]``, ``(H, W, C)``).
     return_denoised : bool
         Also return the denoised bins ``(B, H, W, C)``, as ``(out, z_b)``, keeping the
         weights in bands (``extra_output`` forms the weights of the whole image: about
@@ -1697,7 +1732,10 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     sums down from the band above, so the output is the one-piece output to the bit
     (tested).  Only the ``K + 1`` denoiser calls (and each bin's) see the whole image.
     Peak memory at 1920x1080 (``B = 4``, defaults, GEM's kernel): the inputs plus 1.9 GiB
-    (4.9 GiB before the stencils were banded; ``bench/bench_combine.py --part memory``).
+    (4.9 GiB before the stencils were banded; ``bench/bench_combine.py --part memory``;
+    measured without the mix).  The mix adds the bin-summed weights of a band (counted in
+    the band's size) and a few ``(H, W, C)`` float64 images (``z``, ``β̂``, the SURE
+    terms; 50 MB each at 1080p); it too equals the one-piece result to the bit (tested).
 
     With these moment-based weights every bin gets the same moments, so the weights
     differ between bins only through the tap biases; with a shared *linear* kernel and
@@ -1707,9 +1745,59 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     1.23–1.51x GEM on the Cornell box (a bin that drew few bright samples has a low mean
     *and* a low variance, so inverse-variance weighting is biased low), though it held
     off a firefly render on glass-caustic (``bench/analysis_bins_combine.py``), so it is
-    not offered.  There is no SURE mix with ``z`` here (as there is in
-    :func:`combine_denoised`): ``β̂`` is returned as it is.
+    not offered.
+
+    *The mix* (step 4).  Eq. 14's weights sum to one, so ``β̂`` always adds an average of
+    residuals and cannot return ``z``; where the denoiser alone is better (fireflies,
+    low spp) only a mix can.  It falls back to ``z = f(ȳ)``, not to the mean of the
+    per-bin ``z_b``: that is the denoiser's own result on the same samples, the image
+    the mix must not lose to (for the shared linear kernel the two are equal, ``Kȳ``;
+    OIDN on one ``1/B``-spp bin is worse than on the merged render), and the probes'
+    first-order moments are taken there.  With ``ρ = β̂ − z`` the expected squared
+    error, less that of ``z``, is ``λ² E[ρ²] − 2λ b`` with ``b = −E[(z − μ) ρ]``.
+    Write ``β̂_c = Σ_b Σ_t a_{t,b} (y_{t,b} + z_{c,b} − z_{t,b})`` (``Σ a = 1``) and
+    ``ā_t = Σ_b a_{t,b}``.  The bins are independent with ``Var(y_{c,b}) = B σ_c²``
+    (``σ² = mean_var``), so Stein's lemma over the bins gives
+    ``E[(ȳ_c − μ_c) ρ_c] = Σ_b (1/B)(B σ_c²) E[∂ρ_c/∂y_{c,b}]``, and for weights that do
+    not depend on ``y_c`` and ``z_b = K y_b``, ``Σ_b ∂ρ_c/∂y_{c,b} = ā_c − Σ_t ā_t K_tc``.
+    Hence ``b = E[(ȳ_c − z_c) ρ_c − ā_c σ_c² + Σ_t ā_t cov(ȳ_c, z_t)]``, the estimate of
+    :func:`combine_denoised` at ``(ȳ, f(ȳ))`` with the bin-summed weights ``ā``
+    (:func:`_mix_gain`), ``cov(ȳ_c, z_t) = E[v_c (J v)_t]`` from the probes at ``ȳ``.
+    Assumptions: (i) the weights of pixel ``c`` do not depend on ``y_c`` — hence the
+    leave-centre-out tap biases; they still see ``y_c`` through ``z_c`` and the 5x5
+    variance, which the estimate ignores, as does :func:`combine_denoised`; (ii) a
+    kernel fixed given the data — for GEM's kernel its selection on ``ȳ`` is ignored;
+    then ``ρ`` is linear in each ``y_{c,b}`` and the estimate is unbiased for any pixel
+    noise, not only Gaussian (tested against the true error over bin draws); (iii) for
+    OIDN run per bin, first order: every ``f(y_b)`` linearised with the Jacobian ``J``
+    at ``ȳ`` (the ``1/B``-spp bins see a different, smoother OIDN; the mean ``z̄`` of
+    the ``z_b`` enters ``ρ`` as observed, only its derivative is approximated).
+    ``E[ρ²]`` is estimated by ``ρ²``.  Measured (``bench/analysis_bins_combine.py``,
+    ``docs/combine.md``): see there.
+
+    References
+    ----------
+    .. [1] J. Back, B.-S. Hua, T. Hachisuka, B. Moon. "Deep Combiner for Independent and
+       Correlated Pixel Estimates". ACM TOG 39(6), 242, 2020.
+       https://doi.org/10.1145/3414685.3417847
+    .. [2] A. Firmino, J. R. Frisvad, H. W. Jensen. "Progressive Denoising of Monte Carlo
+       Rendered Images". Computer Graphics Forum 41(2), 2022.
+       https://doi.org/10.1111/cgf.14454
     """
+    out, info = _combine_bins(ys, mean_var, denoiser, size=size, stencil=stencil,
+                              probes=probes, smooth=smooth, patch=patch, mix=mix,
+                              mix_sigma=mix_sigma, rng=rng, whole=extra_output)
+    if extra_output:
+        return out, info
+    if return_denoised:
+        return out, info["denoised"]
+    return out
+
+
+def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patch, mix,
+                  mix_sigma, rng, whole):
+    """:func:`combine_bins`; returns ``(out, info)``, ``info`` as its ``extra_output``
+    (``"weights"`` only with ``whole``, else None: the weights stay in bands)."""
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
     _check_limit("ys", yb, VALUE_LIMIT)                # statistical weights: up front
     _check_float32_range("ys", yb)                     # the denoiser's float32 copies
@@ -1724,19 +1812,41 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
+    if mix not in ("local", "global", None):
+        raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
     k = _check_window_options(size, stencil, smooth, patch)
+    ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
-    pr = _probe_vectors(denoiser, yb.mean(axis=0), mv, probes, rng, 1e-3)
+    ybar = yb.mean(axis=0)
+    pr = _probe_vectors(denoiser, ybar, mv, probes, rng, 1e-3)
     m = int(stencil)
-    moments = _SmoothedRows(lambda r0, r1: pr.stencils(m, r0, r1), yb.shape[1], smooth,
-                            scale=B)
+    H, W, C = ybar.shape
+    moments = _SmoothedRows(lambda r0, r1: pr.stencils(m, r0, r1), H, smooth, scale=B)
     var_y = B * np.maximum(_box(mv, 2), 0.0)
-    out, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=extra_output)
-    if extra_output:
+    if mix is None:
+        out, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole)
         return out, {"denoised": zs, "weights": w}
-    if return_denoised:
-        return out, zs
-    return out
+    # The mix: z = f(ȳ) (pr.z, the probes' base point), ρ = β̂ − z, and the Stein estimate
+    # of b = −E[(z − μ) ρ] per pixel (_mix_gain at ȳ with the bin-summed normalised weights
+    # ā_t = Σ_b w_{t,b} / W_c; see Notes), in the bands of the weights.
+    z = pr.z
+    rel = 1.0 / (z * z + 0.01)
+    nums = np.empty((H, W, 1))
+    gains = np.empty((H, W, C))
+
+    def band(a, b, lo, hi, w, beta):
+        wsum = w.sum(axis=2, keepdims=True)          # (rows, W, 1, k, k), float32
+        V = np.stack([pr.v(i, lo, hi) for i in range(pr.K)])
+        gain = _mix_gain(ybar[lo:hi], z[lo:hi], beta, mv[lo:hi], wsum, V, pr.jv[:, lo:hi])
+        nums[a:b, :, 0] = (gain * rel[lo:hi]).sum(axis=-1)[a - lo:b - lo]
+        gains[a:b] = gain[a - lo:b - lo]
+
+    beta, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole, loo=True,
+                           band=band, extra_row_bytes=W * k * k * 4)
+    del moments
+    out, lam = _pooled_mix(z, beta[None], nums, rel, mix, ms)
+    return out, {"denoised": zs, "weights": w, "full_denoised": z, "combined": beta,
+                 "mix": lam, "gain": gains}
 
 
 def _check_window_options(size, stencil, smooth, patch):
@@ -1753,16 +1863,20 @@ def _check_window_options(size, stencil, smooth, patch):
     return k
 
 
-def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False):
+def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False, loo=False, band=None,
+                 extra_row_bytes=0):
     """Statistical weights and Eq. 14 in bands of rows (:func:`_band_rows`: weights and
     ``m``-wide stencils within :data:`BAND_BYTES`), each with the ``k // 2 + patch`` rows
     of margin a pixel's weights and its Eq. 14 read; ``moments`` (:class:`_SmoothedRows`)
     gives each band's smoothed ``cov_z``, ``cov_yz`` (``whole``: one band; returns its
-    weights too)."""
+    weights too).  ``loo``: weights leaving the centre out (:func:`statistical_weights`).
+    ``band(a, b, lo, hi, w, beta)``, if given, sees each band's weights and Eq. 14 on
+    rows ``lo .. hi − 1`` (its output rows ``a .. b − 1``), e.g. for the SURE terms of
+    the mix; ``extra_row_bytes`` is what it holds per row, counted in the band size."""
     B, H, W, C = ys.shape
     margin = _band_margin(k, patch)
-    rows = H if whole else _band_rows(H, W * B * k * k * 4 + _stencil_row_bytes(W, m, C),
-                                      margin)
+    rows = H if whole else _band_rows(H, W * B * k * k * 4 + _stencil_row_bytes(W, m, C)
+                                      + extra_row_bytes, margin)
     out = np.empty(ys.shape[1:])
     w = None
     for a in range(0, H, rows):
@@ -1771,10 +1885,14 @@ def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False):
         w = None                           # free the previous band's weights first
         cov_z, cov_yz = moments.rows(lo, hi)
         w = _statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z, k,
-                                 cov_yz=cov_yz, patch=patch,
+                                 cov_yz=cov_yz, patch=patch, leave_centre_out=loo,
                                  rows=None if whole else (a - lo, b - lo))
         del cov_z, cov_yz
-        out[a:b] = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)[a - lo:b - lo]
+        beta = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)
+        out[a:b] = beta[a - lo:b - lo]
+        if band is not None:
+            band(a, b, lo, hi, w, beta)
+        del beta
     return out, (w if whole else None)
 
 

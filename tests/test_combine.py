@@ -1089,7 +1089,7 @@ def test_combine_bins_with_a_shared_linear_kernel_is_eq8_on_the_bin_means():
     from statmc.combine import combine_bins
     bins, full, f = _bins_and_kernel()
     ys = np.stack([b.mean for b in bins])
-    out, info = combine_bins(ys, full.mean_var, f, size=7, rng=0, extra_output=True)
+    out, info = combine_bins(ys, full.mean_var, f, size=7, rng=0, mix=None, extra_output=True)
     w = info["weights"]
     for b in range(1, len(bins)):
         np.testing.assert_array_equal(w[:, :, b], w[:, :, 0])
@@ -1229,7 +1229,7 @@ def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
     import statmc.combine as cbm
     bins, full, f = _bins_and_kernel(seed=3)
     ys = np.stack([b.mean for b in bins])
-    whole, info = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
+    whole, info = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1, mix=None,
                                    extra_output=True)
     B, H, W, _ = ys.shape
     _, cz, cyz = denoiser_moments(f, ys.mean(axis=0), full.mean_var, size=5, rng=1)
@@ -1240,11 +1240,11 @@ def test_combine_bins_in_bands_of_rows_equals_one_piece(monkeypatch):
     np.testing.assert_array_equal(whole, combine_multi(ys, info["denoised"], w))
     for rows in (1, 10, 13):
         monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(rows, W, B, 7, 5))
-        banded = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
+        banded = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1, mix=None)
         np.testing.assert_array_equal(banded, whole)
     monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
-    assert not np.array_equal(cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1),
-                              whole)
+    assert not np.array_equal(cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1,
+                                               mix=None), whole)
 
 
 def test_combine_bins_return_denoised_keeps_the_bands(monkeypatch):
@@ -1486,3 +1486,133 @@ def test_combine_denoised_in_bands_of_rows_equals_one_piece(monkeypatch, H, W, C
         monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
         short = cbm.combine_denoised(y, mv, f, mix=None, **kw)[0]
         assert not np.array_equal(short, whole[None][0])
+
+
+# ----------------------------------------------------- combine_bins' SURE mix with f(ȳ)
+def _gauss_blur(sigma):
+    """A linear denoiser (shared by the bins when applied to each), fast on small images."""
+    from scipy.ndimage import gaussian_filter
+    return lambda x: gaussian_filter(x, (sigma, sigma, 0), mode="nearest")
+
+
+def _draw_bins(r, spp, B, seed):
+    from statmc.pipeline import merge_bins
+    bins = [r.render_uniform(spp // B, seed=(seed, b), features=False) for b in range(B)]
+    full = merge_bins(bins)
+    return np.stack([b.mean for b in bins]), full
+
+
+def test_combine_bins_mix_falls_back_to_an_exact_denoiser():
+    """A 'denoiser' returning the noise-free truth: z = f(ȳ) is exact, so any ρ = β̂ − z
+    only adds error and b = −E[(z − μ) ρ] = 0.  The mix must go to z: small λ and an
+    output far closer to the truth than β̂ (without the mix, or with SURE terms that
+    overrate β̂, the output would be β̂)."""
+    from statmc.combine import combine_bins
+    from statmc.metrics import relmse
+    r = ToyRenderer("edges", width=24, height=24)
+    mu = r.true_mean()
+    for i in range(3):
+        ys, full = _draw_bins(r, 16, 4, (30, i))
+        for mix in ("local", "global"):
+            out, info = combine_bins(ys, full.mean_var, lambda x: mu.astype(np.float32),
+                                     size=7, mix=mix, rng=i, extra_output=True)
+            np.testing.assert_array_equal(info["full_denoised"], mu.astype(np.float32))
+            assert info["mix"].max() < 0.25, (mix, info["mix"].max())
+            assert relmse(out, mu) < 0.05 * relmse(info["combined"], mu)
+
+
+def test_combine_bins_mix_keeps_a_combination_that_is_clearly_better():
+    """A σ = 3 blur of toy 'edges' at 64 spp: z is far off at the edges, Eq. 14 on the
+    bins corrects it (relMSE ~ 60x lower).  The mix must keep β̂ (λ near 1): its output
+    within 10 % of β̂ and far below z, and no worse than without the mix by more than
+    that."""
+    from statmc.combine import combine_bins
+    from statmc.metrics import relmse
+    r = ToyRenderer("edges", width=32, height=32)
+    mu = r.true_mean()
+    f = _gauss_blur(3.0)
+    for i in range(3):
+        ys, full = _draw_bins(r, 64, 4, (31, i))
+        out, info = combine_bins(ys, full.mean_var, f, size=7, mix="local", rng=i,
+                                 extra_output=True)
+        plain = combine_bins(ys, full.mean_var, f, size=7, rng=i)
+        assert info["mix"].min() > 0.9
+        e, eb, ez = relmse(out, mu), relmse(info["combined"], mu), relmse(info["full_denoised"], mu)
+        assert e < 1.1 * eb and e < 1.1 * relmse(plain, mu) and e < 0.05 * ez, (e, eb, ez)
+
+
+def test_combine_bins_mix_sure_term_matches_the_true_error_over_bin_draws():
+    """The Stein estimate of b = −E[(z − μ) ρ] (ρ = β̂ − z, z = f(ȳ)) that the mix uses:
+    over 80 independent draws of B = 4 bins (toy 'edges', 16 spp, a linear blur applied to
+    each bin and to ȳ), the image sum of (estimate − truth) has mean zero (t-test); the
+    naive (ȳ − z) ρ, and the Stein correction with the per-bin variance B σ² in place of
+    the full-sample σ² (Stein over the bins: Σ_b (B σ²) E[∂ρ/∂y_b] with ∂ȳ/∂y_b = 1/B),
+    are rejected."""
+    from statmc.combine import combine_bins
+    r = ToyRenderer("edges", width=16, height=16)
+    mu = r.true_mean()
+    f = _gauss_blur(1.5)
+    B, d, naive, per_bin = 4, [], [], []
+    for i in range(80):
+        ys, full = _draw_bins(r, 16, B, (32, i))
+        _, info = combine_bins(ys, full.mean_var, f, size=7, probes=4, mix="local", rng=i,
+                               extra_output=True)
+        z = info["full_denoised"]
+        rho = info["combined"] - z
+        truth = -(z - mu) * rho
+        rr = (full.mean - z) * rho
+        d.append((info["gain"] - truth).sum())
+        naive.append((rr - truth).sum())
+        per_bin.append((rr + B * (info["gain"] - rr) - truth).sum())
+    assert stats.ttest_1samp(d, 0.0).pvalue > ALPHA, (np.mean(d), np.std(d))
+    assert stats.ttest_1samp(naive, 0.0).pvalue < ALPHA
+    assert stats.ttest_1samp(per_bin, 0.0).pvalue < ALPHA
+
+
+def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
+    """With the mix the weights, Eq. 14 and the SURE terms are formed in bands (margin
+    k // 2 + patch): output, λ, β̂ and the SURE terms equal the one-piece ones to the bit;
+    a margin one row short changes them.  mix=None stays the output of before (the
+    unmixed Eq. 14, not the leave-centre-out β̂ of the mix)."""
+    import statmc.combine as cbm
+    bins, full, f = _bins_and_kernel(seed=5)
+    ys = np.stack([b.mean for b in bins])
+    B, H, W, _ = ys.shape
+    kw = dict(size=7, patch=2, rng=1, extra_output=True)
+    whole = {mix: cbm.combine_bins(ys, full.mean_var, f, mix=mix, **kw)
+             for mix in ("local", "global")}
+    plain = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
+    assert not np.array_equal(whole["local"][1]["combined"], plain)     # LOO weights
+    seen = []
+    real = cbm._statistical_weights
+    monkeypatch.setattr(cbm, "_statistical_weights",
+                        lambda ys, *a, **k: seen.append(ys.shape[1]) or real(ys, *a, **k))
+    for rows, mix in ((10, "local"), (13, "global")):
+        # the mix holds the bin-summed weights too: one more "bin" of weights per row
+        monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(rows, W, B + 1, 7, 5))
+        out, info = whole[mix]
+        seen.clear()
+        got, ginfo = cbm._combine_bins(ys, full.mean_var, f, size=7, stencil=5, probes=8,
+                                       smooth=2, patch=2, mix=mix, mix_sigma=16.0, rng=1,
+                                       whole=False)
+        assert len(seen) > 2 and max(seen) < H                         # banded
+        np.testing.assert_array_equal(got, out)
+        for key in ("combined", "mix", "gain", "full_denoised"):
+            np.testing.assert_array_equal(ginfo[key], info[key])
+    monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
+    short = cbm.combine_bins(ys, full.mean_var, f, mix="local", size=7, patch=2, rng=1)
+    assert not np.array_equal(short, whole["local"][0])
+
+
+def test_reconstruct_bins_mix_map_and_bad_mix():
+    from statmc.combine import combine_bins
+    from statmc.pipeline import reconstruct_bins
+    bins, full, f = _bins_and_kernel(seed=6)
+    img, maps = reconstruct_bins(bins, "gem+bins", mix="local")
+    assert maps["mix"].shape == full.n.shape and 0 <= maps["mix"].min() <= maps["mix"].max() <= 1
+    assert set(maps) == {"scale", "sigma", "mix"}
+    ys = np.stack([b.mean for b in bins])
+    with pytest.raises(InputError, match="`mix`"):
+        combine_bins(ys, full.mean_var, f, mix="yes")
+    with pytest.raises(InputError, match="`mix_sigma`"):
+        combine_bins(ys, full.mean_var, f, mix="local", mix_sigma=0)
