@@ -19,11 +19,15 @@ reference) of
   of ``B`` times the smoothed full-sample one and the bin's own sample variance of the
   mean — weights that differ between bins, the variant ``combine_bins`` does not offer;
 * ``oidn``, ``oidn+combine`` and ``oidn+bins`` (OIDN applied to each bin);
+* ``gem+bins, mix`` and ``oidn+bins, mix``: the same with the SURE mix with the denoiser's
+  output on the merged render (``reconstruct_bins(..., mix="local")``; ``mix="global"``
+  as ``..., global mix``); the mean mix weight Σλ is printed beside them;
 
 and the ratios to ``gem`` and ``oidn`` (mean over seeds, per-seed range).
 
 Run: ``NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/analysis_bins_combine.py``
-(``--scenes``, ``--spp``, ``--seeds``, ``--json``).
+(``--scenes``, ``--spp``, ``--seeds``, ``--methods`` (a subset of the names above; ``gem``
+and ``oidn``, the baselines of the ratios, always run), ``--json``).
 """
 
 from __future__ import annotations
@@ -49,7 +53,8 @@ SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
 BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "gem",
         "gem+bins": "gem", "gem bins, moments from spread": "gem",
         "gem+bins, per-bin variances": "gem", "oidn": "oidn",
-        "oidn+combine": "oidn", "oidn+bins": "oidn"}
+        "oidn+combine": "oidn", "oidn+bins": "oidn", "gem+bins, mix": "gem",
+        "gem+bins, global mix": "gem", "oidn+bins, mix": "oidn", "oidn+bins, global mix": "oidn"}
 
 
 def per_bin_variances(bl, full, seed):
@@ -67,13 +72,16 @@ def per_bin_variances(bl, full, seed):
     return combine_multi(ys, zs, w)
 
 
-def cell(r, ref, spp, seed, bins):
-    """relMSE of every method on one binned render, and the seconds each took."""
+def cell(r, ref, spp, seed, bins, methods=None):
+    """relMSE of every method on one binned render, the seconds each took and the mean mix
+    weight of the mixed ones."""
     bl = render_bins(r, spp, bins, seed=9000 + seed)
     full = merge_bins(bl)
-    out, sec = {}, {}
+    out, sec, mixw = {}, {}, {}
 
     def run(name, fn):
+        if methods is not None and name not in methods and name not in ("gem", "oidn"):
+            return
         t0 = time.perf_counter()
         img = fn()
         sec[name] = time.perf_counter() - t0
@@ -96,7 +104,14 @@ def cell(r, ref, spp, seed, bins):
     run("oidn", lambda: reconstruct_stats(full, "oidn")[0])
     run("oidn+combine", lambda: reconstruct_stats(full, "oidn+combine", seed=seed)[0])
     run("oidn+bins", lambda: reconstruct_bins(bl, "oidn+bins", seed=seed)[0])
-    return out, sec
+    for method in ("gem+bins", "oidn+bins"):
+        for mix, label in (("local", "mix"), ("global", "global mix")):
+            def mixed(method=method, mix=mix, name=f"{method}, {label}"):
+                img, maps = reconstruct_bins(bl, method, seed=seed, mix=mix)
+                mixw[name] = float(np.mean(maps["mix"]))
+                return img
+            run(f"{method}, {label}", mixed)
+    return out, sec, mixw
 
 
 def main(argv=None):
@@ -105,6 +120,7 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, nargs="*", default=[16, 64])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--bins", type=int, default=4)
+    ap.add_argument("--methods", nargs="*", default=None, choices=list(BASE))
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     rows = []
@@ -112,24 +128,28 @@ def main(argv=None):
         r, ref = scene_reference(scene)
         ref = ref.mean
         for spp in a.spp:
-            res, secs = {}, {}
+            res, secs, mixes = {}, {}, {}
             for s in range(a.seeds):
-                out, sec = cell(r, ref, spp, s, a.bins)
+                out, sec, mixw = cell(r, ref, spp, s, a.bins, a.methods)
                 for key, v in out.items():
                     res.setdefault(key, []).append(v)
                     secs.setdefault(key, []).append(sec[key])
+                for key, v in mixw.items():
+                    mixes.setdefault(key, []).append(v)
             print(f"{scene} {spp} spp ({a.seeds} seeds, {r.width}x{r.height}, B = {a.bins})",
                   flush=True)
             for key, v in res.items():
                 v = np.array(v)
                 base = np.array(res[BASE[key]])
                 ratio = v / base
+                mix = f"   mix {np.mean(mixes[key]):.2f}" if key in mixes else ""
                 print(f"  {key:30s} relMSE {v.mean():.4g}   / {BASE[key]:4s} "
                       f"{v.mean() / base.mean():.3f} (per seed {ratio.min():.3f}–{ratio.max():.3f})"
-                      f"   {np.mean(secs[key]):.2f} s", flush=True)
+                      f"   {np.mean(secs[key]):.2f} s{mix}", flush=True)
                 rows.append({"scene": scene, "spp": spp, "method": key, "relmse": v.tolist(),
                              "ratio": float(v.mean() / base.mean()), "base": BASE[key],
-                             "seconds": float(np.mean(secs[key]))})
+                             "seconds": float(np.mean(secs[key])),
+                             "mix": mixes.get(key)})
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(rows, fh, indent=1)

@@ -156,18 +156,23 @@ def merge_bins(bins) -> PixelStats:
 
 
 def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed: int = 0,
-                     gem_bias: str | None = None, return_bins: bool = False):
+                     gem_bias: str | None = None, mix: str | None = "local",
+                     return_bins: bool = False):
     """Reconstruct from sample bins (a list of ``B >= 2`` :class:`PixelStats` with equal
     counts, e.g. :func:`render_bins`) by :func:`statmc.combine.combine_bins`.
 
     ``"gem+bins"``: GEM selects its kernels on the merged render and the kernel is shared
     by the bins (Back 2020 §4.4); ``"oidn+bins"``: OIDN (with the merged render's albedo
-    and normal) applied to each bin.  Returns ``(image (H, W, C) float32, maps)`` as
-    :func:`reconstruct_stats` (``"gem+bins"``: the selected ``"scale"`` and ``"sigma"``);
+    and normal) applied to each bin.  ``mix``: the SURE mix of the result with the
+    denoiser's output on the merged render (``combine_bins``' ``mix``; ``"local"``, the
+    default, ``"global"`` or None).  Returns ``(image (H, W, C) float32, maps)`` as
+    :func:`reconstruct_stats` (``"gem+bins"``: the selected ``"scale"`` and ``"sigma"``;
+    with a mix, ``"mix"``: the weight λ of the combination, 0 = the denoiser's output);
     with ``return_bins`` also ``(ys, zs)``, the bin means and their denoised images
     ``(B, H, W, C)``.
     """
-    from .combine import combine_bins
+    from .combine import (DEFAULT_MIX_SIGMA, DEFAULT_MOMENT_SMOOTH, DEFAULT_PROBES,
+                          DEFAULT_SIZE, DEFAULT_STENCIL, _combine_bins)
     if method not in BIN_RECONSTRUCTIONS:
         raise InputError(f"unknown bin reconstruction {method!r}; expected one of "
                          f"{BIN_RECONSTRUCTIONS}.")
@@ -184,7 +189,13 @@ def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed
     else:
         from .progressive import bind_denoiser
         f = bind_denoiser("oidn", full)
-    img, zs = combine_bins(ys, full.mean_var, f, rng=seed, return_denoised=True)
+    img, info = _combine_bins(ys, full.mean_var, f, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
+                              probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2,
+                              mix=mix, mix_sigma=DEFAULT_MIX_SIGMA, rng=seed, whole=False)
+    zs = info["denoised"]
+    if mix is not None:         # Σλ per pixel, 0 = the denoiser's output on the merged render
+        lam = np.asarray(info["mix"], np.float32).sum(axis=-1)
+        maps["mix"] = np.broadcast_to(lam, ys.shape[1:3]).copy()
     if return_bins:
         return img.astype(np.float32), maps, (ys, zs)
     return img.astype(np.float32), maps
