@@ -11,17 +11,18 @@ reference) of
 * ``combine, GEM kernel``: the same with GEM's full-sample kernel as a fixed linear filter
   (:func:`statmc.gem.selected_filter`; the pipeline's ``"combine"`` with ``denoiser="gem"``);
 * ``gem+bins``: Eq. 14 on the bins with that kernel shared by the bins
-  (:func:`statmc.pipeline.reconstruct_bins`);
+  (:func:`statmc.pipeline.reconstruct_bins` with ``mix=None``);
 * ``gem bins, moments from spread``: the same bins and per-bin images combined by
   :func:`statmc.combine.combine_bin_images` (``statmc combine bins.exr``), whose moments
   come from the spread over the bins instead of the probes;
 * ``gem+bins, per-bin variances``: the same, but each bin's ``y`` variance is the larger
   of ``B`` times the smoothed full-sample one and the bin's own sample variance of the
   mean — weights that differ between bins, the variant ``combine_bins`` does not offer;
-* ``oidn``, ``oidn+combine`` and ``oidn+bins`` (OIDN applied to each bin);
+* ``oidn``, ``oidn+combine`` and ``oidn+bins`` (OIDN applied to each bin, ``mix=None``);
 * ``gem+bins, mix`` and ``oidn+bins, mix``: the same with the SURE mix with the denoiser's
-  output on the merged render (``reconstruct_bins(..., mix="local")``; ``mix="global"``
-  as ``..., global mix``); the mean mix weight Σλ is printed beside them;
+  output on the merged render (``reconstruct_bins(..., mix="local")``, its default since
+  session 7; ``mix="global"`` as ``..., global mix``); the mean mix weight Σλ is printed
+  beside them;
 
 and the ratios to ``gem`` and ``oidn`` (mean over seeds, per-seed range).
 
@@ -95,7 +96,8 @@ def cell(r, ref, spp, seed, bins, methods=None):
     binned = {}
 
     def gem_bins():
-        img, _, binned["gem"] = reconstruct_bins(bl, "gem+bins", seed=seed, return_bins=True)
+        img, _, binned["gem"] = reconstruct_bins(bl, "gem+bins", seed=seed, mix=None,
+                                                 return_bins=True)
         return img
 
     run("gem+bins", gem_bins)
@@ -103,7 +105,7 @@ def cell(r, ref, spp, seed, bins, methods=None):
     run("gem+bins, per-bin variances", lambda: per_bin_variances(bl, full, seed))
     run("oidn", lambda: reconstruct_stats(full, "oidn")[0])
     run("oidn+combine", lambda: reconstruct_stats(full, "oidn+combine", seed=seed)[0])
-    run("oidn+bins", lambda: reconstruct_bins(bl, "oidn+bins", seed=seed)[0])
+    run("oidn+bins", lambda: reconstruct_bins(bl, "oidn+bins", seed=seed, mix=None)[0])
     for method in ("gem+bins", "oidn+bins"):
         for mix, label in (("local", "mix"), ("global", "global mix")):
             def mixed(method=method, mix=mix, name=f"{method}, {label}"):
