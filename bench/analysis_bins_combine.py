@@ -22,7 +22,9 @@ reference) of
 * ``gem+bins, mix`` and ``oidn+bins, mix``: the same with the SURE mix with the denoiser's
   output on the merged render (``reconstruct_bins(..., mix="local")``, its default since
   session 7; ``mix="global"`` as ``..., global mix``); the mean mix weight Σλ is printed
-  beside them;
+  beside them; ``oidn+bins, mix, probes at ȳ only``: the local mix with
+  ``bin_probes=0``, its Stein terms from the probes at the merged render alone (first order
+  at ``ȳ``) instead of 2 probes per bin;
 
 and the ratios to ``gem`` and ``oidn`` (mean over seeds, per-seed range).
 
@@ -43,8 +45,8 @@ from statmc import metrics
 from scipy.ndimage import uniform_filter
 
 from statmc import gem
-from statmc.combine import (combine_bin_images, combine_denoised, combine_multi, denoiser_moments,
-                            statistical_weights)
+from statmc.combine import (combine_bin_images, combine_bins, combine_denoised, combine_multi,
+                            denoiser_moments, statistical_weights)
 from statmc.pipeline import merge_bins, reconstruct_bins, reconstruct_stats, render_bins
 from statmc.progressive import bind_denoiser
 
@@ -55,7 +57,8 @@ BASE = {"gem": "gem", "combine, GEM black box": "gem", "combine, GEM kernel": "g
         "gem+bins": "gem", "gem bins, moments from spread": "gem",
         "gem+bins, per-bin variances": "gem", "oidn": "oidn",
         "oidn+combine": "oidn", "oidn+bins": "oidn", "gem+bins, mix": "gem",
-        "gem+bins, global mix": "gem", "oidn+bins, mix": "oidn", "oidn+bins, global mix": "oidn"}
+        "gem+bins, global mix": "gem", "oidn+bins, mix": "oidn", "oidn+bins, global mix": "oidn",
+        "oidn+bins, mix, probes at ȳ only": "oidn"}
 
 
 def per_bin_variances(bl, full, seed):
@@ -113,6 +116,15 @@ def cell(r, ref, spp, seed, bins, methods=None):
                 mixw[name] = float(np.mean(maps["mix"]))
                 return img
             run(f"{method}, {label}", mixed)
+
+    def oidn_mix_ybar_probes(name="oidn+bins, mix, probes at ȳ only"):
+        img, info = combine_bins(np.stack([b.mean for b in bl]), full.mean_var,
+                                 bind_denoiser("oidn", full), rng=seed, bin_probes=0,
+                                 extra_output=True)
+        mixw[name] = float(np.mean(info["mix"]))
+        return img
+
+    run("oidn+bins, mix, probes at ȳ only", oidn_mix_ybar_probes)
     return out, sec, mixw
 
 

@@ -1107,6 +1107,10 @@ DEFAULT_STENCIL = 5       # covariance stencil width m of the first-order moment
 DEFAULT_MOMENT_SMOOTH = 2  # box radius smoothing the probe moments (5x5)
 DEFAULT_SIZE = 15         # combination window (the paper's 15x15, §5)
 DEFAULT_MIX_SIGMA = 16.0  # Gaussian σ (pixels) pooling the SURE terms of the mix
+#: Probes per bin of a black-box denoiser for the Stein terms of combine_bins' mix (B x this
+#: extra calls): 2 moved oidn+bins with the mix from 0.84 to 0.79x OIDN on cornell-box at
+#: 64 spp, 0.99 to 0.98x on textured-dof (bench/analysis_bins_combine.py, docs/combine.md).
+DEFAULT_BIN_PROBES = 2
 #: Memory of one band of rows (bytes) of the per-pixel weights (float32) and smoothed
 #: moment stencils (float64) of :func:`combine_denoised`, :func:`combine_bins` and
 #: :func:`combine_bin_images`, margins included (:func:`_band_rows`).
@@ -1282,6 +1286,29 @@ def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
         jvs[i] = (_denoise(denoiser, xx + h * v) - z) / h
         signs[i], used[i] = draw, True
     return _Probes(z, sig, signs, jvs, used)
+
+
+def _bin_probe_vectors(denoiser, ys, zs, mean_var, count, gen, eps):
+    """``count`` ±σ probes of the denoiser at each bin ``ys[b]`` (``B · count`` calls):
+    :class:`_Probes` with ``v = ±√(B · mean_var)`` (one bin's variance) and
+    ``J_b v ≈ (f(y_b + h v) − z_b) / h`` (float32), bin after bin."""
+    B = ys.shape[0]
+    sig = np.sqrt(B * mean_var)
+    n = B * count
+    signs = np.zeros((n,) + ys.shape[1:], np.int8)
+    jvs = np.zeros((n,) + ys.shape[1:], np.float32)
+    used = np.zeros(n, bool)
+    for b in range(B):
+        for i in range(count):
+            j = b * count + i
+            draw = gen.integers(0, 2, ys.shape[1:])
+            v = sig * (draw * 2.0 - 1.0)
+            h = _probe_step(ys[b], v, eps)
+            if h is None:
+                continue                  # no noise (or a black bin): zero moments
+            jvs[j] = (_denoise(denoiser, ys[b] + h * v) - zs[b]) / h
+            signs[j], used[j] = draw, True
+    return _Probes(None, sig, signs, jvs, used)
 
 
 def _reflect(i, n):
@@ -1649,7 +1676,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
 
 def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
                  probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, mix="local",
-                 mix_sigma=DEFAULT_MIX_SIGMA, rng=None, extra_output=False,
+                 mix_sigma=DEFAULT_MIX_SIGMA, bin_probes=None, rng=None, extra_output=False,
                  return_denoised=False):
     """Multi-buffer combination (Eq. 14 of Back et al. 2020 [1]_) of ``B`` sample bins
     and their per-bin denoised images, with classical statistical weights.
@@ -1698,6 +1725,11 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         0.94–6.2x, ``docs/combine.md``) or the whole image (never better than
         ``"local"`` there); ``None``: Eq. 14 alone.
     mix_sigma : float
+    bin_probes : int or None
+        With a mix: ``±σ`` probes of the denoiser at each bin (``B · bin_probes`` extra
+        calls) for the Jacobians ``J_b`` in the Stein terms (Notes, (iii)).  None (default):
+        0 for a :class:`statmc.gem.SelectedFilter`, whose Jacobian is ``K`` at every bin
+        (the probes at ``ȳ`` give it), else :data:`DEFAULT_BIN_PROBES` (2).
     extra_output : bool
         Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
         weights of the whole image at once, whatever their size); with a mix also
@@ -1733,9 +1765,12 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     (tested).  Only the ``K + 1`` denoiser calls (and each bin's) see the whole image.
     Peak memory at 1920x1080 (``B = 4``, defaults, GEM's kernel): the inputs plus 1.9 GiB
     (4.9 GiB before the stencils were banded; ``bench/bench_combine.py --part memory``;
-    measured without the mix).  The mix adds the bin-summed weights of a band (counted in
-    the band's size) and a few ``(H, W, C)`` float64 images (``z``, ``β̂``, the SURE
-    terms; 50 MB each at 1080p); it too equals the one-piece result to the bit (tested).
+    1.94 GiB with the mix).  The mix adds the bin-summed weights of a band (counted in the
+    band's size) and a few ``(H, W, C)`` float64 images (``z``, ``β̂``, the SURE terms;
+    50 MB each at 1080p); a black box's per-bin probes keep ``B · bin_probes`` images of
+    ``J_b v`` (float32) and their signs: 2.26 GiB above the inputs at 1080p for the same
+    kernel behind a plain callable.  The output equals the one-piece result to the bit
+    (tested).
 
     With these moment-based weights every bin gets the same moments, so the weights
     differ between bins only through the tap biases; with a shared *linear* kernel and
@@ -1769,10 +1804,24 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     kernel fixed given the data — for GEM's kernel its selection on ``ȳ`` is ignored;
     then ``ρ`` is linear in each ``y_{c,b}`` and the estimate is unbiased for any pixel
     noise, not only Gaussian (tested against the true error over bin draws); (iii) for
-    OIDN run per bin, first order: every ``f(y_b)`` linearised with the Jacobian ``J``
-    at ``ȳ`` (the ``1/B``-spp bins see a different, smoother OIDN; the mean ``z̄`` of
-    the ``z_b`` enters ``ρ`` as observed, only its derivative is approximated).
-    ``E[ρ²]`` is estimated by ``ρ²``.  Measured (``bench/analysis_bins_combine.py``,
+    a black box run per bin (OIDN), first order: ``f`` linearised at each bin, with
+    Jacobian ``J_b``.  Then ``z_b`` moves with ``y_{c,b}`` by ``J_b``, ``f(ȳ)`` by
+    ``J_ȳ / B``, and (the weights being equal across bins)
+    ``σ_c² Σ_b ∂ρ_c/∂y_{c,b} = ā_c σ_c² + σ_c² (mean_b (J_b)_cc − (J_ȳ)_cc)
+    − mean_b Σ_t ā_t σ_c² (J_b)_tc``, each term from probes:
+    ``σ_c² (J_b)_tc = E[v_c (J_b v)_t] / B`` for probes ``v = ±√(B σ²)`` at bin ``b``
+    (``bin_probes`` per bin), ``σ_c² (J_ȳ)_cc`` from those at ``ȳ``.  With
+    ``bin_probes=0`` every ``J_b`` is taken as ``J_ȳ``, which leaves the shared-kernel
+    formula above; for OIDN that is biased (a ``1/B``-spp bin sees a smoother OIDN):
+    the estimated optimal global λ was −0.03 to 0.15 where the truth was 0.46–0.49
+    (cornell-box, 64 spp, 3 seeds), 0.38–0.45 with 4 probes per bin.  ``z̄ − f(ȳ)``
+    itself enters ``ρ`` as observed.  ``E[ρ²]`` is estimated by ``ρ²``.  Measured bias
+    of the whole estimate on the built-in scenes: the estimated λ is *below* the true
+    optimum (the mix is conservative, it keeps more of ``f(ȳ)``), e.g. GEM on
+    glossy-spheres at 64 spp −0.04 to −0.06 against 0.14–0.19; the weights' dependence
+    on ``y_c`` through the smoothed variance (heavy-tailed pixels) is the suspect: on
+    the toy ``mixed`` scene with a fixed blur the estimate is biased too (p = 3e-5 over
+    100 draws), on ``edges`` not.  Measured (``bench/analysis_bins_combine.py``,
     ``docs/combine.md``): see there.
 
     References
@@ -1786,7 +1835,8 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     """
     out, info = _combine_bins(ys, mean_var, denoiser, size=size, stencil=stencil,
                               probes=probes, smooth=smooth, patch=patch, mix=mix,
-                              mix_sigma=mix_sigma, rng=rng, whole=extra_output)
+                              mix_sigma=mix_sigma, bin_probes=bin_probes, rng=rng,
+                              whole=extra_output)
     if extra_output:
         return out, info
     if return_denoised:
@@ -1795,7 +1845,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
 
 
 def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patch, mix,
-                  mix_sigma, rng, whole):
+                  mix_sigma, rng, whole, bin_probes=None):
     """:func:`combine_bins`; returns ``(out, info)``, ``info`` as its ``extra_output``
     (``"weights"`` only with ``whole``, else None: the weights stay in bands)."""
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
@@ -1816,9 +1866,18 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
         raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
     k = _check_window_options(size, stencil, smooth, patch)
     ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
+    if bin_probes is None:
+        from .gem import SelectedFilter
+        # a shared linear kernel has the same Jacobian K at every bin: the probes at ȳ
+        # give it exactly; a black box's Jacobian at a 1/B-spp bin is another
+        bin_probes = 0 if isinstance(denoiser, SelectedFilter) else DEFAULT_BIN_PROBES
+    if isinstance(bin_probes, bool) or not isinstance(bin_probes, (int, np.integer)) \
+            or bin_probes < 0:
+        raise InputError(f"`bin_probes` must be None or an integer >= 0; got {bin_probes!r}.")
+    gen = as_rng(rng)
     zs = np.stack([_denoise(denoiser, yb[b]) for b in range(B)])
     ybar = yb.mean(axis=0)
-    pr = _probe_vectors(denoiser, ybar, mv, probes, rng, 1e-3)
+    pr = _probe_vectors(denoiser, ybar, mv, probes, gen, 1e-3)
     m = int(stencil)
     H, W, C = ybar.shape
     moments = _SmoothedRows(lambda r0, r1: pr.stencils(m, r0, r1), H, smooth, scale=B)
@@ -1833,11 +1892,25 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     rel = 1.0 / (z * z + 0.01)
     nums = np.empty((H, W, 1))
     gains = np.empty((H, W, C))
+    jac, diag = pr, None
+    if bin_probes:
+        # Per-bin Jacobians J_b (probes at each bin, v ~ ±√(B σ²)): the Stein terms
+        # mean_b Σ_t ā_t σ² (J_b)_tc = mean_b E[v_c (A J_b v)_c] / B (through _mix_gain with
+        # v / B) and σ² (mean_b (J_b)_cc − (J_ȳ)_cc), the part of ∂ρ_c/∂y_c from z̄ − f(ȳ).
+        jac = _bin_probe_vectors(denoiser, yb, zs, mv, int(bin_probes), gen, 1e-3)
+        diag = np.zeros((H, W, C))
+        for i in range(pr.K):                        # − σ² (J_ȳ)_cc, no (K, H, W, C) copies
+            diag -= pr.v(i) * pr.jv[i] / pr.K
+        for i in range(jac.K):                       # + σ² mean_b (J_b)_cc
+            diag += jac.v(i) * jac.jv[i] / (B * jac.K)
 
     def band(a, b, lo, hi, w, beta):
         wsum = w.sum(axis=2, keepdims=True)          # (rows, W, 1, k, k), float32
-        V = np.stack([pr.v(i, lo, hi) for i in range(pr.K)])
-        gain = _mix_gain(ybar[lo:hi], z[lo:hi], beta, mv[lo:hi], wsum, V, pr.jv[:, lo:hi])
+        scale = 1.0 if jac is pr else 1.0 / B
+        V = np.stack([jac.v(i, lo, hi) * scale for i in range(jac.K)])
+        gain = _mix_gain(ybar[lo:hi], z[lo:hi], beta, mv[lo:hi], wsum, V, jac.jv[:, lo:hi])
+        if diag is not None:
+            gain -= diag[lo:hi]
         nums[a:b, :, 0] = (gain * rel[lo:hi]).sum(axis=-1)[a - lo:b - lo]
         gains[a:b] = gain[a - lo:b - lo]
 

@@ -1541,13 +1541,15 @@ def test_combine_bins_mix_keeps_a_combination_that_is_clearly_better():
         assert e < 1.1 * eb and e < 1.1 * relmse(plain, mu) and e < 0.05 * ez, (e, eb, ez)
 
 
-def test_combine_bins_mix_sure_term_matches_the_true_error_over_bin_draws():
+@pytest.mark.parametrize("bin_probes", [0, None])
+def test_combine_bins_mix_sure_term_matches_the_true_error_over_bin_draws(bin_probes):
     """The Stein estimate of b = −E[(z − μ) ρ] (ρ = β̂ − z, z = f(ȳ)) that the mix uses:
     over 80 independent draws of B = 4 bins (toy 'edges', 16 spp, a linear blur applied to
     each bin and to ȳ), the image sum of (estimate − truth) has mean zero (t-test); the
     naive (ȳ − z) ρ, and the Stein correction with the per-bin variance B σ² in place of
     the full-sample σ² (Stein over the bins: Σ_b (B σ²) E[∂ρ/∂y_b] with ∂ȳ/∂y_b = 1/B),
-    are rejected."""
+    are rejected.  Both with the Jacobian from the probes at ȳ (``bin_probes=0``) and from
+    2 probes per bin (the default for a black box such as this callable)."""
     from statmc.combine import combine_bins
     r = ToyRenderer("edges", width=16, height=16)
     mu = r.true_mean()
@@ -1556,7 +1558,7 @@ def test_combine_bins_mix_sure_term_matches_the_true_error_over_bin_draws():
     for i in range(80):
         ys, full = _draw_bins(r, 16, B, (32, i))
         _, info = combine_bins(ys, full.mean_var, f, size=7, probes=4, mix="local", rng=i,
-                               extra_output=True)
+                               bin_probes=bin_probes, extra_output=True)
         z = info["full_denoised"]
         rho = info["combined"] - z
         truth = -(z - mu) * rho
@@ -1599,6 +1601,19 @@ def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
         np.testing.assert_array_equal(got, out)
         for key in ("combined", "mix", "gain", "full_denoised"):
             np.testing.assert_array_equal(ginfo[key], info[key])
+    # a black box (the same kernel behind a plain callable): probes at each bin too
+    box = lambda x: f(x)                                               # noqa: E731
+    kw = dict(size=7, stencil=5, probes=8, smooth=2, patch=2, mix="local", mix_sigma=16.0,
+              rng=1)
+    monkeypatch.setattr(cbm, "BAND_BYTES", 1 << 40)
+    one, oinfo = cbm._combine_bins(ys, full.mean_var, box, whole=True, **kw)
+    monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(10, W, B + 1, 7, 5))
+    seen.clear()
+    got, ginfo = cbm._combine_bins(ys, full.mean_var, box, whole=False, **kw)
+    assert len(seen) > 2 and max(seen) < H
+    np.testing.assert_array_equal(got, one)
+    np.testing.assert_array_equal(ginfo["gain"], oinfo["gain"])
+    assert not np.array_equal(oinfo["gain"], whole["local"][1]["gain"])   # other Stein terms
     monkeypatch.setattr(cbm, "_band_margin", lambda k, patch: k // 2 + patch - 1)
     short = cbm.combine_bins(ys, full.mean_var, f, mix="local", size=7, patch=2, rng=1)
     assert not np.array_equal(short, whole["local"][0])
@@ -1616,3 +1631,31 @@ def test_reconstruct_bins_mix_map_and_bad_mix():
         combine_bins(ys, full.mean_var, f, mix="yes")
     with pytest.raises(InputError, match="`mix_sigma`"):
         combine_bins(ys, full.mean_var, f, mix="local", mix_sigma=0)
+    with pytest.raises(InputError, match="`bin_probes`"):
+        combine_bins(ys, full.mean_var, f, bin_probes=-1)
+
+
+def test_combine_bins_probes_each_bin_of_a_black_box_only():
+    """GEM's shared kernel has the same Jacobian at every bin: no per-bin probes (B bins +
+    probes + 1 calls, as without the mix); a black box gets 2 probes per bin by default
+    (B more calls each); mix=None makes none."""
+    from statmc.combine import combine_bins
+    bins, full, f = _bins_and_kernel(seed=7)
+    ys = np.stack([b.mean for b in bins])
+    B = len(bins)
+    calls = []
+
+    def counted(x):
+        calls.append(1)
+        return f(x)
+
+    for mix, probes, want in (("local", None, 0), ("local", 3, 3), (None, None, 0)):
+        calls.clear()
+        combine_bins(ys, full.mean_var, counted, size=5, probes=4, mix=mix, bin_probes=probes,
+                     rng=0)
+        extra = 2 if (mix is not None and probes is None) else want
+        assert len(calls) == B + 4 + 1 + B * extra, (mix, probes, len(calls))
+    # GEM's SelectedFilter itself: the default is bin_probes=0
+    out0 = combine_bins(ys, full.mean_var, f, size=5, probes=4, rng=0, bin_probes=0)
+    np.testing.assert_array_equal(combine_bins(ys, full.mean_var, f, size=5, probes=4, rng=0),
+                                  out0)
