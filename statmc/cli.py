@@ -615,7 +615,11 @@ def cmd_denoise(args) -> int:
     if args.denoiser != "gaussian":
         _refuse_unused(args, ["sigma"], f"on --denoiser {args.denoiser} (it is the width of "
                        "--denoiser gaussian)")
+    if not (args.variance and args.denoiser == "oidn"):
+        _refuse_unused(args, ["seed"], "without --variance and --denoiser oidn (it seeds the "
+                       "random probes of OIDN's variance; the other variances are exact)")
     args.sigma = 1.0 if args.sigma is None else args.sigma
+    args.seed = 0 if args.seed is None else args.seed
     if args.variance or args.denoiser == "gem":
         _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
@@ -686,6 +690,18 @@ def _combine_bins_file(args) -> int:
     return 0
 
 
+def _read_z_stats(path, spp):
+    """Z's statistics with its own ``SampleCount``; ``--spp`` (needed by a Y without one)
+    applies to Z only when Z has none either (a ``--crn`` Z has its own counts)."""
+    from .exr import SAMPLE_COUNT, read_exr
+    try:
+        return read_exr(path)
+    except FileFormatError as e:
+        if spp is None or f"no {SAMPLE_COUNT} channel" not in str(e):
+            raise
+    return read_exr(path, spp=spp)
+
+
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
@@ -710,7 +726,7 @@ def cmd_combine(args) -> int:
     h, w, _ = y.shape
     if args.weights == "statistical":
         try:
-            z_stats = read_exr(args.z, spp=args.spp)
+            z_stats = _read_z_stats(args.z, args.spp)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -746,25 +762,20 @@ def cmd_combine(args) -> int:
 
 
 def cmd_reference(args) -> int:
-    from tqdm import tqdm
-
+    from .demo import render_reference
     from .renderers import make_renderer
 
     width, height = _parse_size(args.size)
     spp = _positive_int("--spp", args.spp)
     _check_count_range("--spp", spp)
+    per_pass = min(spp, _positive_int("--pass-spp", args.pass_spp))
     _check_out_file(args.out)
     renderer = make_renderer(args.scene, width=width, height=height)
-    per_pass = min(spp, _positive_int("--pass-spp", args.pass_spp))
-    passes = [per_pass] * (spp // per_pass) + ([spp % per_pass] if spp % per_pass else [])
-    stats = None
-    for k, s in enumerate(tqdm(passes, desc="reference passes", unit="pass", disable=args.quiet)):
-        counts = np.full((renderer.height, renderer.width), s, np.int64)
-        part = renderer.render(counts, seed=args.seed + 7919 * k, features=(k == 0))
-        stats = part if stats is None else stats.merge(part)
+    stats = render_reference(renderer, spp, pass_spp=per_pass, seed=args.seed,
+                             progress=not args.quiet, features=True)
     _write_result(args.out, stats, stats.mean, inputs=(), quiet=True)
     if not args.quiet:
-        print(f"wrote {args.out} ({spp} spp in {len(passes)} passes)")
+        print(f"wrote {args.out} ({spp} spp in {-(-spp // per_pass)} passes)")
     return 0
 
 
@@ -842,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--bins", type=POSITIVE_INT, default=None,
                    help="number of sample bins of --reconstruct gem+bins / oidn+bins (default "
                         "4, the paper's; --spp must be a multiple of it)")
-    _add_gem_options(r, "--reconstruct gem and --denoiser gem",
+    _add_gem_options(r, "--reconstruct gem or gem+bins and --denoiser gem",
                      "by the adaptive --sampler gem and the pilot kernels of --sampler "
                      "expected-error always, and ", refuse_unused=True)
     r.add_argument("--crn", action="store_true",
@@ -898,7 +909,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gem_options(d, "--denoiser gem", refuse_unused=True)
     d.add_argument("--sigma", type=POSITIVE, default=None,
                    help="standard deviation of --denoiser gaussian in pixels (default 1)")
-    d.add_argument("--seed", type=SEED, default=0, help="seed of --variance's random probes")
+    d.add_argument("--seed", type=SEED, default=None,
+                   help="seed of the random probes of --variance with --denoiser oidn (default 0)")
     d.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     d.set_defaults(func=cmd_denoise)
 
@@ -944,6 +956,7 @@ _CLI_WORDING = (
     ("omit spp= to use the file's counts", "omit --spp to use the file's counts"),
     (" Pass require_variance=False to read it with zero variance, or use read_image().", ""),
     ("`spp`", "--spp"),
+    ("`stencil`", "--stencil"),
     ("leave `width`/`height` unset", "omit --size"),
     ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
     ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),

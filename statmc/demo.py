@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from .errors import as_int
+
 # name -> (sampler, reconstruction)
 METHODS = {
     "uniform+box": ("uniform", "none"),
@@ -24,22 +26,35 @@ METHODS = {
 }
 
 
-def cached_reference(renderer, spp: int, cache_dir: str, *, seed: int = 1_000_003,
-                     pass_spp: int = 256):
-    """Reference mean image of ``renderer`` at ``spp``, rendered once and cached as EXR."""
+def render_reference(renderer, spp: int, *, pass_spp: int = 256, seed: int = 1_000_003,
+                     progress: bool = True, features: bool = False):
+    """``spp`` samples per pixel of ``renderer`` as merged passes of ``pass_spp`` (the last
+    one holding the remainder); pass ``k`` has the seed ``seed + 7919 k`` and the first
+    pass renders the features when ``features``.  Returns the merged :class:`PixelStats`."""
     from tqdm import tqdm
 
+    spp, pass_spp = as_int("spp", spp), as_int("pass_spp", pass_spp)
+    per = min(spp, pass_spp)
+    sizes = [per] * (spp // per) + ([spp % per] if spp % per else [])
+    stats = None
+    for k, size in enumerate(tqdm(sizes, desc=f"reference {renderer.name} {spp} spp",
+                                  unit="pass", disable=not progress)):
+        counts = np.full((renderer.height, renderer.width), size, np.int64)
+        part = renderer.render(counts, seed=seed + 7919 * k, features=features and k == 0)
+        stats = part if stats is None else stats.merge(part)
+    return stats
+
+
+def cached_reference(renderer, spp: int, cache_dir: str, *, seed: int = 1_000_003,
+                     pass_spp: int = 256):
+    """Reference mean image of ``renderer`` at ``spp``, rendered once
+    (:func:`render_reference`) and cached as EXR."""
     from .exr import read_image, write_exr, write_png_preview
     name = f"{renderer.name}-{renderer.width}x{renderer.height}-{spp}spp.exr"
     path = os.path.join(cache_dir, name.replace("/", "_").replace(":", "_"))
     if os.path.exists(path):
         return read_image(path), path
-    stats = None
-    passes = max(1, spp // pass_spp)
-    for k in tqdm(range(passes), desc=f"reference {renderer.name} {spp} spp", unit="pass"):
-        counts = np.full((renderer.height, renderer.width), min(spp, pass_spp), np.int64)
-        part = renderer.render(counts, seed=seed + 7919 * k, features=False)
-        stats = part if stats is None else stats.merge(part)
+    stats = render_reference(renderer, spp, pass_spp=pass_spp, seed=seed)
     write_exr(path, stats)
     write_png_preview(path[:-4] + ".png", stats.mean)
     return read_image(path), path

@@ -1089,3 +1089,58 @@ def test_corrupt_exr_is_one_line_with_openexrs_diagnosis(tmp_path):
     assert r.returncode == 2 and r.stdout == "", r
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "EXR_ERR" in lines[0] and "bad.exr" in lines[0], r.stderr
+
+
+def test_cached_reference_has_the_asked_samples_when_not_a_multiple_of_the_pass(tmp_path):
+    """300 spp in passes of 256 is 256 + 44 (it rendered 256 into a file named 300spp); a
+    multiple of the pass is rendered as before (same passes, same seeds)."""
+    from statmc.demo import cached_reference
+    from statmc.exr import read_exr
+    from statmc.renderers import make_renderer
+    r = make_renderer("toy:mixed", width=8, height=6)
+    _, path = cached_reference(r, 300, str(tmp_path), pass_spp=256)
+    assert path.endswith("300spp.exr") and np.all(read_exr(path).n == 300)
+    _, path = cached_reference(r, 512, str(tmp_path), pass_spp=256)
+    want = r.render(np.full((6, 8), 256), seed=1_000_003, features=False).merge(
+        r.render(np.full((6, 8), 256), seed=1_000_003 + 7919, features=False))
+    np.testing.assert_allclose(read_exr(path).mean, want.mean, rtol=1e-6, atol=1e-7)
+
+
+def test_combine_spp_for_y_leaves_zs_own_counts(tmp_path):
+    """`--spp` is for a Y without SampleCount; a Z with its own counts (say a --crn render at
+    another spp) keeps them (`--spp` was applied to Z too: 'disagrees with SampleCount')."""
+    from statmc.exr import read_exr, write_exr
+    run_cli("render", "toy:mixed", "--spp", 16, "--size", "24x16", "--out", tmp_path / "y", "-q")
+    run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--seed", 3,
+            "--out", tmp_path / "z", "-q")
+    ys = read_exr(tmp_path / "y" / "render.exr")
+    v = ys.sample_var
+    write_exr(tmp_path / "y_nocount.exr", ys.mean,
+              extra={f"Variance.{c}": v[..., k] for k, c in enumerate("RGB")})
+    code, _, err = run_cli("combine", tmp_path / "y_nocount.exr", tmp_path / "z" / "render.exr",
+                           "--spp", 16, "--out", tmp_path / "c.exr", "-q")
+    assert code == 0, err
+    code, _, err = run_cli("combine", tmp_path / "y_nocount.exr", tmp_path / "z" / "render.exr",
+                           "--out", tmp_path / "c2.exr", "-q")
+    assert code == 2 and "SampleCount" in err and "--spp" in err, err
+
+
+@pytest.mark.parametrize("extra, ok", [(("--denoiser", "gaussian"), False),
+                                       (("--denoiser", "gaussian", "--variance"), False),
+                                       (("--denoiser", "oidn"), False),
+                                       (("--denoiser", "oidn", "--variance"), True)])
+def test_denoise_seed_only_where_it_seeds_something(tmp_path, toy_render, extra, ok):
+    """`denoise --seed` seeds only OIDN's --variance probes; elsewhere it is refused like
+    the other unused options (it was accepted and ignored)."""
+    code, _, err = run_cli("denoise", toy_render, *extra, "--seed", 5,
+                           "--out", tmp_path / "d.exr", "-q")
+    if ok:
+        assert code == 0, err
+    else:
+        assert code == 2 and "--seed has no effect" in err, err
+        assert not (tmp_path / "d.exr").exists()
+
+
+def test_library_keyword_stencil_reads_as_the_option():
+    from statmc.cli import _cli_message
+    assert _cli_message("use a smaller `stencil`.", "render") == "use a smaller --stencil."
