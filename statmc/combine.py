@@ -1277,15 +1277,23 @@ def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
     signs = np.zeros((probes,) + xx.shape, np.int8)
     jvs = np.zeros((probes,) + xx.shape)
     used = np.zeros(probes, bool)
-    for i in range(int(probes)):
-        draw = gen.integers(0, 2, xx.shape)
-        v = sig * (draw * 2.0 - 1.0)
-        h = _probe_step(xx, v, eps)
-        if h is None:
-            continue                      # no noise (or a black image): zero moments
-        jvs[i] = (_denoise(denoiser, xx + h * v) - z) / h
-        signs[i], used[i] = draw, True
+    _run_probes(denoiser, xx, z, sig, range(int(probes)), gen, eps, signs, jvs, used)
     return _Probes(z, sig, signs, jvs, used)
+
+
+def _run_probes(denoiser, x, z, sig, slots, gen, eps, signs, jvs, used):
+    """One ±σ probe of ``denoiser`` at ``x`` (whose output is ``z``) per slot ``j`` of
+    ``slots``: ``signs[j]`` the draw, ``jvs[j] = (f(x + h v) − z) / h`` with ``v = ±sig``,
+    ``used[j]``; a probe without a usable step (no noise, a black image) is left at zero
+    moments."""
+    for j in slots:
+        draw = gen.integers(0, 2, x.shape)
+        v = sig * (draw * 2.0 - 1.0)
+        h = _probe_step(x, v, eps)
+        if h is None:
+            continue
+        jvs[j] = (_denoise(denoiser, x + h * v) - z) / h
+        signs[j], used[j] = draw, True
 
 
 def _bin_probe_vectors(denoiser, ys, zs, mean_var, count, gen, eps):
@@ -1299,15 +1307,8 @@ def _bin_probe_vectors(denoiser, ys, zs, mean_var, count, gen, eps):
     jvs = np.zeros((n,) + ys.shape[1:], np.float32)
     used = np.zeros(n, bool)
     for b in range(B):
-        for i in range(count):
-            j = b * count + i
-            draw = gen.integers(0, 2, ys.shape[1:])
-            v = sig * (draw * 2.0 - 1.0)
-            h = _probe_step(ys[b], v, eps)
-            if h is None:
-                continue                  # no noise (or a black bin): zero moments
-            jvs[j] = (_denoise(denoiser, ys[b] + h * v) - zs[b]) / h
-            signs[j], used[j] = draw, True
+        _run_probes(denoiser, ys[b], zs[b], sig, range(b * count, (b + 1) * count), gen, eps,
+                    signs, jvs, used)
     return _Probes(None, sig, signs, jvs, used)
 
 
