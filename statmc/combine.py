@@ -1484,6 +1484,14 @@ def _mix_gain(y, z, beta, mean_var, w, V, JV):
     return (y - z) * (beta - z) - a_c * mean_var + cross
 
 
+def _check_mix(mix, mix_sigma) -> float:
+    """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins`;
+    returns ``mix_sigma`` as a float."""
+    if mix not in ("local", "global", None):
+        raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
+    return as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
+
+
 def _pooled_mix(z, betas, nums, rel, mix, sigma):
     """Step 4 of :func:`combine_denoised` (and the mix of :func:`combine_bins`): ``out =
     z + Σ_j λ_j ρ_j``, ``ρ_j = β̂_j − z``, with ``λ`` minimising the pooled SURE estimate
@@ -1624,10 +1632,8 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     if not 1 <= len(models) <= 3 or any(m not in ("smooth", "raw", "max") for m in models):
         raise InputError(f"`var` must be 'smooth', 'raw', 'max' or a sequence of 1 to 3 of "
                          f"them; got {var!r}.")
-    if mix not in ("local", "global", None):
-        raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
+    ms = _check_mix(mix, mix_sigma)
     k = _check_window_options(size, stencil, smooth, patch)
-    ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3)
     z = pr.z
     H, W, C = z.shape
@@ -1863,10 +1869,8 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
-    if mix not in ("local", "global", None):
-        raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
+    ms = _check_mix(mix, mix_sigma)
     k = _check_window_options(size, stencil, smooth, patch)
-    ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     if bin_probes is None:
         from .gem import SelectedFilter
         # a shared linear kernel has the same Jacobian K at every bin: the probes at ȳ
