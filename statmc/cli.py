@@ -566,14 +566,19 @@ def _refuse_unused(args, names, why: str) -> None:
                          f"effect {why}.")
 
 
+def _fill_gem_defaults(args) -> None:
+    """--gamma / --gem-bias not given (None, with ``refuse_unused``) take their defaults."""
+    args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
+    args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
+
+
 def _gem_defaults(args) -> None:
     """Refuse --gamma / --gem-bias given with another --denoiser than gem, then fill in
     their defaults (``denoise`` and ``progressive``)."""
     if args.denoiser != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
                        "are options of --denoiser gem's scale selection)")
-    args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
-    args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
+    _fill_gem_defaults(args)
 
 
 def _render_gem_defaults(args) -> None:
@@ -598,8 +603,7 @@ def _render_gem_defaults(args) -> None:
         _refuse_unused(args, ["gem_bias"], f"{where} (--gem-bias is read by GEM's final "
                        f"selection only: --reconstruct gem or gem+bins, --denoiser gem with "
                        f"{gem_den_where}; --sampler {args.sampler} reads --gamma only)")
-    args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
-    args.gem_bias = "pooled" if args.gem_bias is None else args.gem_bias
+    _fill_gem_defaults(args)
 
 
 def cmd_denoise(args) -> int:
@@ -690,18 +694,6 @@ def _combine_bins_file(args) -> int:
     return 0
 
 
-def _read_z_stats(path, spp):
-    """Z's statistics with its own ``SampleCount``; ``--spp`` (needed by a Y without one)
-    applies to Z only when Z has none either (a ``--crn`` Z has its own counts)."""
-    from .exr import SAMPLE_COUNT, read_exr
-    try:
-        return read_exr(path)
-    except FileFormatError as e:
-        if spp is None or f"no {SAMPLE_COUNT} channel" not in str(e):
-            raise
-    return read_exr(path, spp=spp)
-
-
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
@@ -726,7 +718,8 @@ def cmd_combine(args) -> int:
     h, w, _ = y.shape
     if args.weights == "statistical":
         try:
-            z_stats = _read_z_stats(args.z, args.spp)
+            # --spp (for a Y without SampleCount) applies to Z only if Z has none either
+            z_stats = read_exr(args.z, spp=args.spp, spp_if_missing=True)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise

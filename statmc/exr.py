@@ -276,7 +276,7 @@ def _handle_nonfinite(p, groups: dict, nonfinite, replace_value):
 
 
 def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = "error",
-             replace_value: float = 0.0) -> PixelStats:
+             replace_value: float = 0.0, spp_if_missing: bool = False) -> PixelStats:
     """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
 
     Parameters
@@ -285,7 +285,8 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         The file.
     spp : int or (H, W) array of int, optional
         Samples per pixel, needed when the file has no ``SampleCount`` channel (pbrt-v4
-        output).  When the file has one, ``spp`` must agree with it or be omitted.
+        output).  When the file has one, ``spp`` must agree with it or be omitted (or
+        ``spp_if_missing`` be set).
     require_variance : bool, default True
         Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
         them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
@@ -294,6 +295,9 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         are replaced by ``replace_value`` and counted in ``meta["nonfinite_replaced"]``.
     replace_value : float, default 0.0
         Replacement for non-finite values.
+    spp_if_missing : bool, default False
+        Use ``spp`` only for a file without ``SampleCount``; a file with one keeps its own
+        counts (e.g. the second input of a command whose ``--spp`` is for the first).
 
     Returns
     -------
@@ -369,7 +373,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
                               f"values (min {var.min():.4g}); a variance is >= 0.")
     if count is not None:
         _check_counts(p, count)
-        if spp is not None:
+        if spp is not None and not spp_if_missing:
             want = np.broadcast_to(_spp_map(spp, count.shape), count.shape)
             if np.any(want != count):
                 raise InputError(f"`spp` disagrees with the {SAMPLE_COUNT} channel of {p!r} in "

@@ -701,3 +701,17 @@ def test_concurrent_reads_leave_stdout_and_stderr_as_they_were(tmp_path):
     after = [os.fstat(fd).st_ino for fd in (1, 2)] + [sys.stdout, sys.stderr]
     assert not errors
     assert after == before
+
+
+def test_spp_if_missing_keeps_a_files_own_counts(tmp_path):
+    """``spp_if_missing``: ``spp`` fills in a file without SampleCount and leaves a file's
+    own counts alone (without it, a disagreeing ``spp`` is an error)."""
+    rng = np.random.default_rng(2)
+    mean, var = rng.random((2, 4, 5, 3))
+    with_n, without = tmp_path / "n.exr", tmp_path / "no_n.exr"
+    write_exr(with_n, PixelStats.from_mean_var(mean, var, np.full((4, 5), 8)))
+    write_exr(without, mean, extra={f"Variance.{c}": var[..., k] for k, c in enumerate("RGB")})
+    assert np.all(read_exr(with_n, spp=16, spp_if_missing=True).n == 8)
+    assert np.all(read_exr(without, spp=16, spp_if_missing=True).n == 16)
+    with pytest.raises(InputError, match="disagrees"):
+        read_exr(with_n, spp=16)
