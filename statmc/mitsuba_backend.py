@@ -258,8 +258,8 @@ def _sample_seeds(keys, pixels: int, pix: np.ndarray, index: np.ndarray) -> np.n
 
     So within one render no two samples share a stream while every index stays below
     ``2**32 / pixels`` (2048 samples per pixel at 1920×1080, 349,525 at 128×96); beyond
-    that the words wrap around (:meth:`MitsubaRenderer.render` warns).  (NumPy reference of the seeds that
-    :meth:`MitsubaRenderer._render_jit` forms inside Dr.Jit.)
+    that the words wrap around (:meth:`MitsubaRenderer.render` warns).  (NumPy reference
+    of the seeds that :meth:`MitsubaRenderer._render_jit` forms inside Dr.Jit.)
     """
     k1, k2 = keys
     w = (index.astype(np.uint64) * np.uint64(pixels) + pix.astype(np.uint64) + np.uint64(k1))
