@@ -1606,6 +1606,12 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     residuals ``y − z``; where ``z`` is better than any such average — low spp,
     fireflies — only the mix can keep ``z``.  Quality table: ``docs/combine.md``.
 
+    *Scale.*  Without the mix the output is scale-equivariant: ``y`` ×a with ``mean_var``
+    ×a² and a scale-equivariant denoiser gives a× the output.  The mix is not, because it
+    minimises relMSE with the metric's absolute ε = 0.01 (``1 / (z² + 0.01)``): it weighs
+    errors as MSE where ``|z| ≪ 0.1`` and as relative errors where ``|z| ≫ 0.1``, as the
+    quality tables do, which assume display-referred radiance of order 1 (tested).
+
     *Memory.*  The denoiser sees the whole image (``probes + 1`` calls; the probes are kept,
     ``J v`` as float64 and ``v`` as signs).  Steps 1–3 then run in bands of rows, as in
     :func:`combine_bins` (within :data:`BAND_BYTES`, ``k // 2 + patch`` rows of margin):
@@ -1777,6 +1783,11 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     50 MB each at 1080p); a black box's per-bin probes keep ``B · bin_probes`` images of
     ``J_b v`` (float32) and their signs: 2.26 GiB above the inputs at 1080p for the same
     kernel behind a plain callable.  The output equals the one-piece result to the bit
+    (tested).
+
+    *Scale.*  As for :func:`combine_denoised`: without the mix the output is
+    scale-equivariant (``ys`` ×a, ``mean_var`` ×a², a scale-equivariant denoiser); the mix
+    minimises relMSE with the metric's absolute ε = 0.01, so its λ depends on the scale
     (tested).
 
     With these moment-based weights every bin gets the same moments, so the weights

@@ -1659,3 +1659,27 @@ def test_combine_bins_probes_each_bin_of_a_black_box_only():
     out0 = combine_bins(ys, full.mean_var, f, size=5, probes=4, rng=0, bin_probes=0)
     np.testing.assert_array_equal(combine_bins(ys, full.mean_var, f, size=5, probes=4, rng=0),
                                   out0)
+
+
+def test_combine_without_the_mix_is_scale_equivariant():
+    """Eq. 8 and the statistical weights are scale-free: without the mix, a render ×2¹⁰
+    (variance ×2²⁰, a scale-equivariant denoiser) is combined to 2¹⁰ × the output, by
+    ``combine_denoised`` and by ``combine_bins``.  The SURE mix is not: it minimises
+    relMSE with the metric's absolute ε = 0.01, so λ, and the output, change with the
+    scale (documented in both docstrings)."""
+    from statmc import denoisers
+    from statmc.combine import combine_bins
+
+    r = ToyRenderer("mixed", width=24, height=20)
+    st = r.render_uniform(16, seed=5, features=False)
+    ys, full = _draw_bins(r, 16, 4, 6)
+    f = denoisers.gaussian(1.5)
+    a = 2.0 ** 10
+    for fn, y, v in ((combine_denoised, st.mean, st.mean_var), (combine_bins, ys, full.mean_var)):
+        for mix in (None, "local"):
+            base = fn(y, v, f, size=7, mix=mix, rng=1)
+            big = fn(y * a, v * a * a, f, size=7, mix=mix, rng=1)
+            if mix is None:
+                np.testing.assert_allclose(big / a, base, rtol=1e-9, atol=1e-12)
+            else:
+                assert np.abs(big / a - base).max() > 1e-3, fn.__name__
