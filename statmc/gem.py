@@ -392,9 +392,14 @@ def _postprocess(raw, sig, final, truncate, map_scale=None):
     return out
 
 
-def _postprocess_reference(raw, sig, final, truncate, map_scale=None):
-    """NumPy reference of the post-processing (dense weight matrices, float64)."""
+def _postprocess_reference(raw, sig, final, truncate, map_scale=None, *, margins=False):
+    """NumPy reference of the post-processing (dense weight matrices, float64).
+
+    With ``margins=True`` also returns ``|m − ½|``, the distance of each pixel's
+    centre-excluded mean from the rounding threshold (``inf`` where no neighbour counts).
+    """
     out = np.empty(raw.shape, bool)
+    dist = np.full(raw.shape, np.inf)
     h, w = raw.shape[1:]
     for k, s in enumerate(_map_sigmas(sig, final, map_scale)):
         ay = _weight_matrix(h, s, truncate)
@@ -403,9 +408,11 @@ def _postprocess_reference(raw, sig, final, truncate, map_scale=None):
         w0 = np.outer(np.diag(ay), np.diag(ax))
         with np.errstate(invalid="ignore", divide="ignore"):
             m = (ay @ b @ ax.T - w0 * b) / (1.0 - w0)
-        keep = np.where(1.0 - w0 <= 1e-6, b > 0.5, m >= 0.5)
+        alone = 1.0 - w0 <= 1e-6
+        keep = np.where(alone, b > 0.5, m >= 0.5)
         out[k] = keep & (b > 0.5) if final else keep
-    return out
+        dist[k] = np.where(alone, np.inf, np.abs(m - 0.5))
+    return (out, dist) if margins else out
 
 
 def _first_stop_reference(maps):
