@@ -39,7 +39,8 @@ table gives the spot's part of relMSE / the spot energy kept:
 | 1024 | 0.174 / 0.97 | 0.146 / 1.00 | 0.253 / 0.91 |
 
 Whole-image relMSE ratio to ``own`` (paired-bootstrap 90 % intervals): oracle 1718 /
-320 / 50 / 11 ×, omax 48.8 [25, 75] / 8.5 [5.9, 11.6] / 7.2 [4.9, 10.3] / 3.4 [2.5, 5.2] ×, max1 3.19 [2.19, 4.35] /
+320 / 50 / 11 ×, omax 48.8 [25, 75] / 8.5 [5.9, 11.6] / 7.2 [4.9, 10.3] /
+3.4 [2.5, 5.2] ×, max1 3.19 [2.19, 4.35] /
 15.6 / 24.5 / 9.8 ×, pool1 14.0 / 29.8 / 26.3 / 8.3 ×, max2 and pool2 worse still
 (at 16 / 64 / 256 / 1024 spp).
 
