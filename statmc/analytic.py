@@ -215,12 +215,14 @@ def gamma_parameters(x_g, var_g, s):
     ``α = x_g² s / var_g``, ``β = x_g s / var_g``, so the mean is ``α/β = x_g`` and the
     variance ``α/β² = var_g / s``.  Arrays broadcast, and an ``(H, W)`` count map ``s``
     goes with ``(H, W, C)`` images as in :func:`future_moments`; undefined (NaN) where
-    ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.
+    ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.  ``x_g`` must be
+    ``>= 0``: a gamma law has a positive mean (a negative ``x_g`` would give a negative
+    rate ``β``).
     """
     if np.ndim(s) == 2 and np.ndim(x_g) == 3 and np.shape(s) == np.shape(x_g)[:2]:
         s = np.asarray(s)[..., None]                    # per-pixel counts, all channels
     xg, v, s = as_broadcast_arrays({"x_g": x_g, "var_g": var_g, "s": s},
-                                   nonnegative=("var_g", "s"))
+                                   nonnegative=("x_g", "var_g", "s"))
     with np.errstate(divide="ignore", invalid="ignore"):
         ok = (xg != 0) & (v > 0) & (s > 0)
         alpha = np.where(ok, xg * xg * s / np.where(ok, v, 1.0), np.nan)
@@ -282,7 +284,8 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
     Notes
     -----
     Degenerate pixels are exact point masses, never NaN: ``Ȳ_s = x_g`` where ``s = 0`` or
-    ``var_g = 0``, and (for the three non-negative laws) where ``x_g = 0`` — a
+    ``var_g = 0`` (``clip(x_g, *bounds)`` for ``"clipped_normal"``, the limit of its law
+    as ``var_g → 0``), and (for the three non-negative laws) where ``x_g = 0`` — a
     non-negative variable with mean 0 is 0.  Where ``s_bar + s = 0`` the result is
     ``x_t``.  Only the ``s`` new samples are random: the result has the conditional
     moments of :func:`future_moments` (for the moment-matched laws).
@@ -322,7 +325,8 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
         u = np.broadcast_to(gen.random(shape), xt.shape)[ok]
     else:
         z = np.broadcast_to(gen.standard_normal(shape), xt.shape)[ok]
-    ybar = xg.copy()
+    # Point masses: N(x_g, 0) clipped to `bounds` is clip(x_g), the limit var_g -> 0.
+    ybar = np.clip(xg, lo, hi) if dist == "clipped_normal" else xg.copy()
     if ok.any():
         mu = xg[ok]
         var_mean = vg[ok] / s3[ok]

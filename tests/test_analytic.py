@@ -253,6 +253,19 @@ def test_degenerate_pixels_are_exact_point_masses(dist):
         assert y.item() == pytest.approx(0.1)
 
 
+def test_clipped_normal_point_mass_is_clipped_like_its_limit():
+    """clipped_normal with var_g = 0 is the point mass clip(x_g, bounds), the limit of
+    N(x_g, var_g/s) clipped as var_g -> 0; it used to return x_g unclipped, outside
+    ``bounds`` (here 1.5 against 1), while var_g = 1e-30 gave the clipped value."""
+    args = (np.full((1, 2, 1), 0.8), 4.0, 4.0, np.full((1, 2, 1), 1.5))
+    zero = sample_future(*args, np.zeros((1, 2, 1)), dist="clipped_normal", rng=0)
+    tiny = sample_future(*args, np.full((1, 2, 1), 1e-30), dist="clipped_normal", rng=0)
+    np.testing.assert_allclose(zero, (4 * 0.8 + 4 * 1.0) / 8, rtol=1e-15)
+    np.testing.assert_allclose(zero, tiny, rtol=1e-15)
+    # the other laws keep x_g itself (no bounds)
+    assert sample_future(*args, np.zeros((1, 2, 1)), rng=0)[0, 0, 0] == pytest.approx(1.15)
+
+
 def test_dtype_and_two_dimensional_images():
     rng = np.random.default_rng(0)
     x = rng.random((4, 5)).astype(np.float32)
@@ -318,6 +331,34 @@ def test_theorem1_closed_form_equals_monte_carlo_for_any_matching_law(loss):
     # the intervals have teeth: the truncated normal is not moment matched and is rejected
     y = synthetic_stack(x_t, s_bar, s, x_g, var_g, "truncnorm", reps, 3)
     assert z_pvalue(per_render_loss(kern, y, x_g, loss), closed)[0] < 1e-10
+
+
+def test_unconditional_kernel_loss_equals_monte_carlo_over_current_and_new_samples():
+    """With ``mean_var_t`` the closed form averages over the current render too (Eq. 7 with
+    mean x_g, then Lemma A.1): Monte Carlo over raw firefly samples for *both* passes
+    (s_bar current, s new; random signed kernels) agrees by a CLT z-test.  Teeth: Eq. 7
+    with ``s_bar·mean_var_t`` instead of ``s_bar²·mean_var_t`` (the variance of the sum
+    of the current samples mistaken for that of their mean) and the conditional loss at
+    x_t = x_g (no current noise) are both rejected by the same draws."""
+    rng = np.random.default_rng(17)
+    _, s_bar, s, x_g, var_g = toy_scene(h=8, w=8, seed=7)
+    kern = random_kernels(8, 8, 5, rng)
+    mvt = var_g / s_bar[..., None]                           # variance of the current mean
+    reps = 4000
+    cur = firefly_sample_means(x_g, var_g, s_bar, rng, reps)
+    new = firefly_sample_means(x_g, var_g, s, rng, reps)
+    loss = {}
+    for name in ("mse", "mrse"):
+        meas = per_render_loss(kern, combine(cur, s_bar, s, new), x_g, name)
+        closed = expected_kernel_loss(kern, x_g, s_bar, s, x_g, var_g, loss=name, mean_var_t=mvt)
+        p, z = z_pvalue(meas, closed)
+        assert p > ALPHA / 2, (name, closed, meas.mean(), z)
+        loss[name] = meas
+    wrong_eq7 = expected_kernel_loss(kern, x_g, s_bar, s, x_g, var_g,
+                                     mean_var_t=mvt / s_bar[..., None])   # s_bar·V[X_t]
+    conditional = expected_kernel_loss(kern, x_g, s_bar, s, x_g, var_g)
+    for wrong in (wrong_eq7, conditional):
+        assert z_pvalue(loss["mse"], wrong)[0] < 1e-10, (wrong, loss["mse"].mean())
 
 
 def test_variance_factor_erratum_eq15_vs_eq19():
@@ -737,6 +778,32 @@ def test_expected_error_sampler_water_filling_equals_solver():
         assert f[0] <= f[1] * (1 + 1e-9), (b, f)
 
 
+def test_expected_error_sampler_is_the_unconditional_optimum_of_its_estimates():
+    """The sampler's counts round the solver's optimum of the unconditional objective for
+    its documented estimates: ``var_est`` = pooled sample variance, ``mean_var_t =
+    var_est / n`` (variance of the *mean*) both in Eq. 7 and in the relMSE reference
+    ``x̂² = (G x_t)² − Σ G² var_est/n`` (G the σ = WEIGHT_SIGMA Gaussian), whose
+    unbiasedness for ``(G x_g)²`` is tested statistically above.  Each count must be the
+    floor or ceiling of the solver's map (systematic rounding).  Regression guard: taking
+    the sample variance for the variance of the mean in ``x̂`` (a factor n) went unnoticed
+    by every other test."""
+    from statmc.denoisers import gaussian
+    from statmc.stats import PixelStats
+    rng = np.random.default_rng(12)
+    st = PixelStats.from_samples(rng.gamma(0.3, 0.4, (4, 12, 14, 3)))    # dark, heavy-tailed
+    n = st.n.astype(float)
+    var_est = an.pooled_sample_variance(st.sample_var, st.n)
+    mv = var_est / n[..., None]
+    x_ref = an._reference_estimate(gaussian(an.WEIGHT_SIGMA).kernels(st.mean.shape), st.mean, mv)
+    K = gaussian(1.0).kernels(st.mean.shape)
+    b = 40 * n.size
+    smap = optimal_sample_map(K, st.mean, n, x_ref, var_est, b, loss="mrse", mean_var_t=mv)
+    counts = an.expected_error_sampler(st, b, rng=0)
+    assert counts.sum() == b
+    off = np.abs(counts - smap)
+    assert off.max() < 1 + 1e-6, (off.max(), np.unravel_index(off.argmax(), off.shape))
+
+
 @pytest.mark.parametrize("sigma", [0.0, 1.0, 2.5])
 def test_smooth_reference_estimate_equals_kernel_version(sigma):
     """The separable σ-Gaussian relMSE reference equals the dense-kernel one."""
@@ -849,6 +916,9 @@ def test_gamma_parameters_refuses_bad_input():
     np.testing.assert_allclose(a / b, x)
     with pytest.raises(InputError, match="`var_g` must be >= 0"):
         an.gamma_parameters(x, -0.1, 4.0)
+    # a negative mean gave a negative rate beta (no gamma law) without a word
+    with pytest.raises(InputError, match="`x_g` must be >= 0"):
+        an.gamma_parameters(-x, 0.1, 4.0)
     with pytest.raises(InputError, match="`s` holds 1 NaN"):
         an.gamma_parameters(x, 0.1, np.nan)
     with pytest.raises(InputError, match="broadcast together"):
