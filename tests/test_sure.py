@@ -173,16 +173,17 @@ def test_mc_sure_step_is_relative_to_the_image_scale():
     assert info["step"] == 1e-4
 
 
-@pytest.mark.parametrize("relative", [True, False])
-def test_mc_sure_divergence_is_unbiased_per_pixel_for_kernels(relative):
-    """E[b_i (f(x + h b) − f(x))_i / h] = (J Σ)_ii (Eq. 2 of Firmino 2022, per pixel)."""
+@pytest.mark.parametrize("relative, k", [(True, 1), (False, 1), (True, 3)])
+def test_mc_sure_divergence_is_unbiased_per_pixel_for_kernels(relative, k):
+    """E[b_i (f(x + h b) − f(x))_i / h] = (J Σ)_ii (Eq. 2 of Firmino 2022, per pixel); with
+    k > 1 the 1/K of Eq. 2 is checked too (a missing 1/K is a factor 3 here)."""
     rng = np.random.default_rng(3)
     x = 0.5 + 0.1 * rng.standard_normal((16, 16, 3))
     var = rng.uniform(0.005, 0.02, x.shape)
     f = D.gaussian(0.8)
     exact = S.sure(f, x, var, extra_output=True)[1]["divergence"]
-    R = 400
-    divs = np.array([S.mc_sure(f, x, var, k=1, rng=s, relative=relative, extra_output=True)[1]["divergence"]
+    R = 400 // k
+    divs = np.array([S.mc_sure(f, x, var, k=k, rng=s, relative=relative, extra_output=True)[1]["divergence"]
                      for s in range(R)])
     _bonferroni_z(divs.mean(0) - exact, divs.std(0, ddof=1) / np.sqrt(R), "MC-SURE divergence")
     # power: a factor-2 slip in the divergence would be rejected at the image level
@@ -283,6 +284,33 @@ def test_fd_variance_is_unbiased_for_linear_filters(gauss_quadrant, cov):
     exact = S.output_variance(f, x, mv, method="exact")
     np.testing.assert_allclose(exact, S.kernel_variance(f.kernels(x.shape), g["var"] / spp))
     _bonferroni_z(est - exact, info["std_error"], "fd variance")
+
+
+def test_fd_variance_std_error_is_the_spread_of_the_estimate():
+    """``std_error`` is the standard error of the k-vector mean, which the Bonferroni tests
+    here divide by: over independent seeds ``E[(est − exact)²] = E[std_error²]`` per pixel.
+    A linear denoiser that mixes pixels and channels (rolls), whose first-order variance
+    ``Σ_j J_ij² σ_j²`` is exact: ``(σ² + σ²_up + σ²_left + ¼ σ²_prev-channel)/2.5²``.
+    Teeth: the same draws reject a standard error off by a factor 2 either way, and the
+    ddof slip ``k`` for ``k − 1`` (variance x (k−1)/k = 7/8; measured z = 17)."""
+    def f(c):
+        return (c + np.roll(c, 1, 0) + np.roll(c, 1, 1) + 0.5 * np.roll(c, 1, 2)) / 2.5
+
+    rng = np.random.default_rng(11)
+    x = rng.uniform(0.2, 1.0, (8, 8, 3))
+    var = rng.uniform(0.005, 0.02, x.shape)
+    exact = (var + np.roll(var, 1, 0) + np.roll(var, 1, 1) + 0.25 * np.roll(var, 1, 2)) / 2.5 ** 2
+    R, k = 300, 8
+    est, se2 = np.empty((R,) + x.shape), np.empty((R,) + x.shape)
+    for r in range(R):
+        est[r], info = S.output_variance(f, x, var, k=k, rng=r, extra_output=True)
+        se2[r] = info["std_error"] ** 2
+    img = (est - exact).mean(axis=(1, 2, 3))
+    assert abs(_z(img)) < Z_CRIT, f"fd variance - exact: z = {_z(img):.2f}"
+    dev2 = ((est - exact) ** 2).mean(axis=(1, 2, 3))
+    for scale, ok in ((1.0, True), (4.0, False), (0.25, False), ((k - 1) / k, False)):
+        z = _z(dev2 - scale * se2.mean(axis=(1, 2, 3)))
+        assert (abs(z) < Z_CRIT) == ok, f"std_error² x {scale}: z = {z:.2f}"
 
 
 def _smooth_net(seed=0):
