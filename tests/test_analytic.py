@@ -784,7 +784,9 @@ def test_expected_error_sampler_is_the_unconditional_optimum_of_its_estimates():
     var_est / n`` (variance of the *mean*) both in Eq. 7 and in the relMSE reference
     ``x̂² = (G x_t)² − Σ G² var_est/n`` (G the σ = WEIGHT_SIGMA Gaussian), whose
     unbiasedness for ``(G x_g)²`` is tested statistically above.  Each count must be the
-    floor or ceiling of the solver's map (systematic rounding).  Regression guard: taking
+    floor or ceiling of the solver's map (systematic rounding); likewise with the
+    defensive mixture ``(1 − λ) s_opt + λ b/(HW)`` and with ``objective="conditional"``
+    (the paper's Eq. 6/19 with ``x_g`` estimated by the current mean).  Regression guard: taking
     the sample variance for the variance of the mean in ``x̂`` (a factor n) went unnoticed
     by every other test."""
     from statmc.denoisers import gaussian
@@ -798,10 +800,16 @@ def test_expected_error_sampler_is_the_unconditional_optimum_of_its_estimates():
     K = gaussian(1.0).kernels(st.mean.shape)
     b = 40 * n.size
     smap = optimal_sample_map(K, st.mean, n, x_ref, var_est, b, loss="mrse", mean_var_t=mv)
-    counts = an.expected_error_sampler(st, b, rng=0)
-    assert counts.sum() == b
-    off = np.abs(counts - smap)
-    assert off.max() < 1 + 1e-6, (off.max(), np.unravel_index(off.argmax(), off.shape))
+    # the paper's conditional objective with x_g estimated by the current mean
+    cmap = optimal_sample_map(K, st.mean, n, st.mean, var_est, b, loss="mrse")
+    lam = 0.3
+    for options, want in (({}, smap), ({"mix": lam}, (1 - lam) * smap + lam * b / n.size),
+                          ({"objective": "conditional"}, cmap)):
+        counts = an.expected_error_sampler(st, b, rng=0, **options)
+        assert counts.sum() == b
+        off = np.abs(counts - want)
+        assert off.max() < 1 + 1e-6, (options, off.max(), np.unravel_index(off.argmax(), off.shape))
+    assert np.abs(cmap - smap).max() > 2 and np.abs(smap - b / n.size).max() > 2   # distinct maps
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0, 2.5])
