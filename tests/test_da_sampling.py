@@ -16,7 +16,7 @@ from statmc.filters import gaussian_filter
 from statmc.metrics import relmse
 from statmc.progressive import bind_denoiser, mix_error, progressive_denoise
 from statmc.stats import PixelStats
-from statmc.sure import kernel_variance
+from statmc.sure import kernel_variance, mc_sure
 from statmc.toy import ToyRenderer
 
 
@@ -110,6 +110,44 @@ def test_density_is_eq3_blurred_for_a_kernel_denoiser():
     d = da.tonemap_derivative(y, "reinhard", exposure=2.0)
     assert np.allclose(tinfo["raw"], (d * d * var / (stt.n[..., None] + 1.0)).mean(axis=2),
                        rtol=1e-6)
+
+
+def test_density_mc_sure_variant_is_eq3_with_the_mc_sure_numerator():
+    """variant="mc-sure" (Firmino 2023, "AS with MC-SURE"): the per-pixel MC-SURE of
+    ``y = f(x)`` (Firmino 2022 Eq. 1, 2; Σ = the variance of the mean) replaces ``Var[f]``
+    in Eq. 3; its negative values are clamped to 0 *before* the 17×17 σ = 4 blur.
+    (i) Against mc_sure with the same probes.  (ii) Against the truth: for a linear
+    denoiser ``E[SURE_i] = ((K − I)μ)_i² + Σ_j K_ij² σ_j²`` exactly (any noise law, as SURE
+    is linear in σ̂² and the probes are unbiased), so over 40 renders of known truth the
+    numerator's mean sits in its 99.9 % t interval around the exact image-mean MSE; the
+    sample variance in place of the variance of the mean (8× here) is rejected."""
+    f = denoisers.gaussian(1.0)
+    stt = _stats(spp=8)
+    dens, info = da.denoising_aware_density(stt, f, variant="mc-sure",
+                                            rng=np.random.default_rng(3), extra_output=True)
+    sure, sinfo = mc_sure(f, stt.mean, stt.mean_var, k=da.DEFAULT_K,
+                          rng=np.random.default_rng(3), extra_output=True)
+    y = sinfo["denoised"]
+    raw = (sure / ((stt.n[..., None] + 1.0) * (y * y + 0.01))).mean(axis=2)
+    assert raw.min() < 0 < raw.max()                  # the clamp matters here
+    np.testing.assert_allclose(info["numerator"], sure, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(info["raw"], raw, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(dens, gaussian_filter(np.maximum(raw, 0), 4.0, truncate=2.0),
+                               rtol=1e-12, atol=1e-300)
+    # (ii) unbiased for the MSE of y, in the units of the variance of the mean
+    r = ToyRenderer("mixed", width=20, height=20)
+    mu = r.true_mean()
+    K = f.kernels(mu.shape)
+    exact = float((((f(mu.astype(np.float32)).astype(np.float64) - mu) ** 2)
+                   + kernel_variance(K, r.true_var() / 8)).mean())
+    means = []
+    for seed in range(40):
+        st = r.render_uniform(8, seed=500 + seed)
+        _, inf = da.denoising_aware_density(st, f, variant="mc-sure", rng=seed, extra_output=True)
+        means.append(inf["numerator"].mean())
+    means = np.array(means)
+    half = sst.t.ppf(0.9995, means.size - 1) * means.std(ddof=1) / np.sqrt(means.size)
+    assert abs(means.mean() - exact) < half, (means.mean(), exact, half)
 
 
 @pytest.mark.parametrize("variant,side", [("variance", 5), ("mc-sure", 17)])
