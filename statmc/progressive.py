@@ -2,8 +2,10 @@
 
 Firmino, Frisvad and Jensen (2022) [1]_ mix a Monte Carlo render ``x`` (unbiased, variance
 of the mean ``σ²``) with its denoised counterpart ``y = f(x)`` (biased),
-``z = x + α (y − x)``, and bound ``α`` with a Student-t style confidence test so that
-``z → μ`` as samples accumulate.  This module is the classical part:
+``z = x + α (y − x)``, and bound ``α`` with a confidence test — a t-statistic (Eq. 17)
+through a shifted standard normal CDF (Eq. 18), two-sided, with no Student-t quantile or
+degrees of freedom — so that ``z → μ`` as samples accumulate.  This module is the
+classical part:
 
 * :func:`mixing_weights` — the mixing parameter that minimises the expected squared error
   of ``z`` (Eq. 8), Eq. 9 (and Eq. 10, ``β = 1 − α``), from locally smoothed estimates of
@@ -181,7 +183,8 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
         image) by the factor ``(1 − z² se²/b²)₊``, ``b`` the averaged numerator of Eq. 10
         and ``se`` its standard error (see Notes): ``β`` is kept only where the bias of
         ``y`` is significant at about ``z`` standard errors.  ``0`` disables it; ``1`` is
-        the positive-part James–Stein plug-in; the default 2 a ~95 % two-sided test.
+        the positive-part James–Stein plug-in; the default 2 a ~95 % two-sided test
+        (under a normal null β survives in 5–6.5 % of pixels, docs/progressive.md).
         Needs ``smooth > 0``.
     per_channel : bool
         ``False`` (default): one ``α`` per pixel from the sums over channels (the pixel's
@@ -251,9 +254,10 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
       ``2(1 + 1/(n − 1)) (Σ_c w_c σ̂_c²)² + 4 (Σ_c w_c |b̂_c| σ̂_c)²``.  Summing the
       channel variances as if independent understated ``se`` by up to √3 on colour
       noise and let noise through at 4 spp (``toy:mixed``: 1.12× OIDN's relMSE against
-      1.00× with the bound, mean of three renders; ``docs/progressive.md``).  It falls like ``1/√n`` wherever ``y`` is biased, so the factor tends to
-      1, but heavy-tailed pixels inflate ``σ̂⁴`` far more than they move ``e``: on the
-      Cornell box it overstated ``se`` 2–6×.
+      1.00× with the bound, mean of three renders; ``docs/progressive.md``).  It falls
+      like ``1/√n`` wherever ``y`` is biased, so the factor tends to 1, but heavy-tailed
+      pixels inflate ``σ̂⁴`` far more than they move ``e``: on the Cornell box it
+      overstated ``se`` 2–6×.
 
     Where the bias is significant (e.g. at high sample counts) the factor is ~1, Eq. 9
     itself tends to 0, and the confidence gate bounds the rest.
@@ -370,8 +374,9 @@ def auto_sigma_s(mean_var) -> float:
 
     ``Var[x̄]`` is taken, as in the authors' code, as the image mean of the per-pixel
     variance of the mean, and ``σ_s`` is floored at ``1e-3``.  It depends on the absolute
-    radiance scale: for an image of values around 0.5 it is ~100 (a flat 11×11 window) at
-    a few samples per pixel and shrinks like ``1/√n`` once ``mean Var[x] < 1``.
+    radiance scale and the noise level: with ``mean Var[x] = 0.16`` it is 40 (the 11×11
+    weights then vary by < 2 %, a nearly flat window), 100 at ``mean Var[x] >= 1``, and it
+    shrinks like ``1/√n`` once ``mean Var[x] < 1``.
     """
     v = as_float_array("mean_var", mean_var, ndim=(2, 3, 4), dtype=np.float64)
     if v.ndim == 4:
@@ -415,11 +420,12 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         ``ε`` of Eq. 17.
     channels : {"separate", "shared"}
         ``"separate"`` (default): one t-statistic per channel, each from its own Eq.
-        12–14; ``"shared"`` (the authors' code): one per pixel from the sums of Eq. 12–14
-        over channels.  The sum of Eq. 13 treats the channels as independent, so on
-        correlated colour noise the shared ``t`` has a standard deviation up to
-        ``√(1 + 2ρ)`` (≈ 1.7) under the null instead of 1, and the gate fires on noise
-        (``toy:mixed`` at 256 spp: 1.19× OIDN's relMSE shared, 0.83× separate).
+        12–14; ``"shared"``: one per pixel from the sums of Eq. 12–14 over channels (as
+        the authors' code, except that it weighs the ``M_p`` terms by 1/3 in that sum).
+        The sum of Eq. 13 treats the channels as independent, so on correlated colour
+        noise the shared ``t`` has a standard deviation up to ``√(1 + 2ρ)`` (≈ 1.7) under
+        the null instead of 1, and the gate fires on noise (``toy:mixed`` at 256 spp:
+        1.19× OIDN's relMSE shared, 0.83× separate).
     cdf : {"normal", "logistic"}
         ``S`` of Eq. 18: the standard normal CDF (default) or the logistic function, which
         [1]_ reports to work equally well.

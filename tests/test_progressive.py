@@ -586,8 +586,8 @@ def test_gate_false_positive_rate_under_h0_matches_eq18():
 
     rng = np.random.default_rng(41)
     h, v0, ss, a, c = 384, 1e-3, 2.0, 2.0, 2.0
-    d = np.arange(-5, 6)
-    kap = np.exp(-(d[:, None] ** 2 + d[None, :] ** 2) / (2 * ss * ss)) / (ss * math.sqrt(2 * math.pi))
+    d2 = np.arange(-5, 6)[:, None] ** 2 + np.arange(-5, 6)[None, :] ** 2
+    kap = np.exp(-d2 / (2 * ss * ss)) / (ss * math.sqrt(2 * math.pi))      # Eq. 15
     w_m = kap.copy()
     w_m[0, 0] += 1.0                     # equal variances: M_p is the first (top-left) pixel
     s = math.sqrt((w_m ** 2).sum() / (1.0 + (kap ** 2).sum()))
