@@ -45,6 +45,12 @@ def test_tonemap_derivative_matches_central_differences(name, exposure):
 
 def test_tonemap_values():
     assert float(da.tonemap(np.array(1.0), "reinhard")) == 0.5
+    # Narkowicz's ACES fit x(2.51x + 0.03)/(x(2.43x + 0.59) + 0.14), values by hand
+    assert np.isclose(float(da.tonemap(np.array(1.0), "aces")), 2.54 / 3.16, rtol=1e-14)
+    assert np.isclose(float(da.tonemap(np.array(0.18), "aces")),
+                      0.18 * 0.4818 / (0.18 * 1.0274 + 0.14), rtol=1e-14)
+    assert np.isclose(float(da.tonemap_derivative(np.array(0.0), "aces")), 0.03 / 0.14,
+                      rtol=1e-14)                             # T'(0) = b/e
     y = da.tonemap(np.linspace(0, 100, 1001), "aces")
     assert y[0] == 0 and y[-1] == 1.0 and np.all(np.diff(y) >= 0)
     assert (float(da.tonemap(np.array(0.5), "aces", exposure=2.0))

@@ -119,19 +119,20 @@ def test_smoothing_keeps_constant_moments_and_shares_channels():
     assert np.allclose(a_pix, (0.04 - 0.01) / (0.01 + 0.04 - 0.02))
 
 
-def _h0_field(seed, h=384, n=64, channels=1, **options):
+def _h0_field(seed, h=384, n=64, channels=1, bias=0.0, **options):
     """Unbiased y = μ: Eq. 10's numerator b is pure noise.  Returns (b, info) at points 4σ
     apart (nearly independent) for smoothing σ = 3.  With ``channels`` > 1 the channels'
     noise is one common normal draw (perfect correlation, as for white light), scaled
-    per channel."""
+    per channel.  ``bias``: a noise-free y = μ + bias instead (b then has mean bias²)."""
     rng = np.random.default_rng(seed)
     shape1 = (h, h, 1)
     mu = np.full(shape1, 0.7) * np.linspace(1.0, 0.6, channels)
     sigma2 = np.full(shape1, 0.01) * np.linspace(1.0, 0.5, channels)
     x = mu + np.sqrt(sigma2) * rng.standard_normal(shape1)
     s2_hat = sigma2 * rng.chisquare(n - 1, shape1) / (n - 1)   # independent of x (normal)
-    sure = (mu - x) ** 2 - s2_hat        # SURE of y = μ, whose divergence is 0
-    _, info = pg.mixing_weights(x, mu, s2_hat, sure, np.zeros_like(x), smooth=3.0,
+    y = mu + bias
+    sure = (y - x) ** 2 - s2_hat         # SURE of y = μ + bias, whose divergence is 0
+    _, info = pg.mixing_weights(x, y, s2_hat, sure, np.zeros_like(x), smooth=3.0,
                                 relative_eps=None, shrink=2.0, n=np.full((h, h), n),
                                 extra_output=True, **options)
     pick = (slice(12, -12, 12), slice(12, -12, 12), 0)
@@ -199,16 +200,31 @@ def test_shrinkage_model_with_a_covariance_matches_its_limits():
     assert np.all(cor["se_model"] >= ind["se_model"])          # the bound is the larger
 
 
-def test_shrinkage_spread_standard_error_is_calibrated():
+@pytest.mark.parametrize("bias", [0.0, 0.3])
+def test_shrinkage_spread_standard_error_is_calibrated(bias):
     """The local-spread estimate: E[se_spread²] = Var[b] (ratio inside the 99.9 % interval
-    of the sample variance of 900 b values); dropping Σ k² (using the kernel's effective
-    sample count wrongly by 2×) is rejected."""
-    b, info = _h0_field(8)
+    of the sample variance of 900 b values), under the null and with a constant bias of y
+    (where a spread taken about 0 instead of about the local mean b is 3× too large);
+    dropping Σ k² (using the kernel's effective sample count wrongly by 2×) is rejected."""
+    b, info = _h0_field(8, bias=bias)
     m = b.size
     ratio = np.var(b, ddof=1) / np.mean(info["se_spread"] ** 2)
     lo, hi = sst.chi2.ppf([0.0005, 0.9995], m - 1) / (m - 1)
     assert lo < ratio < hi, (ratio, lo, hi)
     assert not (lo < 2 * ratio < hi)
+
+
+def test_shrinkage_model_standard_error_is_calibrated_under_bias():
+    """A noise-free y = μ + 0.3 (σ = 0.1): Var[b] is dominated by the 4b²σ² term of the
+    model.  The z-scores (b − mean b)/se_model then have standard deviation 1 (99.9 %
+    chi-square interval of 900 values), and b has mean bias² (E[SURE] = MSE of y); a model
+    with 2b²σ² for 4b²σ² (sd ≈ √2) is rejected by the same data."""
+    b, info = _h0_field(9, bias=0.3)
+    zs = (b - b.mean()) / info["se_model"]
+    lo, hi = _sd_interval(zs)
+    assert lo <= 1.0 <= hi, (lo, hi)
+    assert _sd_interval(zs * math.sqrt(2))[0] > 1.0        # power against 2b²σ²
+    assert abs(b.mean() - 0.09) < 3.29 * b.std(ddof=1) / math.sqrt(b.size)
 
 
 def test_shrinkage_keeps_significant_bias_and_drops_noise():
