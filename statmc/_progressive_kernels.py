@@ -11,6 +11,8 @@ pixels):
 * ``M_p = argmax_{q ∈ N_p} v_q`` (Eq. 16; ties go to the first in row-major order);
 * ``num_p = u_{M_p} + Σ_q κ_pq u_q`` — the difference ``z̄_p − x̄_p`` of Eq. 14 and 12;
 * ``var_p = v_{M_p} + Σ_q κ_pq² v_q`` — Eq. 13;
+* ``t_p = num_p/(√var_p + ε)`` — Eq. 17, with its limit ε → 0⁺ where ``√var_p + ε = 0``
+  (0 if ``num_p = 0``, else ±∞), and ``α'_p = (1 − S[a(|t_p| − c)]) α_p`` — Eq. 18;
 
 with ``κ_pq = g(p_y − q_y) g(p_x − q_x)·norm``, ``g(d) = exp(−d²/(2σ_s²))`` and
 ``norm = 1/(σ_s √(2π))`` (Eq. 15).  κ is separable, and so is the window argmax (the
@@ -104,6 +106,18 @@ def _scale(s, logistic, fast, inv_sqrt2):  # pragma: no cover - compiled
     return 0.5 * math.erfc(s * inv_sqrt2)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tstat(num, var, eps):  # pragma: no cover - compiled
+    """Eq. 17, ``num/(√var + ε)``; where ``√var + ε = 0`` (ε = 0 on zero variance) its limit
+    ε → 0⁺: 0 if ``num = 0``, else ±∞ (no 0/0, which the no-NaN fast math may not form)."""
+    den = math.sqrt(max(var, 0.0)) + eps
+    if den > 0.0:
+        return num / den
+    if num == 0.0:
+        return 0.0
+    return math.inf if num > 0.0 else -math.inf
+
+
 @njit(parallel=True, cache=True, nogil=True, fastmath=_FLAGS)
 def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
                 finish, alpha, shared, a, cc, eps, logistic, fast, t_out,
@@ -174,7 +188,7 @@ def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
                     for k in range(c):
                         sn += o_num[j0 + k]
                         sw += o_var[j0 + k]
-                    t = sn / (math.sqrt(max(sw, 0.0)) + eps)
+                    t = _tstat(sn, sw, eps)
                     scale = _scale(a * (abs(t) - cc), logistic, fast, inv_sqrt2)
                     for k in range(c):
                         if keep:
@@ -182,7 +196,7 @@ def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
                         o_a[j0 + k] = scale * i_a[j0 + k]
                 else:
                     for k in range(c):
-                        t = o_num[j0 + k] / (math.sqrt(max(o_var[j0 + k], 0.0)) + eps)
+                        t = _tstat(o_num[j0 + k], o_var[j0 + k], eps)
                         if keep:
                             t_out[y, j0 + k] = t
                         o_a[j0 + k] = _scale(a * (abs(t) - cc), logistic, fast,
@@ -354,12 +368,14 @@ def gate_finish_numpy(num, var, alpha, *, shared, a, c, eps, logistic):
     """Plain NumPy reference of Eq. 17 and 18 given ``num`` and ``var``."""
     from scipy.special import ndtr
 
+    shape = num.shape
     if shared:
-        sd = np.sqrt(np.clip(var.sum(axis=2, keepdims=True), 0, None))
-        t = num.sum(axis=2, keepdims=True) / (sd + eps)
-        t = np.broadcast_to(t, num.shape)
-    else:
-        t = num / (np.sqrt(np.clip(var, 0, None)) + eps)
+        num = num.sum(axis=2, keepdims=True)
+        var = var.sum(axis=2, keepdims=True)
+    den = np.sqrt(np.clip(var, 0, None)) + eps
+    pos = den > 0
+    limit = np.where(num > 0, np.inf, np.where(num < 0, -np.inf, 0.0))   # ε → 0⁺ at den = 0
+    t = np.broadcast_to(np.where(pos, num / np.where(pos, den, 1.0), limit), shape)
     s = a * (np.abs(t) - c)
     cdf = 1.0 / (1.0 + np.exp(-s)) if logistic else ndtr(s)
     return np.array(t), (1.0 - cdf) * alpha

@@ -417,7 +417,9 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     c, a : float
         Shift and strength of Eq. 18 (4.2 and 2 in [1]_).
     eps : float
-        ``ε`` of Eq. 17.
+        ``ε`` of Eq. 17 (``>= 0``).  Where ``√Var[x̄_p] + ε = 0`` (``ε = 0`` on a window of
+        zero variance, e.g. all-black pixels) ``t_p`` is the limit ``ε → 0⁺``: 0 if
+        ``z̄_p = x̄_p``, else ``±∞`` (then ``α' = 0``: an exact render is kept).
     channels : {"separate", "shared"}
         ``"separate"`` (default): one t-statistic per channel, each from its own Eq.
         12–14; ``"shared"``: one per pixel from the sums of Eq. 12–14 over channels (as

@@ -670,6 +670,47 @@ def test_gate_t_is_invariant_to_image_scale_without_eps():
     assert np.allclose(a["t"], b["t"])
 
 
+@pytest.mark.parametrize("precision", ["single", "double"])
+@pytest.mark.parametrize("channels", ["separate", "shared"])
+def test_gate_with_eps_zero_on_zero_variance_is_the_small_eps_limit(precision, channels):
+    """All-black pixels (every sample 0: mean 0, variance 0) where the mix equals the render:
+    Eq. 17 with ε = 0 is 0/0 there.  The gate returned NaN α' (float32 work; the fast-math
+    double path returned an arbitrary 1), and the NaN reached z = x + α'(y − x) even where
+    α = 0.  Now t is the limit ε → 0⁺ of Eq. 17: 0 where z̄ − x̄ = 0, ±∞ where it is not
+    (α' = 0: a render without noise is trusted)."""
+    rng = np.random.default_rng(3)
+    shape = (30, 30, 3)
+    x = 0.5 + 0.05 * rng.standard_normal(shape)
+    var = np.full(shape, 2.5e-3)
+    x[:, :15] = 0.0                         # black left half, far wider than the window
+    var[:, :15] = 0.0
+    y = x + 0.01 * rng.standard_normal(shape)
+    y[:, :15] = 0.0                          # the denoiser keeps it black ...
+    y[10, 3] = 0.2                           # ... except at one pixel
+    alpha = rng.random(shape)
+    alpha[20, 3] = 0.0
+    kw = dict(precision=precision, channels=channels, extra_output=True)
+    got, info = pg.confidence_gate(x, y, var, alpha, eps=0.0, **kw)
+    ref, rinfo = pg.confidence_gate(x, y, var, alpha, eps=1e-300, **kw)
+    assert np.all(np.isfinite(got)) and not np.any(np.isnan(info["t"]))
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(np.sign(info["t"]), np.sign(rinfo["t"]))
+    far = (slice(None), slice(0, 15 - 11))      # black windows without the bright pixel
+    quiet = np.ones(shape[:2], bool)
+    quiet[5:16, :9] = False
+    q = quiet[:, :15 - 11]
+    assert np.all(info["t"][far][q] == 0) and np.all(got[far][q] == alpha[far][q])
+    assert np.all(got[10, 3] == 0)                          # departs from an exact render
+    z = x + got * (y - x)
+    assert np.all(np.isfinite(z))
+    if precision == "double":                # the NumPy reference follows the same limit
+        _, _, t_ref, a_ref = pk.gate_numpy(alpha * (y - x), var, alpha, 5, info["sigma_s"],
+                                           shared=channels == "shared", a=pg.DEFAULT_A,
+                                           c=pg.DEFAULT_C, eps=0.0, logistic=False)
+        np.testing.assert_allclose(info["t"], t_ref, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(got, a_ref, rtol=1e-12, atol=1e-15)
+
+
 def test_gate_dtype_policy():
     x = np.random.default_rng(0).random((6, 6, 3)).astype(np.float32)
     assert pg.confidence_gate(x, x, np.full_like(x, 0.01), np.ones_like(x)).dtype == np.float32
