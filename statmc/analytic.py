@@ -946,7 +946,9 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     Parameters
     ----------
     stats : PixelStats
-        Statistics so far (every pixel needs ``n >= 1``).
+        Statistics so far.  Pixels with ``n <= 1`` have no variance of their own and
+        take the pooled variance of their neighbourhood (:func:`pooled_sample_variance`);
+        an empty pixel (``n = 0``) is filled up like its neighbours (tested).
     budget : int
         Samples to add; the counts sum to it exactly.
     rng : numpy Generator or int, optional

@@ -757,6 +757,38 @@ def test_expected_error_sampler_options():
         an.expected_error_sampler(st, 50, objective="posterior")
 
 
+def test_expected_error_sampler_fills_pixels_without_samples():
+    """Pixels with n = 0 (or 1) have no variance of their own: they take the pooled
+    variance of their neighbourhood (:func:`pooled_sample_variance`) and the water-filling
+    map tops up ``n + s`` as for their neighbours: an empty pixel gets the samples its
+    neighbours get plus their n where those are topped up, some where they are not, and
+    more in the noisier half."""
+    from statmc.stats import PixelStats
+    rng = np.random.default_rng(8)
+    H, W, S = 24, 32, 4
+    scale = np.where(np.arange(W) < W // 2, 4.0, 1.0)[None, :, None]
+    st = PixelStats.from_samples(0.5 + scale * rng.normal(size=(S, H, W, 1)))
+    n = st.n.copy()
+    empty = [(6, 6), (12, 8), (18, 5), (6, 26), (12, 24), (18, 27)]
+    for i, j in empty:
+        n[i, j] = 0
+    mean, var = st.mean.copy(), st.sample_var.copy()
+    for i, j in empty:
+        mean[i, j], var[i, j] = 0.0, 0.0
+    st0 = PixelStats.from_mean_var(mean, var, n)
+    c = an.expected_error_sampler(st0, H * W * 4, rng=1)
+    assert c.sum() == H * W * 4
+    for i, j in empty:
+        nb = c[i - 1:i + 2, j - 1:j + 2].astype(float)
+        ring = (nb.sum() - nb[1, 1]) / 8
+        assert c[i, j] >= 1, (i, j)
+        if ring >= 1:            # neighbours topped up (not clipped at s = 0): same n + s
+            assert abs(c[i, j] - (ring + S)) <= 2.5, (i, j, c[i, j], ring)
+    left = np.mean([c[i, j] for i, j in empty[:3]])
+    right = np.mean([c[i, j] for i, j in empty[3:]])
+    assert left > right + 2
+
+
 def test_expected_error_sampler_water_filling_equals_solver():
     """The sampler's unconditional shortcut (water-filling) is the solver's optimum."""
     from statmc.denoisers import gaussian
