@@ -123,7 +123,8 @@ def test_fig5_pixel_synthetic_renders_have_those_moments(s):
     m, v = future_moments(img(f["x_t"])[:, :1], 16.0, s, img(f["x_g"])[:, :1], img(f["var_g"])[:, :1])
     m, v = m.item(), v.item()
     p_mean, _ = z_pvalue(y, m)
-    # sample variance: SE from the gamma's kurtosis (excess 6/alpha, scaled by (s/n)^4)
+    # sample variance: SE from the kurtosis of y, an affine map of a gamma(alpha) variable
+    # (excess kurtosis 6/alpha, unchanged by the map): Var(s²) ≈ v² (2/(N−1) + κ/N)
     alpha = gamma_parameters(f["x_g"], f["var_g"], s)[0].item()
     se_var = v * np.sqrt(2 / (n_rep - 1) + (6 / alpha) / n_rep)
     p_var = 2 * sps.norm.sf(abs(y.var(ddof=1) - v) / se_var)
