@@ -256,8 +256,8 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         probes, ε = 1e-4).
     output : {"denoised", "progressive"}
         ``"progressive"``: the map of ``z = x + α'(y − x)``
-        (:func:`statmc.progressive.progressive_denoise`, with ``progressive_options``;
-        ``outlier=None`` unless given there):
+        (:func:`statmc.progressive.progressive_denoise`, with ``progressive_options``, any
+        of its options but ``mean_var``; ``outlier=None`` unless given there):
         ``Var[z]`` by :func:`mix_variance` (with ``Cov[x, y] ≈`` the MC-SURE divergence when
         ``covariance``), or its error by Eq. 8 of Firmino 2022
         (:func:`statmc.progressive.mix_error`).
@@ -314,6 +314,11 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     if progressive_options is not None and not isinstance(progressive_options, dict):
         raise InputError(f"`progressive_options` must be a dict or None; got "
                          f"{type(progressive_options).__name__}.")
+    if progressive_options and "mean_var" in progressive_options:
+        # one variance for the whole map: Eq. 3's σ², Var[x] in mix_variance and the gate's
+        raise InputError("`progressive_options` must not set 'mean_var': the map takes σ² from "
+                         "`stats.mean_var` everywhere. Pass stats with the variance you want "
+                         "(PixelStats.from_mean_var).")
     gen = as_rng(rng)
     f = bind_denoiser(denoiser, stats) if isinstance(denoiser, str) else denoiser
     x = stats.mean

@@ -291,6 +291,9 @@ def test_bad_input_raises_input_error():
         da.denoising_aware_density(stt, f, blur=(1.0,))
     with pytest.raises(InputError, match="`progressive_options`"):
         da.denoising_aware_density(stt, f, output="progressive", progressive_options=[1])
+    with pytest.raises(InputError, match="must not set 'mean_var'"):
+        da.denoising_aware_density(stt, f, output="progressive",
+                                   progressive_options={"mean_var": stt.mean_var})
     with pytest.raises(InputError, match="`stats`"):
         da.denoising_aware_density(stt.mean, f)
     few = PixelStats.from_mean_var(stt.mean, stt.sample_var, np.ones((8, 8)))
