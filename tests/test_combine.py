@@ -280,6 +280,51 @@ def test_eq11_matches_dense_linear_algebra(correlated):
             assert abs(got - Sz[p, q]) < 1e-12
 
 
+def test_tap_moments_of_the_weights_match_dense_linear_algebra():
+    """The per-tap moments behind statistical_weights, with ``z = F x`` computed from
+    ``y = x`` (so ``cov_yz`` matters): ``Cov(e_t, e_s)`` of ``e_t = y_t + z_c − z_t``
+    (``_Moments.pair``, Eq. 11's matrix, used by "full" and on its diagonal by "coherent"
+    and "diagonal") and ``Var(δ_t)`` of ``δ_t = (z_c − z_t) − (y_c − y_t)`` (``_delta_var``,
+    subtracted from the tap-bias estimate), against the rows of the dense linear maps of
+    ``x``, at interior and border pixels.  Catches a wrong sign, factor or offset in any
+    of their cross terms (the kernel-vs-reference tests cannot: both share the formula)."""
+    from statmc.combine import _delta_var, _Moments, _offsets
+
+    rng = np.random.default_rng(13)
+    H, W, C, k, kf = 7, 8, 2, 3, 3
+    N = H * W
+    F = rng.random((H, W, kf, kf))                  # asymmetric, so offsets' signs matter
+    vx = rng.random((H, W, C)) + 0.1
+    cov_z, cross = filter_covariance(F, vx, size=2 * k - 1, cross=True)
+    mom = _Moments(vx[None], cov_z[None], cross[None])
+    Fm = _dense_operator(F, H, W)
+    E = np.eye(N)
+    offs = _offsets(k)
+    pair = {(t, s): mom.pair(0, t, s) for t in offs for s in offs}
+    dvar = {t: _delta_var(mom, 0, t) for t in offs if t != (0, 0)}    # no δ for the centre
+    without = _Moments(vx[None], cov_z[None], None)     # printed Eq. 11: no cross terms
+    differs = False
+    for (py, px) in [(3, 4), (0, 0), (0, 7), (6, 3), (2, 1)]:
+        c = py * W + px
+        taps = {t: (py + t[0]) * W + px + t[1] for t in offs
+                if 0 <= py + t[0] < H and 0 <= px + t[1] < W}
+        # rows of e_t and δ_t as linear maps of x
+        rows = {t: E[q] + Fm[c] - Fm[q] for t, q in taps.items()}
+        for ch in range(C):
+            S = np.diag(vx[..., ch].ravel())
+            for t, rt in rows.items():
+                if t != (0, 0):
+                    dt = Fm[c] - Fm[taps[t]] - E[c] + E[taps[t]]
+                    np.testing.assert_allclose(dvar[t][py, px, ch], dt @ S @ dt, rtol=1e-10,
+                                               atol=1e-13)
+                for s, rs in rows.items():
+                    want = rt @ S @ rs
+                    np.testing.assert_allclose(pair[t, s][py, px, ch], want, rtol=1e-10,
+                                               atol=1e-13)
+                    differs |= abs(without.pair(0, t, s)[py, px, ch] - want) > 1e-3 * abs(want)
+    assert differs                                  # the cross terms are exercised
+
+
 def test_eq10_bias_is_exact_for_fixed_weights():
     rng = np.random.default_rng(12)
     H, W, C, k = 8, 9, 3, 5
