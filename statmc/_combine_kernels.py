@@ -296,7 +296,8 @@ def _im(A, b, y, x, c):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  # pragma: no cover
+def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2,
+                 pairs=False):  # pragma: no cover
     """Squared-bias estimates ``s2[j, y − y0, x, c]`` for tap ``j`` and rows ``y0 .. y1 − 1``.
 
     ``max(box_mean(mean_b((δ² − Var δ)·valid), valid), 0)`` over the ``(2 patch + 1)²``
@@ -305,7 +306,9 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
     the two centres whose ``δ`` contains ``y_c`` itself (``c`` and ``c − o``) are left out.
     ``Var δ = P_c + P_t − 2 cov(z_c, z_t) + 2 cov(y_c, z_t) + 2 cov(y_t, z_c)`` with the
     per-pixel ``P = var_y + var_z − 2 cov(y, z)`` (:func:`_self_term`), the NumPy
-    ``_delta_var`` regrouped.
+    ``_delta_var`` regrouped.  With ``pairs`` (``z_bias="pairs"``, ``B >= 2``) the
+    per-centre term is ``((Σ_b δ_b)² − Σ_b δ_b²) / (B (B − 1))`` instead (the mean of
+    ``δ_b δ_b'`` over distinct bins; no ``Var δ``).
 
     One task per (tile of ``BIAS_TILE`` columns, tap), so a task's input rows stay in
     cache.  The inner loops run over contiguous ``(x, c)`` rows (1-D views indexed from 0,
@@ -351,6 +354,7 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
         q = np.empty((nq, ne * C))
         hq = np.empty((nq, (c1 - c0) * C))
         dvr = np.empty(ne * C)
+        sr = np.empty(ne * C)            # pairs: Σ_b δ_b of the row
         for yy in range(q0, q1):
             qf = q[yy - q0]
             qf[:] = 0.0
@@ -360,6 +364,27 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2):  
             lo = xa * C
             hi = xb * C
             qo = -e0 * C                 # q index of image index i is i + qo
+            if pairs:
+                sr[:] = 0.0
+                a_s = sr[lo + qo:hi + qo]
+                a_q = qf[lo + qo:hi + qo]
+                for b in range(B):
+                    zc = zs[b, yy].reshape(W * C)
+                    zt = zs[b, ty].reshape(W * C)
+                    yc = ys[b, yy].reshape(W * C)
+                    yt = ys[b, ty].reshape(W * C)
+                    a_zc = zc[lo:hi]
+                    a_zt = zt[lo + sh:hi + sh]
+                    a_yc = yc[lo:hi]
+                    a_yt = yt[lo + sh:hi + sh]
+                    for i in range(hi - lo):
+                        d = (a_zc[i] - a_zt[i]) - (a_yc[i] - a_yt[i])
+                        a_s[i] += d
+                        a_q[i] += d * d
+                fp = np.float64(B) * np.float64(B - 1)
+                for i in range(hi - lo):
+                    a_q[i] = (a_s[i] * a_s[i] - a_q[i]) / fp
+                continue
             for b in range(B):
                 bp = b if P.shape[0] > 1 else 0
                 Pc = P[bp, yy].reshape(W * C)
@@ -746,8 +771,11 @@ def _self_term(var_y, cov_z, cov_yz, has_yz):
 
 
 def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, method, k, patch,
-                              out, *, loo=False, band_bytes=1 << 28, rows=None):
+                              out, *, loo=False, band_bytes=1 << 28, rows=None, pairs=False):
     """Compiled "coherent"/"diagonal" statistical weights into ``out`` ``(H, W, B, k, k)``.
+
+    ``pairs`` (with ``bias_mode`` 0, ``B >= 2``): the squared biases from products of
+    distinct bins (``z_bias="pairs"``, see :func:`_bias_planes`).
 
     Rows are processed in bands so that the squared-bias planes ``(k², rows, W, C)`` of
     ``bias_mode`` 0 stay under ``band_bytes``.  ``rows = (r0, r1)``: only the weights of
@@ -769,7 +797,8 @@ def statistical_weights_numba(ys, zs, var_y, cov_z, cov_yz, zb, bias_mode, metho
     for y0 in range(r0, r1, rows):
         y1 = min(r1, y0 + rows)
         if bias_mode == BIAS_ESTIMATE:
-            _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2)
+            _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2,
+                         bool(pairs))
         _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k, B, y0, y1,
                       out)
     return out

@@ -57,7 +57,7 @@ __all__ = [
     "denoiser_moments", "combine_denoised", "combine_bins", "combine_bin_images",
 ]
 
-_BIAS_MODES = ("estimate", "zero")
+_BIAS_MODES = ("estimate", "pairs", "zero")
 _METHODS = ("coherent", "diagonal", "full")
 
 #: The largest magnitudes :func:`statistical_weights` accepts: ``VALUE_LIMIT`` in the
@@ -663,13 +663,17 @@ def _bias_vectors(ys, zs, mom, zb, z_bias, k, patch, loo=False):
             continue
         if isinstance(z_bias, str) and z_bias == "zero":
             mean[o] = sq[o] = np.zeros((B, H, W, C))
-        elif isinstance(z_bias, str):  # "estimate"
+        elif isinstance(z_bias, str):  # "estimate", "pairs"
             valid = _valid(H, W, *o)
             d = np.stack([(zs[b] - _shift(zs[b], *o)) - (ys[b] - _shift(ys[b], *o))
                           for b in range(B)])
-            dv = np.stack([_delta_var(mom, b, o) for b in range(B)])
             q1 = (d * valid[..., None]).mean(axis=0)
-            q2 = ((d * d - dv) * valid[..., None]).mean(axis=0)
+            if z_bias == "pairs":       # mean of δ_b δ_b' over distinct bins b != b'
+                sd = d.sum(axis=0)
+                q2 = ((sd * sd - (d * d).sum(axis=0)) / (B * (B - 1))) * valid[..., None]
+            else:
+                dv = np.stack([_delta_var(mom, b, o) for b in range(B)])
+                q2 = ((d * d - dv) * valid[..., None]).mean(axis=0)
             if loo:
                 m, s2 = _box_mean_loo(q1, q2, valid, patch, o)
             else:
@@ -832,7 +836,8 @@ def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo
     _ck.statistical_weights_numba(np.ascontiguousarray(ys), np.ascontiguousarray(zs),
                                   _unbroadcast(mom.var_y), _unbroadcast(mom.cov_z),
                                   _unbroadcast(mom.cov_yz), _unbroadcast(zb), mode, code, k,
-                                  patch, out, loo=loo, rows=rows)
+                                  patch, out, loo=loo, rows=rows,
+                                  pairs=isinstance(z_bias, str) and z_bias == "pairs")
     return out
 
 
@@ -879,14 +884,19 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
     size : int
         Odd window width ``k``.
     method : {"coherent", "diagonal", "full"}
-    z_bias : "estimate", "zero" or ndarray like ``var_y``
+    z_bias : "estimate", "pairs", "zero" or ndarray like ``var_y``
         Bias of ``z``.  ``"estimate"`` (default) estimates the bias of ``z_c − z_t``
         without the truth from ``δ_t = (z_c − z_t) − (y_c − y_t)``, whose mean is that
         bias: ``β_t² ≈ mean(δ_t²) − Var(δ_t)`` over a ``(2 patch + 1)²`` box of centre
         pixels (and over bins), clamped at 0 — unbiased before the clamp, like the
         variance-cancelled distance of non-local means (``"full"`` uses the signed box
-        mean of ``δ_t``).  ``"zero"``: unbiased ``z`` (e.g. GPT-L2).  An array:
-        ``E[z] − μ`` (oracle or external estimate).
+        mean of ``δ_t``).  ``"pairs"`` (``B >= 2`` independent bins): ``β_t²`` from the
+        products of distinct bins, ``((Σ_b δ_{t,b})² − Σ_b δ_{t,b}²) / (B (B − 1))``
+        (``E[δ_b δ_b'] = β_t²`` for ``b ≠ b'``), box-averaged and clamped the same way:
+        unbiased without ``Var(δ_t)``, so neither the moments nor their errors enter the
+        biases, and with a smaller spread than ``"estimate"`` (for ``B = 4`` and Gaussian
+        ``δ``, a third of its variance when ``β = 0``).  ``"zero"``: unbiased ``z`` (e.g.
+        GPT-L2).  An array: ``E[z] − μ`` (oracle or external estimate).
     cov_yz : stencil like ``cov_z``, optional
         Cross-covariance of ``y`` and ``z`` (needed when ``z`` is computed from ``y``).
     patch : int
@@ -968,7 +978,12 @@ def _statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias=
     zb = None
     if isinstance(z_bias, str):
         if z_bias not in _BIAS_MODES:
-            raise InputError(f"`z_bias` must be 'estimate', 'zero' or an array; got {z_bias!r}.")
+            raise InputError(f"`z_bias` must be 'estimate', 'pairs', 'zero' or an array; got "
+                             f"{z_bias!r}.")
+        if z_bias == "pairs" and B < 2:
+            raise InputError("`z_bias='pairs'` estimates the tap biases from products of "
+                             "distinct bins and needs B >= 2 bins (y, z of shape (B, H, W, C)); "
+                             f"got one image of shape {np.shape(y)}.")
     else:
         zb = _image_moment("z_bias", z_bias, B, H, W, C, limit=VALUE_LIMIT)
     ys64, zs64 = ys.astype(np.float64), zs.astype(np.float64)
@@ -1111,6 +1126,10 @@ DEFAULT_MIX_SIGMA = 16.0  # Gaussian σ (pixels) pooling the SURE terms of the m
 #: extra calls): 2 moved oidn+bins with the mix from 0.84 to 0.79x OIDN on cornell-box at
 #: 64 spp, 0.99 to 0.98x on textured-dof (bench/analysis_bins_combine.py, docs/combine.md).
 DEFAULT_BIN_PROBES = 2
+#: Tap-bias estimate of the weights behind combine_bins' mix (:func:`statistical_weights`'s
+#: ``z_bias``): "pairs" keeps them independent of the pixel noise model that "estimate"
+#: subtracts (docs/combine.md, "The bias of the SURE terms").
+_MIX_Z_BIAS = "pairs"
 #: Memory of one band of rows (bytes) of the per-pixel weights (float32) and smoothed
 #: moment stencils (float64) of :func:`combine_denoised`, :func:`combine_bins` and
 #: :func:`combine_bin_images`, margins included (:func:`_band_rows`).
@@ -1717,7 +1736,8 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
        (Eq. 1 and the optimal α of Eq. 9 of Firmino et al. 2022 [2]_), pooled as in
        :func:`combine_denoised` (relMSE weights, a Gaussian of σ = ``mix_sigma`` pixels
        or the whole image).  The weights then leave the centre out
-       (``leave_centre_out=True`` of :func:`statistical_weights`), as Stein's lemma
+       (``leave_centre_out=True`` of :func:`statistical_weights`) and take the tap
+       biases from products of distinct bins (``z_bias="pairs"``), as Stein's lemma
        needs; see Notes.  ``mix=None`` returns ``β̂`` of the ordinary weights.
 
     Parameters
@@ -1817,8 +1837,9 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     :func:`combine_denoised` at ``(ȳ, f(ȳ))`` with the bin-summed weights ``ā``
     (:func:`_mix_gain`), ``cov(ȳ_c, z_t) = E[v_c (J v)_t]`` from the probes at ``ȳ``.
     Assumptions: (i) the weights of pixel ``c`` do not depend on ``y_c`` — hence the
-    leave-centre-out tap biases; they still see ``y_c`` through ``z_c`` and the 5x5
-    variance, which the estimate ignores, as does :func:`combine_denoised`; (ii) a
+    leave-centre-out tap biases from products of distinct bins (``z_bias="pairs"``); they
+    still see ``y_c`` through ``z_c``, the probe moments and the 5x5 variance of the
+    taps, which the estimate ignores, as does :func:`combine_denoised`; (ii) a
     kernel fixed given the data — for GEM's kernel its selection on ``ȳ`` is ignored;
     then ``ρ`` is linear in each ``y_{c,b}`` and the estimate is unbiased for any pixel
     noise, not only Gaussian (tested against the true error over bin draws); (iii) for
@@ -1833,14 +1854,15 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     formula above; for OIDN that is biased (a ``1/B``-spp bin sees a smoother OIDN):
     the estimated optimal global λ was −0.03 to 0.15 where the truth was 0.46–0.49
     (cornell-box, 64 spp, 3 seeds), 0.38–0.45 with 4 probes per bin.  ``z̄ − f(ȳ)``
-    itself enters ``ρ`` as observed.  ``E[ρ²]`` is estimated by ``ρ²``.  Measured bias
-    of the whole estimate on the built-in scenes: the estimated λ is *below* the true
-    optimum (the mix is conservative, it keeps more of ``f(ȳ)``), e.g. GEM on
-    glossy-spheres at 64 spp −0.04 to −0.06 against 0.14–0.19; the weights' dependence
-    on ``y_c`` through the smoothed variance (heavy-tailed pixels) is the suspect: on
-    the toy ``mixed`` scene with a fixed blur the estimate is biased too (p = 3e-5 over
-    100 draws), on ``edges`` not.  Measured (``bench/analysis_bins_combine.py``,
-    ``docs/combine.md``): see there.
+    itself enters ``ρ`` as observed.  ``E[ρ²]`` is estimated by ``ρ²``.  Until session 8
+    the weights of the mix took their tap biases from ``δ² − Var(δ)`` (``"estimate"``);
+    ``Var(δ)`` of the centres near ``c`` holds the 5x5-smoothed ``mean_var`` of ``c``,
+    which rises with ``y_c`` where pixels are heavy-tailed, so the weights moved with
+    ``y_c`` and the estimate of ``b`` was biased low (toy ``mixed``, fixed blur, 32x32,
+    200 draws: −15 % of ``b``, p = 2e-36; mean λ 0.69 where the per-draw optimum was
+    0.80), the mix conservative.  With ``"pairs"`` (no ``Var(δ)``) the same run gave
+    +2.1 % (p = 1e-5 with the relMSE weights, p = 0.06 without), λ 0.89 against 0.87, and
+    relMSE 0.064 instead of 0.152 (``docs/combine.md``, "The bias of the SURE terms").
 
     References
     ----------
@@ -1931,7 +1953,7 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
         gains[a:b] = gain[a - lo:b - lo]
 
     beta, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole, loo=True,
-                           band=band, extra_row_bytes=W * k * k * 4)
+                           band=band, extra_row_bytes=W * k * k * 4, z_bias=_MIX_Z_BIAS)
     del moments
     out, lam = _pooled_mix(z, beta[None], nums, rel, mix, ms)
     return out, {"denoised": zs, "weights": w, "full_denoised": z, "combined": beta,
@@ -1953,12 +1975,12 @@ def _check_window_options(size, stencil, smooth, patch):
 
 
 def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False, loo=False, band=None,
-                 extra_row_bytes=0):
+                 extra_row_bytes=0, z_bias="estimate"):
     """Statistical weights and Eq. 14 in bands of rows (:func:`_band_rows`: weights and
     ``m``-wide stencils within :data:`BAND_BYTES`), each with the ``k // 2 + patch`` rows
     of margin a pixel's weights and its Eq. 14 read; ``moments`` (:class:`_SmoothedRows`)
     gives each band's smoothed ``cov_z``, ``cov_yz`` (``whole``: one band; returns its
-    weights too).  ``loo``: weights leaving the centre out (:func:`statistical_weights`).
+    weights too).  ``loo``, ``z_bias``: of the weights (:func:`statistical_weights`).
     ``band(a, b, lo, hi, w, beta)``, if given, sees each band's weights and Eq. 14 on
     rows ``lo .. hi − 1`` (its output rows ``a .. b − 1``), e.g. for the SURE terms of
     the mix; ``extra_row_bytes`` is what it holds per row, counted in the band size."""
@@ -1975,7 +1997,7 @@ def _banded_eq14(ys, zs, var_y, moments, m, k, patch, *, whole=False, loo=False,
         cov_z, cov_yz = moments.rows(lo, hi)
         w = _statistical_weights(ys[:, lo:hi], zs[:, lo:hi], var_y[lo:hi], cov_z, k,
                                  cov_yz=cov_yz, patch=patch, leave_centre_out=loo,
-                                 rows=None if whole else (a - lo, b - lo))
+                                 z_bias=z_bias, rows=None if whole else (a - lo, b - lo))
         del cov_z, cov_yz
         beta = combine_multi(ys[:, lo:hi], zs[:, lo:hi], w)
         out[a:b] = beta[a - lo:b - lo]
