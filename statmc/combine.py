@@ -1754,9 +1754,10 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     mix : {"local", "global", None}
         The SURE mix with ``f(ȳ)`` (step 4), pooled over a Gaussian of σ = ``mix_sigma``
         pixels (the default: on the four built-in scenes at 16 and 64 spp, 3 seeds, it
-        gave 0.97–1.00x GEM and 0.79–1.00x OIDN, no seed above 1.002x, where Eq. 14 alone
-        gave 0.98–5.5x and 0.94–6.2x, ``docs/combine.md``) or the whole image (never
-        better than ``"local"`` there); ``None``: Eq. 14 alone.
+        gave 0.95–1.00x GEM and 0.76–1.00x OIDN (session 8; cells up to 1.003x, one seed
+        at 1.010x), where Eq. 14 alone gave 0.98–5.5x and 0.94–6.2x, ``docs/combine.md``)
+        or the whole image (never better than ``"local"`` in session 7); ``None``: Eq. 14
+        alone.
     mix_sigma : float
     bin_probes : int or None
         With a mix: ``±σ`` probes of the denoiser at each bin (``B · bin_probes`` extra
