@@ -123,3 +123,38 @@ def test_expected_error_with_gem_pilot_kernels_holds_them_fixed():
     assert int(res.stats.n.sum()) == 8 * 16 * 16
     later = [k for k in seen[1:] if k is not None]
     assert later and all(np.array_equal(later[0], k) for k in later)
+
+
+def test_even_schedule_splits_a_remainder_exactly():
+    """Rousselle 2011 §6: N = M(n − 4)/8 samples per iteration.  When 8 does not divide
+    the rest, the first ``rest % 8`` passes take one sample more: closed form, for
+    several totals, initial passes and iteration counts (the budgets of the other tests
+    divide evenly, which hid a dropped remainder)."""
+    from statmc.adaptive import pass_budgets
+    for total, first, it in ((2405, 1920, 8), (1000, 3, 8), (17, 10, 3), (9, 9, 4), (100, 0, 7)):
+        rest = total - first
+        got = pass_budgets(total, first, iterations=it)
+        want = [rest // it + 1] * (rest % it) + [rest // it] * (it - rest % it)
+        assert got == want and sum(got) == rest, (total, first, it, got)
+    assert pass_budgets(50, 10) == [5] * 8                      # 8 iterations by default
+    assert pass_budgets(50, 10, iterations=0) == []
+
+
+@pytest.mark.parametrize("sampler", ["uniform", "gem"])
+def test_budget_with_a_remainder_is_met_exactly(toy, sampler):
+    """spp = 5.01 on 24×20: total round(2404.8) = 2405, rest 485 = 8·60 + 5 over the 8
+    passes; the loop's total and every pass's budget are exact."""
+    res = adaptive_render(toy, 5.01, sampler=sampler, seed=4)
+    assert int(res.stats.n.sum()) == 2405
+    assert [int(c.sum()) for c in res.counts] == [4 * 480] + [61] * 5 + [60] * 3
+    np.testing.assert_array_equal(sum(res.counts), res.stats.n)
+
+
+def test_no_iterations_spreads_the_fractional_remainder():
+    """``iterations=0``: one uniform pass of int(spp) spp plus the remainder
+    round(spp·M) − int(spp)·M spread uniformly (every pixel 4 or 5 at 4.25 spp)."""
+    r = ToyRenderer("mixed", width=24, height=20)
+    res = adaptive_render(r, 4.25, sampler="uniform", iterations=0, seed=5)
+    n = res.stats.n
+    assert int(n.sum()) == round(4.25 * 480) and len(res.counts) == 1
+    assert n.min() == 4 and n.max() == 5 and int((n == 5).sum()) == 120
