@@ -655,6 +655,57 @@ def test_debiased_estimated_mse_equals_reference():
     assert np.all(info["est_mse"] <= sel["est_mse"] + 1e-12)   # noise removed, never added
 
 
+def _quadratic_scene(h=72, w=84):
+    """A two-channel quadratic image (exact pixel estimates) with a variance of the mean
+    that rises over six decades left to right, so that GEM selects several scales."""
+    yy, xx = np.mgrid[:h, :w].astype(float)
+    truth = np.stack([0.002 * (xx - 40) ** 2 + 0.0014 * (yy - 30) ** 2 + 0.5,
+                      -0.002 * xx ** 2 + 0.001 * xx * yy + 0.2 * yy + 9.0], axis=-1)
+    ramp = np.clip((xx - 24) / (w - 48), 0, 1)       # over the interior of the σ = 8 bank
+    mv = 1e-6 * 10.0 ** (6 * ramp)[..., None] * np.array([1.0, 0.5])
+    return truth, mv
+
+
+def test_estimated_mse_is_the_true_mse_on_a_quadratic_image():
+    """§5 closed form: where the image is quadratic over every support, the accumulated
+    bias terms telescope to the true squared bias of the selected scale (Bias[0] = 0), so
+    the estimated MSE is exactly ``Var[s] + (v_s − truth)²`` — through
+    :func:`gem.estimate_mse`, :func:`gem.select` (compiled, the kernels' own r² and bias
+    factors) and ``sampling_map``; with ``debias`` the noise part ``Σ_{k<s} frac_k
+    Var(v_{k+1} − v_k)`` is taken off the squared bias, clamped at 0."""
+    truth, mv = _quadratic_scene()
+    h, w = truth.shape[:2]
+    sig = F.ADAPTIVE_SIGMAS
+    r = int(np.ceil(3 * sig[-1]))
+    inner = (slice(r, h - r), slice(r, w - r))
+    vals, vars_ = F.filter_bank(truth, mv, sig)
+    bias2 = (vals - truth) ** 2
+
+    def true_mse(scales):
+        s = scales[None, :, :, None]
+        return (np.take_along_axis(vars_, s, 0) + np.take_along_axis(bias2, s, 0))[0]
+
+    r2 = np.array([F.kernel_moment2(s) for s in sig])
+    scales = np.random.default_rng(43).integers(0, len(sig), (h, w))
+    np.testing.assert_allclose(gem.estimate_mse(vals, vars_, r2, scales)[inner],
+                               true_mse(scales)[inner], rtol=1e-9)
+    info = gem.select(truth, mv, final=False, n=np.full((h, w), 8))
+    assert len(np.unique(info["scales"][inner])) == 4       # scales 0 … 3 selected
+    np.testing.assert_allclose(info["est_mse"][inner], true_mse(info["scales"])[inner], rtol=1e-9)
+    n = np.full((h, w), 8)
+    _, raw = gem.sampling_map(truth, mv, n, 1000, rng=0, extra_output=True, var_prior=0.0,
+                              debias=False)
+    np.testing.assert_array_equal(raw["scales"], info["scales"])
+    np.testing.assert_allclose(raw["est_mse"][inner], true_mse(raw["scales"])[inner], rtol=1e-9)
+    _, deb = gem.sampling_map(truth, mv, n, 1000, rng=0, extra_output=True, var_prior=0.0)
+    s = deb["scales"][None, :, :, None]
+    noise = np.concatenate([np.zeros_like(vals[:1]), np.cumsum(
+        gem.bias_factor(r2[:-1], r2[1:])[:, None, None, None] * gem.difference_variance(mv, sig), 0)])
+    want = (np.take_along_axis(vars_, s, 0)
+            + np.maximum(np.take_along_axis(bias2 - noise, s, 0), 0.0))[0]
+    np.testing.assert_allclose(deb["est_mse"][inner], want[inner], rtol=1e-9, atol=1e-15)
+
+
 def test_zero_variance_firefly_pixels_get_samples_with_the_variance_prior():
     """Regression (issue 3): 4 equal samples give sample variance 0, so the paper's
     estimated MSE is 0 and the pixel is never sampled again, although its neighbours
