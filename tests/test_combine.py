@@ -1005,6 +1005,9 @@ def test_denoiser_moments_match_exact_moments_of_a_linear_denoiser():
              for vy in range(-R, R + 1)], 2) for i in range(K)])
         se = prods.std(axis=0, ddof=1) / np.sqrt(K)
         inside = (np.abs(exact) > 0) & (se > 0)      # offsets inside the image (no wrap)
+        # the stencil is the mean of the K per-probe products (÷ K, not K − 1: v has a
+        # known zero mean; a 400/399 slip is invisible to the z-test below)
+        np.testing.assert_allclose(est[inside], prods.mean(axis=0)[inside], rtol=1e-9)
         zs = (est - exact)[inside] / se[inside]
         p = 2 * stats.norm.sf(np.abs(zs)).min() * zs.size
         assert p > ALPHA, (np.abs(zs).max(), zs.size)
@@ -1674,8 +1677,9 @@ def test_combine_bins_mix_sure_term_is_unbiased_with_heavy_tailed_pixels(monkeyp
     f = _gauss_blur(1.5)
     draws = [_draw_bins(r, 16, 4, (33, i)) for i in range(80)]
     p = {}
-    for mode in ("pairs", "estimate"):
-        monkeypatch.setattr(cbm, "_MIX_Z_BIAS", mode)
+    for mode in ("default", "estimate"):         # the default is "pairs"
+        if mode == "estimate":
+            monkeypatch.setattr(cbm, "_MIX_Z_BIAS", mode)
         d = []
         for i, (ys, full) in enumerate(draws):
             _, info = cbm.combine_bins(ys, full.mean_var, f, size=7, probes=4, mix="local",
@@ -1683,7 +1687,28 @@ def test_combine_bins_mix_sure_term_is_unbiased_with_heavy_tailed_pixels(monkeyp
             z = info["full_denoised"]
             d.append((info["gain"] + (z - mu) * (info["combined"] - z)).sum())
         p[mode] = stats.ttest_1samp(d, 0.0).pvalue
-    assert p["pairs"] > ALPHA and p["estimate"] < ALPHA, p
+    assert p["default"] > ALPHA and p["estimate"] < ALPHA, p
+
+
+def test_bin_probes_have_one_bins_variance():
+    """The per-bin probes of a black box are ``v = ±√(B σ²)`` (σ² = ``mean_var`` of the
+    merged render, so ``B σ²`` is one bin's variance of the mean), and ``J_b v`` their
+    finite-difference Jacobian products: for ``f(x) = x / 2`` (``J = I / 2``) every
+    ``v_c (J_b v)_c`` is ``B σ_c² / 2`` exactly (up to the float32 denoiser copies), the
+    term the Stein estimate of the mix divides by ``B``.  (A probe of ``±σ`` would make the
+    Stein terms ``B`` times too small, a slip the statistical test of the mix over 80 draws
+    of a blur does not see: its Jacobian terms are small next to ``a_c σ²``.)"""
+    from statmc.combine import _bin_probe_vectors
+    rng = np.random.default_rng(3)
+    B, H, W, C = 4, 6, 7, 3
+    ys = rng.gamma(2.0, 0.5, (B, H, W, C))
+    zs = 0.5 * ys
+    mv = rng.gamma(2.0, 0.01, (H, W, C))
+    jac = _bin_probe_vectors(lambda x: 0.5 * x, ys, zs, mv, 3, np.random.default_rng(0), 1e-3)
+    assert jac.K == 3 * B and jac.used.all()
+    for i in range(jac.K):
+        np.testing.assert_allclose(jac.v(i) ** 2, B * mv, rtol=1e-12)
+        np.testing.assert_allclose(jac.v(i) * jac.jv[i], 0.5 * B * mv, rtol=2e-3)
 
 
 def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
