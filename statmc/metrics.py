@@ -241,12 +241,14 @@ def _flip_exposures(ref_rgb, test_rgb, tonemapper):
     """FLIP's exposure range for a (near-)black reference, or None to let FLIP choose.
 
     HDR-FLIP ([4]_, flip_evaluator) starts at ``log2(x_max / Y_max)`` and stops at
-    ``log2(x_max / Y_median)`` of the reference luminance, the median clamped at float32
-    epsilon, ``x_max`` being where the tone curve reaches 0.85.  When ``Y_max`` is below
-    that epsilon the start exceeds the stop (or is infinite) and flip_evaluator ends the
-    process.  We then keep FLIP's start, anchored at the test image's maximum when the
-    reference is all black, and raise the stop to the start; FLIP's scale invariance
-    (``FLIP(c x, c r) = FLIP(x, r)``) is kept.  Returns ``"zero"`` when both images are black.
+    ``log2(x_max / Y_median)`` of the reference luminance, the median (FLIP's: the
+    element of rank ``⌊N/2⌋`` of the sorted values, the upper middle one for even ``N``)
+    clamped at float32 epsilon, ``x_max`` being where the tone curve reaches 0.85.  When
+    ``Y_max`` is below that epsilon the start exceeds the stop (or is infinite) and
+    flip_evaluator ends the process.  We then keep FLIP's start, anchored at the test
+    image's maximum when the reference is all black, and raise the stop to the start;
+    FLIP's scale invariance (``FLIP(c x, c r) = FLIP(x, r)``) is kept.  Returns
+    ``"zero"`` when both images are black.
     """
     w = np.array([0.2126, 0.7152, 0.0722])               # linear sRGB luminance, as FLIP
     y_ref = ref_rgb @ w
@@ -261,7 +263,9 @@ def _flip_exposures(ref_rgb, test_rgb, tonemapper):
     a, b, c = a0 - t * d0, b0 - t * e0, c0 - t * f0
     xmax = -c / b if a == 0 else float(max(np.roots([a, b, c]).real))
     start = float(np.log2(xmax / anchor))
-    stop = max(start, float(np.log2(xmax / max(float(np.median(y_ref)), _FLT_EPS))))
+    flat = y_ref.ravel()
+    med = float(np.partition(flat, flat.size // 2)[flat.size // 2])   # FLIP's "median"
+    stop = max(start, float(np.log2(xmax / max(med, _FLT_EPS))))
     return start, stop
 
 

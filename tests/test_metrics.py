@@ -281,3 +281,111 @@ def test_ssim_map_covers_whole_image():
     # reflecting borders: the map covers every pixel (no cropping)
     x = np.random.default_rng(8).random((6, 7, 2))
     assert ssim_map(x, 0.5 * x).shape == (6, 7, 2)
+
+
+# ---------------------------------------------------------------------------- audit (session 8)
+def _explicit_windows(a, rad):
+    """All ``(2 rad + 1)²`` windows of ``a`` (H, W, C), borders mirrored half-sample
+    (``np.pad`` "symmetric" = ``scipy.ndimage`` "reflect"): (H, W, C, k, k)."""
+    p = np.pad(a, ((rad, rad), (rad, rad), (0, 0)), mode="symmetric")
+    return np.lib.stride_tricks.sliding_window_view(p, (2 * rad + 1, 2 * rad + 1), axis=(0, 1))
+
+
+@pytest.mark.parametrize("sigma, L, k1, k2", [(1.5, 1.0, 0.01, 0.03), (1.0, 4.0, 0.01, 0.03),
+                                              (1.5, 2.0, 0.05, 0.2)])
+def test_ssim_map_equals_explicit_window_implementation(sigma, L, k1, k2):
+    """Wang et al. 2004 Eq. 13 with the weighted moments of Eqs. 14-16 (Gaussian window of
+    sigma truncated at 3.5 sigma: 11 x 11 for sigma = 1.5, §III.C), written out window by
+    window over the whole map, borders included (scikit-image is not installed).  Kills
+    C2 built from k1, a `sigma` or `data_range` that does not reach the window/constants."""
+    rng = np.random.default_rng(21)
+    x = L * rng.random((13, 15, 2))
+    y = np.clip(0.7 * x + 0.3 * L * rng.random(x.shape), 0, L)
+    rad = int(3.5 * sigma + 0.5)
+    t = np.arange(-rad, rad + 1)
+    g = np.exp(-t ** 2 / (2 * sigma ** 2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    xw, yw = _explicit_windows(x, rad), _explicit_windows(y, rad)
+    mx, my = (w * xw).sum((-2, -1)), (w * yw).sum((-2, -1))
+    dx, dy = xw - mx[..., None, None], yw - my[..., None, None]
+    vx, vy, cxy = (w * dx * dx).sum((-2, -1)), (w * dy * dy).sum((-2, -1)), (w * dx * dy).sum((-2, -1))
+    c1, c2 = (k1 * L) ** 2, (k2 * L) ** 2
+    want = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2))
+    got = ssim_map(x, y, data_range=L, sigma=sigma, k1=k1, k2=k2)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    if (k1, k2) == (0.01, 0.03):
+        assert one_minus_ssim(x, y, data_range=L, sigma=sigma) == pytest.approx(
+            float(np.mean(1 - want)), rel=1e-10)
+
+
+@pytest.mark.parametrize("sigma, eps", [(1.0, 0.01), (1.7, 0.1)])
+def test_logloss_map_equals_explicit_eq12(sigma, eps):
+    """Salehi 2022 Eq. 12 over the whole map with x' = log(1 + x), an explicitly sampled
+    zero-sum LoG window (radius int(4 sigma + 0.5)) and mirrored borders: kills a `sigma`
+    that does not reach the LoG, a dropped log1p, a denominator in linear units."""
+    rng = np.random.default_rng(22)
+    r = rng.uniform(0, 3, size=(14, 17, 2))
+    x = np.abs(r + 0.5 * rng.standard_normal(r.shape))
+    rad = int(4 * sigma + 0.5)
+    t = np.arange(-rad, rad + 1)
+    g = np.exp(-t ** 2 / (2 * sigma ** 2))
+    g /= g.sum()
+    g2 = g * (t ** 2 - sigma ** 2) / sigma ** 4
+    g2 -= g2.sum() * g
+    kernel = np.outer(g2, g) + np.outer(g, g2)
+    xl, rl = np.log1p(x), np.log1p(r)
+    lx = (kernel * _explicit_windows(xl, rad)).sum((-2, -1))
+    lr = (kernel * _explicit_windows(rl, rad)).sum((-2, -1))
+    ell = 0.5 * np.abs(xl - rl) / (rl + eps) + 0.5 * np.abs(lx - lr) / (rl + eps)
+    np.testing.assert_allclose(logloss(x, r, eps, sigma=sigma, per_pixel=True), ell.mean(2),
+                               rtol=1e-9, atol=1e-12)
+    assert logloss(x, r, eps, sigma=sigma) == pytest.approx(float(ell.mean()), rel=1e-10)
+
+
+def _flip_direct(x, r, params):
+    import flip_evaluator
+    m, e, _ = flip_evaluator.evaluate(np.ascontiguousarray(r, np.float32),
+                                      np.ascontiguousarray(x, np.float32), "HDR",
+                                      applyMagma=False, parameters=params)
+    return np.asarray(m, np.float64).reshape(r.shape[:2]), float(e)
+
+
+def test_flip_passes_reference_tonemapper_and_ppd_to_flip_evaluator():
+    """flip(x, ref) is flip_evaluator.evaluate(reference=ref, test=x) with our tonemapper
+    and ppd.  flip_evaluator silently falls back to ACES on a name it does not know
+    ("Hable" instead of "hable"), so the three tone curves must also give three values."""
+    rng = np.random.default_rng(23)
+    r = 3 * rng.random((20, 24, 3))
+    x = np.abs(r + 0.4 * rng.standard_normal(r.shape))
+    x[3, 4] = 40.0                                        # test != ref roles matter
+    vals = []
+    for tm in ("aces", "hable", "reinhard"):
+        for ppd in (None, 25.0):
+            params = {"tonemapper": tm} if ppd is None else {"tonemapper": tm, "ppd": ppd}
+            m, e = _flip_direct(x, r, params)
+            assert flip(x, r, tonemapper=tm, ppd=ppd) == e
+            np.testing.assert_array_equal(flip(x, r, tonemapper=tm, ppd=ppd, per_pixel=True), m)
+            vals.append(e)
+    assert len(set(vals)) == len(vals), vals
+    assert flip(x, r) != flip(r, x)                       # the reference sets the exposures
+
+
+@pytest.mark.parametrize("tm", ["aces", "hable", "reinhard"])
+def test_flip_near_black_exposures_equal_flip_evaluators_own(tm):
+    """For a (near-)black reference we compute HDR-FLIP's exposure range ourselves
+    (_flip_exposures).  Scaled into that regime (Y_max = 2 float32 eps, median above the
+    eps clamp), our start/stop shifted back by log2(scale) must equal the range
+    flip_evaluator picks for the unscaled reference: this pins the tone-curve
+    coefficients and the median (FLIP takes the upper middle element, not the mean of
+    the two middle ones), which FLIP's scale invariance needs."""
+    import flip_evaluator
+    from statmc.metrics import _FLT_EPS, _flip_exposures
+    rng = np.random.default_rng(24)
+    r = rng.uniform(0.6, 1.0, (16, 16, 3))                 # even pixel count: median matters
+    x = np.abs(r + 0.2 * rng.standard_normal(r.shape))
+    _, _, p = flip_evaluator.evaluate(r.astype(np.float32), x.astype(np.float32), "HDR",
+                                      applyMagma=False, parameters={"tonemapper": tm})
+    s = 2 * _FLT_EPS / float((r @ np.array([0.2126, 0.7152, 0.0722])).max())
+    start, stop = _flip_exposures(s * r, s * x, tm)
+    assert start + np.log2(s) == pytest.approx(p["startExposure"], abs=2e-6)
+    assert stop + np.log2(s) == pytest.approx(p["stopExposure"], abs=2e-6)
