@@ -308,7 +308,8 @@ def test_ssim_map_equals_explicit_window_implementation(sigma, L, k1, k2):
     xw, yw = _explicit_windows(x, rad), _explicit_windows(y, rad)
     mx, my = (w * xw).sum((-2, -1)), (w * yw).sum((-2, -1))
     dx, dy = xw - mx[..., None, None], yw - my[..., None, None]
-    vx, vy, cxy = (w * dx * dx).sum((-2, -1)), (w * dy * dy).sum((-2, -1)), (w * dx * dy).sum((-2, -1))
+    vx, vy = (w * dx * dx).sum((-2, -1)), (w * dy * dy).sum((-2, -1))
+    cxy = (w * dx * dy).sum((-2, -1))
     c1, c2 = (k1 * L) ** 2, (k2 * L) ** 2
     want = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2))
     got = ssim_map(x, y, data_range=L, sigma=sigma, k1=k1, k2=k2)

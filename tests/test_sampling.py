@@ -87,3 +87,71 @@ def test_compiled_rounding_equals_reference_on_a_large_map():
         np.testing.assert_array_equal(_systematic_round(d, budget, 0, np.random.default_rng(1)),
                                       _systematic_round_reference(d, budget, 0,
                                                                   np.random.default_rng(1)))
+
+
+def _extra_sample_pvalues(draw, t, reps):
+    """Per-pixel exact binomial p-values of ``E[counts] = t`` for ``reps`` independent maps
+    ``draw(seed)``: each count must be ``floor(t)`` or ``floor(t) + 1``, so the number of
+    maps where pixel i got the extra sample is Binomial(reps, t_i − floor(t_i))."""
+    base = np.floor(t)
+    extra = np.zeros(t.shape, np.int64)
+    for s in range(reps):
+        e = draw(s) - base
+        assert np.all((e == 0) | (e == 1)), "a count left {floor(t), floor(t) + 1}"
+        extra += e.astype(np.int64)
+    frac = (t - base).ravel()
+    return np.array([sps.binomtest(int(k), reps, f).pvalue if 0 < f < 1 else float(k == 0)
+                     for k, f in zip(extra.ravel(), frac)])
+
+
+def test_rounding_is_unbiased_per_pixel_with_min_count_and_zero_density():
+    """E[counts] = min_count + (budget − N·min_count)·d/Σd in every pixel: exact binomial
+    test per pixel, Bonferroni over the pixels (valid under the dependence between pixels
+    that systematic rounding creates).  Zero-density pixels get exactly min_count.  Power:
+    the same test rejects systematic rounding with its offset drawn from U(0, 0.9)
+    instead of U(0, 1) (a mild bias towards the early pixels of each stratum)."""
+    from statmc.sampling import _systematic_round_reference
+    rng = np.random.default_rng(31)
+    d = rng.lognormal(0.0, 1.0, (6, 8)) * (rng.random((6, 8)) < 0.8)
+    min_count, rest, reps, alpha = 2, 157, 3000, 1e-3
+    budget = min_count * d.size + rest
+    t = min_count + rest * d / d.sum()
+    def draw(s):
+        return counts_from_density(d, budget, min_count=min_count, rng=s)
+
+    p = _extra_sample_pvalues(draw, t, reps)
+    assert p.min() > alpha / p.size, f"biased: min p = {p.min():.3g}, pixels {np.argsort(p)[:5]}"
+    for s in range(20):
+        assert np.all(draw(s)[d == 0] == min_count)
+
+    class Skewed:                                         # offset u ~ U(0, 0.9): biased
+        def __init__(self, s):
+            self.g = np.random.default_rng(s)
+
+        def uniform(self):
+            return 0.9 * self.g.uniform()
+
+    p_alt = _extra_sample_pvalues(
+        lambda s: _systematic_round_reference(d, rest, min_count, Skewed(s)), t, reps)
+    assert p_alt.min() < alpha / p_alt.size, f"no power: min p = {p_alt.min():.3g}"
+
+
+def test_points_on_stratum_boundaries_fall_in_half_open_intervals():
+    """Pixel i owns the points in [cum_{i-1}, cum_i) (np.searchsorted side="right" in the
+    reference); a point exactly on a boundary (u = 0 with fractional parts 1/2) goes to
+    the next pixel with a non-empty interval, in the kernel as in the reference.  Catches
+    an off-by-one `<=` in the compiled sweep that a continuous random u never hits."""
+    from statmc.sampling import _systematic_round, _systematic_round_reference
+
+    class Fixed:
+        def __init__(self, u):
+            self.u = u
+
+        def uniform(self):
+            return self.u
+
+    d = np.array([[1.0, 1.0, 0.0, 1.0, 1.0]])              # targets 1/2, 1/2, 0, 1/2, 1/2
+    for u, want in ((0.0, [1, 0, 0, 1, 0]), (0.5, [0, 1, 0, 0, 1]), (0.25, [1, 0, 0, 1, 0])):
+        got = _systematic_round(d, 2, 0, Fixed(u))
+        np.testing.assert_array_equal(got, [want], err_msg=f"u = {u}")
+        np.testing.assert_array_equal(_systematic_round_reference(d, 2, 0, Fixed(u)), [want])
