@@ -366,7 +366,8 @@ class PixelStats:
         co-moment likewise, ``M2_cross = M2_cross_a + M2_cross_b + δ δᵀ n_a n_b / n``
         (Chan, Golub and LeVeque 1979, Eq. 2.1b; the outer-product form is the
         multivariate version), kept only when both sides have it (never invented).
-        Features are taken from ``self`` when present, else from ``other``.
+        Features are taken from ``self`` when present, else from ``other``; ``meta`` is the
+        union of both, ``self``'s entries winning.
         """
         if not isinstance(other, PixelStats):
             raise InputError(f"can only merge PixelStats with PixelStats; got {type(other).__name__}.")

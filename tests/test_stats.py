@@ -354,3 +354,48 @@ def test_rng_arguments_refuse_what_numpy_cannot_seed():
         mc_sure(lambda x: x, m, 0.1 * m, rng=-3)
     with pytest.raises(InputError, match="`seed` must be"):
         ToyRenderer("mixed", width=4, height=4).render(np.ones((4, 4), np.int64), seed="x")
+
+
+# ----------------------------------------------------------------------------- audit (session 8)
+def test_from_sums_clips_rounding_below_zero_for_constant_pixels():
+    """M2 = Σx² − (Σx)²/n of identical samples is 0 but rounds to ±1e-13: the negative
+    residues are clipped to 0 (not refused as a negative M2), the rest stay at rounding."""
+    rng = np.random.default_rng(41)
+    v = rng.uniform(0, 10, (4, 5, 3))
+    n = 7
+    s1 = sum(v for _ in range(n))                          # running sums, as a renderer's
+    s2 = sum(v * v for _ in range(n))
+    raw = s2 - s1 * (s1 / n)
+    assert np.any(raw < 0)                                 # the case being tested occurs
+    st_ = PixelStats.from_sums(np.full((4, 5), n), s1, s2)
+    assert np.all(st_.m2[raw <= 0] == 0)
+    assert np.all(st_.m2 <= 1e-14 * s2)
+    np.testing.assert_allclose(st_.mean, v, rtol=1e-15)
+
+
+def test_from_mean_var_pixels_with_fewer_than_two_samples_carry_no_spread():
+    """EXR files may hold a non-zero variance where n <= 1 (a renderer's garbage or a
+    default): M2 = s²·max(n − 1, 0) and M2_cross likewise are 0 there, not negative."""
+    n = np.array([[0, 1, 2, 5]])
+    mean = np.ones((1, 4, 3))
+    var = np.full((1, 4, 3), 0.5)
+    cov = np.full((1, 4, 3), 0.2)                           # pairs RG, RB, GB
+    st_ = PixelStats.from_mean_var(mean, var, n, sample_cov=cov)
+    np.testing.assert_array_equal(st_.m2[0, :, 0], [0, 0, 0.5, 2.0])
+    np.testing.assert_array_equal(st_.m2_cross[0, :, 0, 1], [0, 0, 0.2, 0.8])
+    np.testing.assert_array_equal(st_.sample_var[0, :, 0], [0, 0, 0.5, 0.5])
+
+
+def test_merge_keeps_self_features_and_meta_when_both_have_them():
+    """Features come from ``self`` when present (``other`` only fills gaps); ``meta`` is the
+    union with ``self``'s entries winning."""
+    a = PixelStats.from_samples(np.ones((2, 2, 2, 3))).with_features(
+        albedo=np.full((2, 2, 3), 0.25), depth=np.full((2, 2), 3.0))
+    a.meta = {"seed": 1, "scene": "a"}
+    b = PixelStats.from_samples(np.zeros((3, 2, 2, 3))).with_features(
+        albedo=np.full((2, 2, 3), 0.75), normal=np.ones((2, 2, 3)))
+    b.meta = {"seed": 2, "spp": 3}
+    m = a.merge(b)
+    assert np.all(m.albedo == 0.25) and np.all(m.depth == 3.0) and np.all(m.normal == 1.0)
+    assert m.meta == {"seed": 1, "scene": "a", "spp": 3}
+    assert np.all(b.merge(a).albedo == 0.75) and b.merge(a).meta["seed"] == 2
