@@ -7,6 +7,8 @@ scaled to the budget.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from .errors import InputError, as_float_array, as_rng, check_finite, check_nonnegative
@@ -22,9 +24,10 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     density : (H, W) ndarray
         Non-negative, finite sampling density (any scale).  An all-zero map is uniform.
     budget : int
-        Total number of samples to hand out.
+        Total number of samples to hand out (``>= 0``; a whole-valued float is accepted,
+        a fractional one is an :class:`~statmc.errors.InputError`).
     min_count : int, optional
-        Samples every pixel gets first (taken out of the budget).
+        Samples every pixel gets first (taken out of the budget), ``>= 0``.
     rng : numpy Generator or int, optional
         Randomness of the rounding.
 
@@ -41,13 +44,22 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     d = as_float_array("density", density, ndim=2, dtype=np.float64)
     check_finite("density", d)
     check_nonnegative("density", d)
-    budget = int(budget)
-    base_total = int(min_count) * d.size
-    if budget < 0 or min_count < 0:
-        raise InputError(f"`budget` and `min_count` must be >= 0; got {budget} and {min_count}.")
+    budget, min_count = _whole("budget", budget), _whole("min_count", min_count)
+    base_total = min_count * d.size
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
-    return _systematic_round(d, budget - base_total, int(min_count), as_rng(rng))
+    return _systematic_round(d, budget - base_total, min_count, as_rng(rng))
+
+
+def _whole(name, value) -> int:
+    """``value`` as an int ``>= 0``: integers and whole-valued finite floats (``12.0``);
+    a fraction, a bool, a string or a non-finite number is an :class:`InputError`."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    if ok and not isinstance(value, numbers.Integral):
+        ok = bool(np.isfinite(value)) and float(value) == np.floor(value)
+    if not ok or value < 0:
+        raise InputError(f"`{name}` must be a whole number of samples >= 0; got {value!r}.")
+    return int(value)
 
 
 def _systematic_round(d, rest, min_count, rng):

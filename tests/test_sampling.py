@@ -155,3 +155,21 @@ def test_points_on_stratum_boundaries_fall_in_half_open_intervals():
         got = _systematic_round(d, 2, 0, Fixed(u))
         np.testing.assert_array_equal(got, [want], err_msg=f"u = {u}")
         np.testing.assert_array_equal(_systematic_round_reference(d, 2, 0, Fixed(u)), [want])
+
+
+@pytest.mark.parametrize("kw, shown", [
+    ({"budget": 10.5}, "10.5"), ({"budget": "10"}, "'10'"), ({"budget": np.inf}, "inf"),
+    ({"budget": None}, "None"), ({"budget": True}, "True"), ({"budget": -1}, "-1"),
+    ({"min_count": 0.5}, "0.5"), ({"min_count": "1"}, "'1'"), ({"min_count": -2}, "-2")])
+def test_budget_and_min_count_must_be_whole_numbers(kw, shown):
+    """A fractional budget was truncated silently (10.5 -> 10 samples, so the map no longer
+    met the budget the caller asked for; min_count=0.5 became 0), a string '10' was
+    accepted, inf was an OverflowError and None a TypeError.  Whole floats (12.0) and
+    NumPy integers still work."""
+    args = {"budget": 12, "min_count": 1, **kw}
+    name = next(iter(kw))
+    with pytest.raises(InputError, match=rf"`{name}` must be a whole number of samples >= 0; "
+                                         rf"got {shown}"):
+        counts_from_density(np.ones((2, 2)), args["budget"], min_count=args["min_count"], rng=0)
+    for b in (12.0, np.float64(12.0), np.int32(12)):
+        assert counts_from_density(np.ones((2, 2)), b, min_count=np.int64(1), rng=0).sum() == 12
