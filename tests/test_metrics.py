@@ -390,3 +390,19 @@ def test_flip_near_black_exposures_equal_flip_evaluators_own(tm):
     start, stop = _flip_exposures(s * r, s * x, tm)
     assert start + np.log2(s) == pytest.approx(p["startExposure"], abs=2e-6)
     assert stop + np.log2(s) == pytest.approx(p["stopExposure"], abs=2e-6)
+
+
+def test_defaults_are_the_papers_constants(pair):
+    """relMSE ε = 0.01 (Rousselle 2011 §7), SMAPE ε = 0.01 (Vogels 2018), logLoss ε = 0.01
+    (Salehi 2022 Eq. 12) with our 1-px LoG, SSIM K1 = 0.01, K2 = 0.03, σ = 1.5 (11 × 11,
+    Wang 2004 §III.C) at L = 1, and HDR-FLIP with flip_evaluator's own defaults (ACES,
+    67 ppd).  The closed-form tests pass these explicitly, so the defaults are pinned here."""
+    x, r = pair
+    assert relmse(x, r) == relmse(x, r, 0.01)
+    assert relmse(x, r) != relmse(x, r, 0.001)
+    assert smape(x, r) == smape(x, r, 0.01)
+    assert logloss(x, r) == logloss(x, r, 0.01, sigma=1.0)
+    explicit = ssim_map(x, r, data_range=1.0, sigma=1.5, k1=0.01, k2=0.03)
+    np.testing.assert_array_equal(ssim_map(x, r), explicit)
+    assert one_minus_ssim(x, r) == float(np.mean(1.0 - explicit))
+    assert flip(x, r) == _flip_direct(x, r, {})[1]
