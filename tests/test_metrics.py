@@ -356,17 +356,16 @@ def test_flip_passes_reference_tonemapper_and_ppd_to_flip_evaluator():
     and ppd.  flip_evaluator silently falls back to ACES on a name it does not know
     ("Hable" instead of "hable"), so the three tone curves must also give three values."""
     rng = np.random.default_rng(23)
-    r = 3 * rng.random((20, 24, 3))
+    r = 3 * rng.random((12, 16, 3))
     x = np.abs(r + 0.4 * rng.standard_normal(r.shape))
     x[3, 4] = 40.0                                        # test != ref roles matter
     vals = []
-    for tm in ("aces", "hable", "reinhard"):
-        for ppd in (None, 25.0):
-            params = {"tonemapper": tm} if ppd is None else {"tonemapper": tm, "ppd": ppd}
-            m, e = _flip_direct(x, r, params)
-            assert flip(x, r, tonemapper=tm, ppd=ppd) == e
-            np.testing.assert_array_equal(flip(x, r, tonemapper=tm, ppd=ppd, per_pixel=True), m)
-            vals.append(e)
+    for tm, ppd in (("aces", None), ("hable", None), ("reinhard", None), ("aces", 25.0)):
+        params = {"tonemapper": tm} if ppd is None else {"tonemapper": tm, "ppd": ppd}
+        m, e = _flip_direct(x, r, params)
+        assert flip(x, r, tonemapper=tm, ppd=ppd) == e
+        np.testing.assert_array_equal(flip(x, r, tonemapper=tm, ppd=ppd, per_pixel=True), m)
+        vals.append(e)
     assert len(set(vals)) == len(vals), vals
     assert flip(x, r) != flip(r, x)                       # the reference sets the exposures
 
