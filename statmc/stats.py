@@ -263,6 +263,8 @@ class PixelStats:
         s1 = as_float_array("sum_x", sum_x, ndim=3, dtype=np.float64)
         s2 = as_float_array("sum_x2", sum_x2, ndim=3, dtype=np.float64)
         check_same_shape("sum_x2", s2, "sum_x", s1.shape)
+        check_finite("sum_x", s1)
+        check_finite("sum_x2", s2)
         check_nonnegative("sum_x2", s2)                  # a sum of squares
         if s1.shape[:2] != n_a.shape:
             raise InputError(f"`sum_x` must be (H, W, C) with (H, W) = {n_a.shape}; got {s1.shape}.")

@@ -399,3 +399,13 @@ def test_merge_keeps_self_features_and_meta_when_both_have_them():
     assert np.all(m.albedo == 0.25) and np.all(m.depth == 3.0) and np.all(m.normal == 1.0)
     assert m.meta == {"seed": 1, "scene": "a", "spp": 3}
     assert np.all(b.merge(a).albedo == 0.75) and b.merge(a).meta["seed"] == 2
+
+
+def test_from_sums_names_the_nonfinite_sum():
+    """A NaN in `sum_x` was reported as "`mean` holds 12 NaN" and an Inf in `sum_x2` as
+    "`m2` holds ... Inf" (names the caller never passed)."""
+    n, s1 = np.full((2, 2), 3), np.ones((2, 2, 3))
+    with pytest.raises(InputError, match="`sum_x` holds 12 NaN"):
+        PixelStats.from_sums(n, s1 * np.nan, s1)
+    with pytest.raises(InputError, match="`sum_x2` holds 0 NaN and 12 Inf"):
+        PixelStats.from_sums(n, s1, s1 * np.inf)
