@@ -267,6 +267,29 @@ def test_selection_kernels_equal_numpy_reference(bias):
     assert np.mean(img == info["image"]) > 0.999
 
 
+def test_pixels_that_never_stop_take_the_coarsest_scale():
+    """§4.1: the search runs fine → coarse and stops at the first positive ΔMSE; a pixel
+    where no pair stops takes the coarsest scale.  Closed form: on an exactly constant
+    image with a positive variance every bias term is 0 and every variance term is
+    negative, so every pixel selects the last scale, in both bias modes and the adaptive
+    settings.  The first-stop kernel equals its reference on sparse random maps (most
+    pixels never stop)."""
+    from statmc import _filter_kernels as K
+    h, w = 30, 36
+    m = np.full((h, w, 3), 0.5)
+    mv = np.full_like(m, 0.01)
+    for opts in ({}, {"bias": "paper"}, {"final": False}):
+        info = gem.select(m, mv, n=np.full((h, w), 8), **opts)
+        assert np.all(info["scales"] == len(info["sigmas"]) - 1), opts
+        np.testing.assert_allclose(info["image"], 0.5, rtol=1e-12)
+    maps = (np.random.default_rng(44).random((5, 13, 17)) < 0.05).astype(np.float32)
+    out = np.empty((13, 17), np.intp)
+    K.first_stop(maps, out)
+    ref = gem._first_stop_reference(maps)
+    assert (ref == 5).mean() > 0.7
+    np.testing.assert_array_equal(out, ref)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("sigmas", [F.ADAPTIVE_SIGMAS, (0.5, 1.0, 2.0)])
 def test_pooled_selection_kernels_equal_numpy_reference(dtype, sigmas):
