@@ -463,6 +463,19 @@ def test_sampling_map_budget_gain_and_spreading():
     assert not gem.sampling_map(m, mv, n, 0).any()
 
 
+def test_default_batch_selects_an_eighth_of_the_pixels_per_round():
+    """§6: each greedy step hands ``N`` samples to ``m = N/n`` pixels, about an eighth of
+    the image (``N = M(n − 4)/8`` per iteration).  With ``rounds`` rounds per call the
+    step is a round, so the default batch is ``ceil(8·ceil(budget/rounds)/M)``: 4 for
+    3000 samples in 4 rounds on 32×48 (16 for the whole call), 16 with one round."""
+    rng = np.random.default_rng(45)
+    m, mv = _noisy(np.full((32, 48, 3), 0.5), 4, 0.4, rng)
+    n = np.full((32, 48), 4)
+    for rounds, want in ((4, 4), (1, 16), (3, 6)):
+        _, info = gem.sampling_map(m, mv, n, 3000, rng=0, rounds=rounds, extra_output=True)
+        assert info["batch"] == want == math.ceil(8 * math.ceil(3000 / rounds) / (32 * 48))
+
+
 def test_allocate_batches_and_remainder():
     gain = np.array([[0.1, 0.5, 0.3], [0.2, 0.9, 0.0]])
     a = gem._allocate(gain, 10, 4)       # two full batches, remainder 2 to the third best
