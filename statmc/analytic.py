@@ -41,7 +41,7 @@ from scipy import special
 
 from . import _analytic_kernels as _ak
 from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, as_rng,
-                     check_finite, check_nonnegative)
+                     as_whole, check_finite, check_nonnegative)
 from .sampling import counts_from_density
 
 __all__ = [
@@ -795,12 +795,7 @@ def optimal_sample_counts(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, rn
     -------
     counts : (H, W) int64 ndarray (and the info dict if ``return_info=True``)
     """
-    try:
-        b = float(budget)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`budget` must be a whole number of samples; got {budget!r}.") from exc
-    if not np.isfinite(b) or b != np.floor(b):
-        raise InputError(f"`budget` must be a whole number of samples for integer counts; got {budget!r}.")
+    b = _whole_budget(budget)
     res = optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, b, **options)
     smap, info = res if options.get("return_info") else (res, None)
     counts = counts_from_density(smap, int(b), rng=rng)
@@ -1065,13 +1060,7 @@ def _check_mix(mix):
 
 
 def _whole_budget(budget):
-    try:
-        b = float(budget)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`budget` must be a whole number of samples; got {budget!r}.") from exc
-    if not np.isfinite(b) or b != np.floor(b) or b < 0:
-        raise InputError(f"`budget` must be a whole number of samples >= 0; got {budget!r}.")
-    return b
+    return float(as_whole("budget", budget, what="number of samples"))
 
 
 def _resolve_kernels(kernels, sigma, stats):

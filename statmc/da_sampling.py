@@ -56,7 +56,8 @@ import numbers
 
 import numpy as np
 
-from .errors import InputError, as_broadcast_arrays, as_float_array, as_rng, check_finite
+from .errors import (InputError, as_broadcast_arrays, as_float_array, as_int, as_rng,
+                     check_finite)
 from .stats import PixelStats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -386,11 +387,10 @@ def denoising_aware_map(stats: PixelStats, denoiser, budget: int, *, rng=None, *
     """
     from .sampling import counts_from_density
 
-    if isinstance(budget, bool) or not isinstance(budget, numbers.Integral) or budget < 0:
-        raise InputError(f"`budget` must be a non-negative integer; got {budget!r}.")
+    budget = as_int("budget", budget, lo=0)
     gen = as_rng(rng)
     density = denoising_aware_density(stats, denoiser, rng=gen, **options)
-    return counts_from_density(density, int(budget), rng=gen)
+    return counts_from_density(density, budget, rng=gen)
 
 
 def sampler(stats: PixelStats, budget: int, rng, *, denoiser="oidn", **options):

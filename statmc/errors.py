@@ -100,6 +100,19 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
     return int(value)
 
 
+def as_whole(name: str, value, *, lo: int = 0, what: str = "number") -> int:
+    """``value`` as a Python int ``>= lo``: integers and whole-valued finite floats
+    (``12.0``, e.g. a budget computed in floating point).  A fraction, a bool, a string or
+    a non-finite number is an :class:`InputError`: "`name` must be a whole ``what`` >=
+    ``lo``"."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    if ok and not isinstance(value, numbers.Integral):
+        ok = bool(np.isfinite(value)) and float(value) == np.floor(value)
+    if not ok or value < lo:
+        raise InputError(f"`{name}` must be a whole {what} >= {lo}; got {value!r}.")
+    return int(value)
+
+
 def as_rng(value, name: str = "rng") -> np.random.Generator:
     """``np.random.default_rng(value)``: None, a non-negative int seed, a SeedSequence or
     a Generator (returned as it is); anything else is an :class:`InputError` naming

@@ -37,7 +37,8 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, as_float_array, as_number, as_rng, check_finite, check_nonnegative
+from .errors import (InputError, as_float_array, as_number, as_rng, as_whole, check_finite,
+                     check_nonnegative)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
@@ -1123,16 +1124,12 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     if n is None:
         raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    if isinstance(budget, bool) or not float(budget).is_integer() or budget < 0:
-        raise InputError(f"`budget` must be a whole number >= 0; got {budget!r}.")
-    budget = int(budget)
+    budget = as_whole("budget", budget)
     eps = float(eps)
     if not eps > 0 or not math.isfinite(eps):
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
     h, w = m.shape[:2]
-    if isinstance(rounds, bool) or not float(rounds).is_integer() or rounds < 1:
-        raise InputError(f"`rounds` must be a whole number >= 1; got {rounds!r}.")
-    rounds = int(rounds)
+    rounds = as_whole("rounds", rounds, lo=1)
     var_prior, var_prior_sigma = float(var_prior), float(var_prior_sigma)
     if not (var_prior >= 0 and math.isfinite(var_prior)):
         raise InputError(f"`var_prior` must be a finite number >= 0 (pseudo-samples); got {var_prior!r}.")

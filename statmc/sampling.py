@@ -7,11 +7,10 @@ scaled to the budget.
 
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
 
-from .errors import InputError, as_float_array, as_rng, check_finite, check_nonnegative
+from .errors import (InputError, as_float_array, as_rng, as_whole, check_finite,
+                     check_nonnegative)
 
 __all__ = ["counts_from_density"]
 
@@ -44,22 +43,12 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     d = as_float_array("density", density, ndim=2, dtype=np.float64)
     check_finite("density", d)
     check_nonnegative("density", d)
-    budget, min_count = _whole("budget", budget), _whole("min_count", min_count)
+    budget = as_whole("budget", budget, what="number of samples")
+    min_count = as_whole("min_count", min_count, what="number of samples")
     base_total = min_count * d.size
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
     return _systematic_round(d, budget - base_total, min_count, as_rng(rng))
-
-
-def _whole(name, value) -> int:
-    """``value`` as an int ``>= 0``: integers and whole-valued finite floats (``12.0``);
-    a fraction, a bool, a string or a non-finite number is an :class:`InputError`."""
-    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-    if ok and not isinstance(value, numbers.Integral):
-        ok = bool(np.isfinite(value)) and float(value) == np.floor(value)
-    if not ok or value < 0:
-        raise InputError(f"`{name}` must be a whole number of samples >= 0; got {value!r}.")
-    return int(value)
 
 
 def _systematic_round(d, rest, min_count, rng):
