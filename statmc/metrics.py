@@ -26,6 +26,9 @@ References
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import warnings
 
 import numpy as np
@@ -43,6 +46,45 @@ _FLIP_TONEMAP = {
     "hable": (0.231683, 0.013791, 0.0, 0.18, 0.3, 0.018),
     "reinhard": (0.0, 1.0, 0.0, 0.0, 1.0, 1.0),
 }
+
+
+# flip_evaluator's wheel bundles its own libgomp, which reads its settings from the
+# environment once, when it is loaded.  Its default wait policy spins at every barrier of
+# FLIP's many short parallel regions; on a busy machine a spinning thread holds a core the
+# thread it waits for needs, and one call took seconds instead of tens of milliseconds
+# (bench/bench_flip_load.py).  "PASSIVE" makes waiting threads sleep instead; the thread
+# count stays, and the values are the same bit for bit (checked there and in the tests).
+_FLIP_OMP_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
+# Variables that mean the user chose a wait policy for every OpenMP runtime: then we keep out.
+_OMP_USER_CHOICE = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+_FLIP_IMPORT_LOCK = threading.Lock()
+
+
+def _flip_module():
+    """``flip_evaluator``, imported with its bundled OpenMP runtime set to wait passively.
+
+    ``_FLIP_OMP_ENV`` is put into the environment just for the import (the moment the
+    bundled libgomp reads it) and the environment is restored right after, so neither the
+    user's environment nor any other OpenMP runtime (numba's, torch's) sees it.  Nothing is
+    changed when the user set ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` themselves, or when
+    ``flip_evaluator`` was imported before (its runtime is then already configured).
+    """
+    mod = sys.modules.get("flip_evaluator")
+    if mod is not None:
+        return mod
+    with _FLIP_IMPORT_LOCK:
+        if any(k in os.environ for k in _OMP_USER_CHOICE):
+            import flip_evaluator
+            return flip_evaluator
+        added = [k for k in _FLIP_OMP_ENV if k not in os.environ]
+        try:
+            for k in added:
+                os.environ[k] = _FLIP_OMP_ENV[k]
+            import flip_evaluator
+        finally:
+            for k in added:
+                os.environ.pop(k, None)
+    return flip_evaluator
 
 
 def _pair(x, ref):
@@ -292,8 +334,15 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
     The parameters are validated here because flip_evaluator ends the process
     (``sys.exit``) on invalid ones, and an all-black reference (which it cannot handle)
     gets an explicit exposure range (see ``_flip_exposures``).
+
+    flip_evaluator runs on its own bundled OpenMP runtime.  statmc imports it with that
+    runtime's ``OMP_WAIT_POLICY`` set to ``PASSIVE`` (for the import only, the environment
+    is restored): its default spin-waiting made single calls take seconds instead of
+    milliseconds on a busy machine.  A wait policy set by the user (``OMP_WAIT_POLICY`` or
+    ``GOMP_SPINCOUNT`` in the environment), or an earlier ``import flip_evaluator``, is
+    left as it is.  The values do not change.
     """
-    import flip_evaluator
+    flip_evaluator = _flip_module()
 
     xa, ra = _pair(x, ref)
     if xa.shape[2] == 1:

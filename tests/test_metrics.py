@@ -1,13 +1,16 @@
 """Metrics: closed forms on tiny arrays, symmetry, zero on equality, scaling, bad input."""
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from statmc.errors import InputError
-from statmc.metrics import (METRICS, all_metrics, flip, logloss, mse, one_minus_ssim, relmse,
-                            rmse, smape, ssim_map)
+from statmc.metrics import (METRICS, _flip_module, all_metrics, flip, logloss, mse,
+                            one_minus_ssim, relmse, rmse, smape, ssim_map)
 
 
 @pytest.fixture
@@ -344,7 +347,7 @@ def test_logloss_map_equals_explicit_eq12(sigma, eps):
 
 
 def _flip_direct(x, r, params):
-    import flip_evaluator
+    flip_evaluator = _flip_module()        # the same module; a plain import first would skip
     m, e, _ = flip_evaluator.evaluate(np.ascontiguousarray(r, np.float32),
                                       np.ascontiguousarray(x, np.float32), "HDR",
                                       applyMagma=False, parameters=params)
@@ -378,8 +381,8 @@ def test_flip_near_black_exposures_equal_flip_evaluators_own(tm):
     flip_evaluator picks for the unscaled reference: this pins the tone-curve
     coefficients and the median (FLIP takes the upper middle element, not the mean of
     the two middle ones), which FLIP's scale invariance needs."""
-    import flip_evaluator
     from statmc.metrics import _FLT_EPS, _flip_exposures
+    flip_evaluator = _flip_module()
     rng = np.random.default_rng(24)
     r = rng.uniform(0.6, 1.0, (16, 16, 3))                 # even pixel count: median matters
     x = np.abs(r + 0.2 * rng.standard_normal(r.shape))
@@ -405,3 +408,44 @@ def test_defaults_are_the_papers_constants(pair):
     np.testing.assert_array_equal(ssim_map(x, r), explicit)
     assert one_minus_ssim(x, r) == float(np.mean(1.0 - explicit))
     assert flip(x, r) == _flip_direct(x, r, {})[1]
+
+
+# ------------------------------------------------------------ FLIP's bundled OpenMP runtime
+_FLIP_OMP_PROBE = """
+import os, sys
+import numpy as np
+from statmc.metrics import flip
+v = flip(np.full((8, 8, 3), 0.3), np.full((8, 8, 3), 0.5))
+print(repr(os.environ.get("OMP_WAIT_POLICY")), v, file=sys.stderr)
+"""
+
+
+def _omp_settings_seen_by_flip(**env_extra):
+    """Run flip in a fresh interpreter with OMP_DISPLAY_ENV=VERBOSE: libgomp prints the
+    settings it loaded with.  Returns (spin count, wait policy, env after, FLIP value)."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")}
+    env.update(OMP_DISPLAY_ENV="VERBOSE", **env_extra)
+    p = subprocess.run([sys.executable, "-c", _FLIP_OMP_PROBE], env=env, capture_output=True,
+                       text=True, check=True)
+    lines = p.stderr.splitlines()
+    # only flip_evaluator's runtime may be loaded: one display block
+    assert sum("DISPLAY ENVIRONMENT BEGIN" in ln for ln in lines) == 1, p.stderr
+    spin = [ln.split("=")[1].strip(" '") for ln in lines if "GOMP_SPINCOUNT" in ln]
+    policy = [ln.split("=")[1].strip(" '") for ln in lines if "OMP_WAIT_POLICY =" in ln]
+    after, value = lines[-1].rsplit(" ", 1)
+    return spin[0], policy[0], after, float(value)
+
+
+def test_flip_runtime_waits_passively_and_environment_is_restored():
+    """Regression (session 8): flip_evaluator's bundled libgomp spin-waits by default
+    (GOMP_SPINCOUNT 300000); under load one 16x16 call took ~210 ms instead of ~0.6 ms
+    (bench/bench_flip_load.py).  statmc imports it with OMP_WAIT_POLICY=PASSIVE (spin
+    count 0) set for the import only: the old code (plain ``import flip_evaluator``) loaded
+    it with spin count 300000.  The user's environment is unchanged afterwards."""
+    spin, policy, after, value = _omp_settings_seen_by_flip()
+    assert (spin, policy, after) == ("0", "PASSIVE", "None")
+    # a wait policy the user chose is theirs: statmc keeps out
+    spin_u, policy_u, after_u, value_u = _omp_settings_seen_by_flip(OMP_WAIT_POLICY="ACTIVE")
+    assert policy_u == "ACTIVE" and after_u == "'ACTIVE'" and spin_u != "0"
+    assert value_u == value                                # the wait policy never changes FLIP
