@@ -184,7 +184,9 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
         and ``se`` its standard error (see Notes): ``β`` is kept only where the bias of
         ``y`` is significant at about ``z`` standard errors.  ``0`` disables it; ``1`` is
         the positive-part James–Stein plug-in; the default 2 a ~95 % two-sided test
-        (under a normal null β survives in 5–6.5 % of pixels, docs/progressive.md).
+        (under a normal null β survives in 5.7 % of pixels at the defaults, 4.9–7.4 %
+        over n and ``smooth``, against 4.55 %: the local-spread standard error is noisy;
+        ``shrink=2.11`` gives the nominal size; docs/progressive.md).
         Needs ``smooth > 0``.
     per_channel : bool
         ``False`` (default): one ``α`` per pixel from the sums over channels (the pixel's
