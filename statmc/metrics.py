@@ -51,7 +51,8 @@ _FLIP_TONEMAP = {
 # flip_evaluator's wheel bundles its own libgomp, which reads its settings from the
 # environment once, when it is loaded.  Its default wait policy spins at every barrier of
 # FLIP's many short parallel regions; on a busy machine a spinning thread holds a core the
-# thread it waits for needs, and one call took seconds instead of tens of milliseconds
+# thread it waits for needs: with two nice-10 busy loops on the two cores a 16x16 call took
+# ~210 ms instead of ~0.6 ms, a 256x256 one ~350 ms instead of ~170 ms
 # (bench/bench_flip_load.py).  "PASSIVE" makes waiting threads sleep instead; the thread
 # count stays, and the values are the same bit for bit (checked there and in the tests).
 _FLIP_OMP_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
@@ -337,8 +338,8 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
 
     flip_evaluator runs on its own bundled OpenMP runtime.  statmc imports it with that
     runtime's ``OMP_WAIT_POLICY`` set to ``PASSIVE`` (for the import only, the environment
-    is restored): its default spin-waiting made single calls take seconds instead of
-    milliseconds on a busy machine.  A wait policy set by the user (``OMP_WAIT_POLICY`` or
+    is restored): its default spin-waiting made a small call take ~200 ms instead of
+    ~1 ms on a busy machine.  A wait policy set by the user (``OMP_WAIT_POLICY`` or
     ``GOMP_SPINCOUNT`` in the environment), or an earlier ``import flip_evaluator``, is
     left as it is.  The values do not change.
     """
