@@ -529,6 +529,11 @@ def cmd_reconstruct(args) -> int:
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp)
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
+    if args.method != "gem":
+        _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
+                       "options of --method gem's scale selection)")
+        _need_variance(stats, args.input, f"--method {args.method}")
+    _fill_gem_defaults(args)
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"{args.method}.{k}": v for k, v in maps.items()})
@@ -862,10 +867,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     rc = sub.add_parser("reconstruct", help="reconstruct an image from a statistics EXR (any renderer)")
     rc.add_argument("input", help="EXR with R,G,B, Variance.* and SampleCount (or --spp)")
-    rc.add_argument("--method", choices=["gem"], default="gem", help="reconstruction (only gem)")
+    rc.add_argument("--method", choices=["gem", "oidn+combine"], default="gem",
+                    help="gem (default; Rousselle 2011) or oidn+combine (OIDN improved by Back "
+                         "2020's combination kernel: covariances probed through OIDN, a SURE "
+                         "mix; needs R,G,B and 2 samples in every pixel; docs/combine.md)")
     rc.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     rc.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
-    _add_gem_options(rc, "--method gem")
+    _add_gem_options(rc, "--method gem", refuse_unused=True)
     rc.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     rc.set_defaults(func=cmd_reconstruct)
 
@@ -924,9 +932,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("y", help="statistics EXR of the independent render, or a bins.exr of "
                              "`statmc render --reconstruct gem+bins|oidn+bins` (then without Z)")
     c.add_argument("z", nargs="?", default=None,
-                   help="correlated image (e.g. its denoised version); with --weights "
-                        "statistical it needs Variance.* too (statmc denoise --variance), "
-                        "and a `statmc render --crn` file's covariance stencil is used; left out "
+                   help="correlated image whose noise is independent of Y's, e.g. a "
+                        "`statmc render --crn` render (with --weights statistical its covariance "
+                        "stencil is used); other files need Variance.* for --weights "
+                        "statistical (statmc denoise --variance). Cov[Y, Z] is taken as zero: "
+                        "for Z = Y denoised it is not, and the result can be worse than Z; use "
+                        "`statmc reconstruct Y.exr --method oidn+combine` for that. Left out "
                         "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")

@@ -292,6 +292,34 @@ def test_reconstruct_gem_bias_option_matches_the_library(tmp_path, toy_render):
     assert code == 2 and "robust" in err and not (tmp_path / "x.exr").exists()  # argparse's choices
 
 
+def test_reconstruct_oidn_combine_matches_the_library(tmp_path, toy_render):
+    """`statmc reconstruct --method oidn+combine` writes reconstruct_stats(..., "oidn+combine")
+    of the file (Back 2020 with probed covariances and the SURE mix) and its mix channel; the
+    GEM options are refused there, and so is a file without 2 samples in every pixel."""
+    from statmc.exr import exr_info, read_exr, read_image
+    from statmc.pipeline import reconstruct_stats
+    out = tmp_path / "oc.exr"
+    code, _, err = run_cli("reconstruct", toy_render, "--method", "oidn+combine", "--out", out, "-q")
+    assert code == 0, err
+    want, maps = reconstruct_stats(read_exr(toy_render), "oidn+combine")
+    assert np.array_equal(read_image(out)[..., :3], want)
+    assert "oidn+combine.mix" in exr_info(out)["channels"] and (tmp_path / "oc.png").exists()
+    for opt in (("--gamma", 0.1), ("--gem-bias", "paper")):
+        code, _, err = run_cli("reconstruct", toy_render, "--method", "oidn+combine", *opt,
+                               "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, f"{opt[0]} has no effect on --method oidn+combine")
+        assert not (tmp_path / "x.exr").exists()
+    st = read_exr(toy_render)
+    n = st.n.copy()
+    n[0, 0] = 1
+    one = tmp_path / "one.exr"
+    from statmc.exr import write_exr
+    from statmc.stats import PixelStats
+    write_exr(one, PixelStats(n, st.mean, st.m2, albedo=st.albedo, normal=st.normal))
+    code, _, err = run_cli("reconstruct", one, "--method", "oidn+combine", "--out", tmp_path / "x.exr")
+    _assert_one_line_error(code, err, "--method oidn+combine needs a variance in every pixel")
+
+
 def test_denoise_and_progressive_forward_gem_bias(tmp_path, toy_render):
     """`denoise --denoiser gem` and `progressive --denoiser gem` pass --gem-bias and --gamma to
     GEM: the paper's rule moves with γ, the pooled default does not."""
