@@ -1130,6 +1130,15 @@ DEFAULT_BIN_PROBES = 2
 #: ``z_bias``): "pairs" keeps them independent of the pixel noise model that "estimate"
 #: subtracts (docs/combine.md, "The bias of the SURE terms").
 _MIX_Z_BIAS = "pairs"
+#: The relMSE weights of the SURE mix (:func:`_mix_rel`) of combine_denoised and of
+#: combine_bins: "z", ``1 / (z² + 0.01)`` (the default); "loo" and "zc", two weights that do
+#: not move with ``y_c`` as Stein's lemma needs.  Both removed the bias of the estimate of
+#: combine_denoised on toy ``mixed`` but made the built-in scenes worse (session 9: "loo"
+#: cornell-box 16 spp 0.745 -> 0.945x OIDN, "zc" 0.745 -> 0.764x), so they are not the
+#: default; kept for ``bench/analysis_denoised_mix.py`` (docs/combine.md).
+_MIX_REL = "z"
+_MIX_REL_BINS = "z"
+_MIX_REL_RADIUS = 2
 #: Memory of one band of rows (bytes) of the per-pixel weights (float32) and smoothed
 #: moment stencils (float64) of :func:`combine_denoised`, :func:`combine_bins` and
 #: :func:`combine_bin_images`, margins included (:func:`_band_rows`).
@@ -1503,6 +1512,49 @@ def _mix_gain(y, z, beta, mean_var, w, V, JV):
     return (y - z) * (beta - z) - a_c * mean_var + cross
 
 
+def _mix_rel(y, z, mode, pr=None, mean_var=None):
+    """The relMSE weights of the SURE mix per pixel and channel: ``mode="z"``,
+    ``1 / (z² + 0.01)`` (the default, :data:`_MIX_REL`); ``"loo"``, ``1 / (ỹ² + 0.01)`` with
+    ``ỹ_c`` the mean of ``y`` over the 5x5 box of pixels around ``c`` *leaving ``c`` out*
+    (taps outside the image dropped); ``"zc"``, ``1 / (ẑ² + 0.01)`` with
+    ``ẑ = z + Ĵ (z − y)``, ``z`` with the centre's first-order share replaced
+    (``∂ẑ_c/∂y_c = J_cc² ≈ 0``), ``Ĵ`` the 5x5 ratio of ``σ² J_cc`` from the probes ``pr``
+    (``mean_i v_c (J v)_c``) to ``mean_var``, clipped to ``[0, 1]``.
+
+    The mix pools ``b = −E[Σ_c rel_c (z_c − μ_c) ρ_c]``; Stein's lemma (and the exact
+    covariance identity for any noise, when ``ρ_c`` is affine in ``y_c``) turns
+    ``E[ε_c rel_c ρ_c]`` into ``rel_c σ_c² E[∂ρ_c/∂y_c]`` only if ``rel_c`` does not move
+    with ``y_c``.  ``1 / (z_c² + 0.01)`` (sessions 7–8, ``_MIX_REL = "z"``) does, through
+    ``z_c``; with heavy-tailed pixels that biases the estimate (toy ``mixed``, fixed
+    weights and blur, 300 renders: +4.0 ± 0.9, p = 1e-15; with ``ỹ``: −0.3 ± 1.0,
+    p = 0.49), since the neighbours' ``y`` are independent of ``y_c``.  But ``ỹ`` is a
+    worse stand-in for ``μ`` in the metric's ``1 / (μ² + 0.01)`` (a 5x5 box across edges),
+    and the mix with it, or with ``"zc"``, was worse on the built-in scenes
+    (``docs/combine.md``, "Is the mix of combine_denoised biased?"), so ``"z"`` stays."""
+    if mode == "z":
+        return 1.0 / (z * z + 0.01)
+    from scipy.ndimage import uniform_filter
+
+    if mode == "zc":
+        dcc = np.zeros(z.shape)
+        for i in range(pr.K):
+            dcc += pr.v(i) * pr.jv[i]
+        dcc /= max(pr.K, 1)
+        n = 2 * _MIX_REL_RADIUS + 1
+        num = uniform_filter(dcc, (n, n, 1), mode="reflect")
+        den = uniform_filter(np.asarray(mean_var, np.float64), (n, n, 1), mode="reflect")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jcc = np.where(den > 0, np.clip(num / den, 0.0, 1.0), 0.0)
+        zc = z + jcc * (z - y)
+        return 1.0 / (zc * zc + 0.01)
+
+    n = 2 * _MIX_REL_RADIUS + 1
+    num = uniform_filter(y, (n, n, 1), mode="constant") * (n * n) - y
+    den = uniform_filter(np.ones(y.shape[:2]), n, mode="constant") * (n * n) - 1.0
+    yl = num / np.maximum(den, 1.0)[..., None]
+    return 1.0 / (yl * yl + 0.01)
+
+
 def _check_mix(mix, mix_sigma) -> float:
     """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins`;
     returns ``mix_sigma`` as a float."""
@@ -1595,7 +1647,11 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
         Seeds the probe vectors.
     extra_output : bool
         Also return a dict with ``denoised`` (``z``), ``combined`` (the ``β̂_j``,
-        ``(J, H, W, C)``), ``mix`` (``λ``, ``(H, W, J)``, or ``(J,)`` for ``"global"``).
+        ``(J, H, W, C)``), ``mix`` (``λ``, ``(H, W, J)``, or ``(J,)`` for ``"global"``),
+        ``gain`` (the per-pixel estimates of ``b_j = −E[(z − μ)(β̂_j − z)]``,
+        ``(J, H, W, C)``) and ``weighted_gain`` (those of the relMSE-weighted
+        ``−E[rel (z − μ)(β̂_j − z)]`` that the mix pools) and ``rel`` (those relMSE weights,
+        ``1 / (z² + 0.01)``, ``(H, W, C)``); all three None without a mix.
 
     Returns
     -------
@@ -1666,10 +1722,12 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     mv = np.asarray(mean_var, np.float64)
     sm = np.maximum(_box(mv, 2), 0.0)
     var_w = {"smooth": sm, "raw": mv, "max": np.maximum(mv, sm)}
-    rel = 1.0 / (z * z + 0.01)
+    rel = _mix_rel(yy, z, _MIX_REL, pr, mean_var)
     J = 1 if mix is None else len(models)
     betas = np.empty((J, H, W, C))
     nums = np.empty((H, W, J))
+    gains = np.empty((J, H, W, C)) if mix is not None else None
+    wgains = np.empty((J, H, W, C)) if mix is not None else None
     # Steps 1-3 in bands of rows (the smoothed stencils and weights of the whole image
     # would take H W (2 m² C 8 + k² 4) bytes, 4.4 GB at 1080p, and the raw stencils 2.5 GB
     # more while smoothing): a band's smoothed stencils need the
@@ -1692,7 +1750,10 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
             betas[j, a:b] = beta[a - lo:b - lo]
             if mix is not None:
                 gain = _mix_gain(yb, zb, beta, mv[lo:hi], w, V, pr.jv[:, lo:hi])
-                nums[a:b, :, j] = (gain * rel[lo:hi]).sum(axis=-1)[a - lo:b - lo]
+                wg = gain * rel[lo:hi]
+                nums[a:b, :, j] = wg.sum(axis=-1)[a - lo:b - lo]
+                gains[j, a:b] = gain[a - lo:b - lo]
+                wgains[j, a:b] = wg[a - lo:b - lo]
             del w, beta
         del cov_z, cov_yz, V
     del moments
@@ -1702,7 +1763,8 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     else:
         out, lam = _pooled_mix(z, betas, nums, rel, mix, ms)
     if extra_output:
-        return out, {"denoised": z, "combined": betas, "mix": lam}
+        return out, {"denoised": z, "combined": betas, "mix": lam, "gain": gains,
+                     "weighted_gain": wgains, "rel": None if mix is None else rel}
     return out
 
 
@@ -1768,8 +1830,10 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
         weights of the whole image at once, whatever their size); with a mix also
         ``"full_denoised"`` (``z = f(ȳ)``), ``"combined"`` (``β̂``), ``"mix"`` (``λ``,
-        ``(H, W, 1)``, or ``(1,)`` for ``"global"``) and ``"gain"`` (the per-pixel
-        estimate of ``b = −E[(z − μ)(β̂ − z)]``, ``(H, W, C)``).
+        ``(H, W, 1)``, or ``(1,)`` for ``"global"``), ``"gain"`` (the per-pixel
+        estimate of ``b = −E[(z − μ)(β̂ − z)]``, ``(H, W, C)``), ``"weighted_gain"`` (the
+        same times ``"rel"``, what the mix pools) and ``"rel"`` (its relMSE weights
+        ``1 / (z² + 0.01)``).
     return_denoised : bool
         Also return the denoised bins ``(B, H, W, C)``, as ``(out, z_b)``, keeping the
         weights in bands (``extra_output`` forms the weights of the whole image: about
@@ -1928,9 +1992,10 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     # of b = −E[(z − μ) ρ] per pixel (_mix_gain at ȳ with the bin-summed normalised weights
     # ā_t = Σ_b w_{t,b} / W_c; see Notes), in the bands of the weights.
     z = pr.z
-    rel = 1.0 / (z * z + 0.01)
+    rel = _mix_rel(ybar, z, _MIX_REL_BINS, pr, mv)
     nums = np.empty((H, W, 1))
     gains = np.empty((H, W, C))
+    wgains = np.empty((H, W, C))
     jac, diag = pr, None
     if bin_probes:
         # Per-bin Jacobians J_b (probes at each bin, v ~ ±√(B σ²)): the Stein terms
@@ -1950,15 +2015,17 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
         gain = _mix_gain(ybar[lo:hi], z[lo:hi], beta, mv[lo:hi], wsum, V, jac.jv[:, lo:hi])
         if diag is not None:
             gain -= diag[lo:hi]
-        nums[a:b, :, 0] = (gain * rel[lo:hi]).sum(axis=-1)[a - lo:b - lo]
+        wg = gain * rel[lo:hi]
+        nums[a:b, :, 0] = wg.sum(axis=-1)[a - lo:b - lo]
         gains[a:b] = gain[a - lo:b - lo]
+        wgains[a:b] = wg[a - lo:b - lo]
 
     beta, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole, loo=True,
                            band=band, extra_row_bytes=W * k * k * 4, z_bias=_MIX_Z_BIAS)
     del moments
     out, lam = _pooled_mix(z, beta[None], nums, rel, mix, ms)
     return out, {"denoised": zs, "weights": w, "full_denoised": z, "combined": beta,
-                 "mix": lam, "gain": gains}
+                 "mix": lam, "gain": gains, "weighted_gain": wgains, "rel": rel}
 
 
 def _check_window_options(size, stencil, smooth, patch):

@@ -1823,3 +1823,59 @@ def test_combine_without_the_mix_is_scale_equivariant():
                 np.testing.assert_allclose(big / a, base, rtol=1e-9, atol=1e-12)
             else:   # not equivariant: fails the tolerance the unmixed output meets
                 assert not np.allclose(big / a, base, rtol=1e-9, atol=1e-12), fn.__name__
+
+
+def test_combine_denoised_extra_output_holds_the_pooled_sure_terms():
+    """``extra_output`` of ``combine_denoised`` returns the per-pixel Stein estimates
+    ``gain`` of ``b_j = −E[(z − μ) ρ_j]`` and ``weighted_gain`` = ``gain / (z² + 0.01)``,
+    the terms the mix pools: the global λ recomputed from them is the returned one;
+    without a mix both are None and the output is unchanged."""
+    import statmc.combine as cbm
+    from statmc import denoisers
+
+    st = ToyRenderer("edges", width=20, height=18).render_uniform(16, seed=4, features=False)
+    f = denoisers.gaussian(1.5)
+    out, info = combine_denoised(st.mean, st.mean_var, f, size=7, probes=4, mix="global",
+                                 rng=3, extra_output=True)
+    z, betas = info["denoised"], info["combined"]
+    assert info["gain"].shape == info["weighted_gain"].shape == betas.shape
+    np.testing.assert_array_equal(info["weighted_gain"], info["gain"] * (1.0 / (z * z + 0.01)))
+    rho = betas - z[None]
+    G = np.einsum("jhwc,khwc,hwc->jk", rho, rho, 1.0 / (z * z + 0.01))
+    lam = cbm._simplex_mix(G, info["weighted_gain"].sum(axis=(1, 2, 3)))
+    np.testing.assert_allclose(lam, info["mix"], atol=1e-9)
+    np.testing.assert_allclose(out, z + np.einsum("jhwc,j->hwc", rho, info["mix"]), atol=1e-12)
+    plain, pinfo = combine_denoised(st.mean, st.mean_var, f, size=7, probes=4, mix=None,
+                                    rng=3, extra_output=True)
+    assert pinfo["gain"] is None and pinfo["weighted_gain"] is None
+    np.testing.assert_array_equal(plain, combine_denoised(st.mean, st.mean_var, f, size=7,
+                                                          probes=4, mix=None, rng=3))
+
+
+def test_relmse_weights_from_z_bias_the_stein_estimate_with_heavy_tailed_pixels():
+    """Session 9 finding behind docs/combine.md "Is the mix of combine_denoised biased?":
+    with weights and a blur that do not depend on the data, the Stein estimate of
+    ``b = −E[(z − μ) ρ]`` is unbiased (``test_mix_gain_is_unbiased_for_a_linear_denoiser``),
+    but the mix pools it weighted by ``1 / (z² + 0.01)``, which moves with ``y_c`` through
+    ``z_c``; on toy 'mixed' (exponential fireflies, 200 renders) that weighted estimate is
+    biased (t-test rejects), while the same with weights from ``ỹ``, the 5x5 mean of ``y``
+    leaving ``c`` out (``_mix_rel(..., "loo")``, independent of ``y_c``), is not."""
+    from statmc import denoisers
+    from statmc.combine import _mix_gain, _mix_rel
+
+    H, spp, reps, k = 24, 16, 200, 7
+    r = ToyRenderer("mixed", width=H, height=H)
+    mu = r.true_mean()
+    f = denoisers.gaussian(1.5)
+    w = np.ascontiguousarray(gaussian_weights(H, H, 1, k, 2.0))
+    d = {"z": [], "loo": []}
+    for i in range(reps):
+        st = r.render_uniform(spp, seed=(11, i), features=False)
+        y, mv = st.mean, st.mean_var
+        z, _, _, V, JV = denoiser_moments(f, y, mv, size=1, probes=4, rng=i, extra_output=True)
+        beta = combine(y, z, w)
+        err = _mix_gain(y, z, beta, mv, w, V, JV) + (z - mu) * (beta - z)
+        for mode in d:
+            d[mode].append((err * _mix_rel(y, z, mode)).sum())
+    p = {mode: stats.ttest_1samp(v, 0.0).pvalue for mode, v in d.items()}
+    assert p["z"] < ALPHA and p["loo"] > ALPHA, (p, {m: np.mean(v) for m, v in d.items()})
