@@ -533,6 +533,8 @@ def cmd_reconstruct(args) -> int:
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
                        "options of --method gem's scale selection)")
         _need_variance(stats, args.input, f"--method {args.method}")
+    else:
+        _refuse_pooled_gamma(args, "on --method gem")
     _fill_gem_defaults(args)
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
@@ -548,7 +550,8 @@ def _add_gem_options(parser, gem_use: str, always: str = "", *, refuse_unused=Fa
     parser.add_argument("--gamma", type=_gamma_type,
                         default=None if refuse_unused else DEFAULT_GAMMA,
                         help=f"GEM error-rate parameter γ in (0, 0.526), default 0.2 (Rousselle "
-                             f"2011 §4.3): used {always}by {gem_use} only with --gem-bias paper")
+                             f"2011 §4.3): used {always}by {gem_use} only with --gem-bias paper; "
+                             "refused where nothing reads it")
     parser.add_argument("--gem-bias", choices=["pooled", "paper"],
                         default=None if refuse_unused else "pooled",
                         help=f"bias estimate of the scale selection of {gem_use}: pooled "
@@ -571,6 +574,20 @@ def _refuse_unused(args, names, why: str) -> None:
                          f"effect {why}.")
 
 
+_GAMMA_READ = ("it is read only with --gem-bias paper (Rousselle 2011 Eq. 1) or by `statmc render "
+               "--sampler gem|expected-error`")
+
+
+def _refuse_pooled_gamma(args, where: str) -> None:
+    """Refuse --gamma where the only reader is a GEM final selection with the pooled bias
+    estimate, which does not use the error rate (docs/gem.md §5d): the output would be
+    byte-identical without it."""
+    if args.gamma is not None and args.gem_bias in (None, "pooled"):
+        bias = "--gem-bias pooled" if args.gem_bias else "--gem-bias pooled (the default)"
+        raise InputError(f"--gamma has no effect {where} under {bias}: the pooled bias estimate "
+                         f"does not use GEM's error rate; {_GAMMA_READ}.")
+
+
 def _fill_gem_defaults(args) -> None:
     """--gamma / --gem-bias not given (None, with ``refuse_unused``) take their defaults."""
     args.gamma = DEFAULT_GAMMA if args.gamma is None else args.gamma
@@ -583,20 +600,22 @@ def _gem_defaults(args) -> None:
     if args.denoiser != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --denoiser {args.denoiser} (they "
                        "are options of --denoiser gem's scale selection)")
+    _refuse_pooled_gamma(args, "on --denoiser gem")
     _fill_gem_defaults(args)
 
 
 def _render_gem_defaults(args) -> None:
     """Refuse render's --gamma / --gem-bias when no part of the render reads them, then fill
     in their defaults.  γ drives the adaptive --sampler gem, the GEM pilot kernels of
-    --sampler expected-error, and every GEM final selection (--reconstruct gem / gem+bins,
-    a --denoiser gem of --sampler denoising-aware or --reconstruct progressive); the bias
-    estimate only the final selections."""
+    --sampler expected-error, and the GEM final selections (--reconstruct gem / gem+bins,
+    a --denoiser gem of --sampler denoising-aware or --reconstruct progressive) with
+    --gem-bias paper only; the bias estimate only the final selections."""
     gem_denoiser = args.denoiser == "gem" and (args.sampler == "denoising-aware"
                                                or args.reconstruct == "progressive")
     final = args.reconstruct in ("gem", "gem+bins") or gem_denoiser
-    uses_gamma = final or args.sampler == "gem" or (args.sampler == "expected-error"
-                                                    and args.denoiser in (None, "gem"))
+    sampler_gamma = args.sampler == "gem" or (args.sampler == "expected-error"
+                                              and args.denoiser in (None, "gem"))
+    uses_gamma = final or sampler_gamma
     where = f"on --sampler {args.sampler} with --reconstruct {args.reconstruct}" + (
         f" and --denoiser {args.denoiser}" if args.denoiser else "")
     gem_den_where = "--sampler denoising-aware or --reconstruct progressive"
@@ -608,6 +627,8 @@ def _render_gem_defaults(args) -> None:
         _refuse_unused(args, ["gem_bias"], f"{where} (--gem-bias is read by GEM's final "
                        f"selection only: --reconstruct gem or gem+bins, --denoiser gem with "
                        f"{gem_den_where}; --sampler {args.sampler} reads --gamma only)")
+    elif not sampler_gamma:
+        _refuse_pooled_gamma(args, where)
     _fill_gem_defaults(args)
 
 

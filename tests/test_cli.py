@@ -271,23 +271,29 @@ def test_render_reconstruct_oidn_combine(tmp_path, toy_ref):
 
 def test_reconstruct_gem_bias_option_matches_the_library(tmp_path, toy_render):
     """`statmc reconstruct --gem-bias paper|pooled` writes exactly gem.reconstruct(bias=...) of
-    the file's statistics; --gamma changes the paper's reconstruction only."""
+    the file's statistics; --gamma changes the paper's reconstruction only, and is refused with
+    the pooled bias (it was accepted and the output was byte-identical to the default's)."""
     from statmc import gem
     from statmc.exr import read_exr, read_image
     st = read_exr(toy_render)
     imgs = {}
-    for bias, gamma in (("pooled", 0.2), ("pooled", 0.05), ("paper", 0.2), ("paper", 0.05)):
+    for bias, gamma in (("pooled", None), ("paper", 0.2), ("paper", 0.05)):
         out = tmp_path / f"{bias}_{gamma}.exr"
-        code, _, err = run_cli("reconstruct", toy_render, "--gem-bias", bias, "--gamma", gamma,
+        opts = () if gamma is None else ("--gamma", gamma)
+        code, _, err = run_cli("reconstruct", toy_render, "--gem-bias", bias, *opts,
                                "--out", out, "-q")
         assert code == 0, err
         imgs[bias, gamma] = read_image(out)[..., :3]
         want = gem.reconstruct(st.mean.astype(np.float32), st.mean_var.astype(np.float32),
-                               gamma=gamma, n=st.n, bias=bias)
+                               gamma=0.2 if gamma is None else gamma, n=st.n, bias=bias)
         np.testing.assert_allclose(imgs[bias, gamma], want, rtol=1e-6, atol=1e-7)
-    assert np.array_equal(imgs["pooled", 0.2], imgs["pooled", 0.05])
     assert not np.array_equal(imgs["paper", 0.2], imgs["paper", 0.05])
-    assert not np.array_equal(imgs["paper", 0.2], imgs["pooled", 0.2])
+    assert not np.array_equal(imgs["paper", 0.2], imgs["pooled", None])
+    for opts in (("--gem-bias", "pooled", "--gamma", 0.05), ("--gamma", 0.05)):
+        code, _, err = run_cli("reconstruct", toy_render, *opts, "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, "--gamma has no effect on --method gem under "
+                               "--gem-bias pooled")
+        assert "--gem-bias paper" in err and not (tmp_path / "x.exr").exists()
     code, _, err = run_cli("reconstruct", toy_render, "--gem-bias", "robust", "--out", tmp_path / "x.exr")
     assert code == 2 and "robust" in err and not (tmp_path / "x.exr").exists()  # argparse's choices
 
@@ -322,19 +328,26 @@ def test_reconstruct_oidn_combine_matches_the_library(tmp_path, toy_render):
 
 def test_denoise_and_progressive_forward_gem_bias(tmp_path, toy_render):
     """`denoise --denoiser gem` and `progressive --denoiser gem` pass --gem-bias and --gamma to
-    GEM: the paper's rule moves with γ, the pooled default does not."""
+    GEM: the paper's rule moves with γ; with the pooled default, which does not read γ,
+    --gamma is refused (it was accepted, and the output did not change)."""
     from statmc.exr import read_image
     out = {}
     for cmd in ("denoise", "progressive"):
-        for bias, gamma in (("paper", 0.05), ("paper", 0.3), ("pooled", 0.05), ("pooled", 0.3)):
+        for bias, gamma in (("paper", 0.05), ("paper", 0.3), ("pooled", None)):
             path = tmp_path / f"{cmd}_{bias}_{gamma}.exr"
+            opts = () if gamma is None else ("--gamma", gamma)
             code, _, err = run_cli(cmd, toy_render, "--denoiser", "gem", "--gem-bias", bias,
-                                   "--gamma", gamma, "--out", path, "-q")
+                                   *opts, "--out", path, "-q")
             assert code == 0, err
             out[cmd, bias, gamma] = read_image(path)
         assert not np.array_equal(out[cmd, "paper", 0.05], out[cmd, "paper", 0.3])
-        assert np.array_equal(out[cmd, "pooled", 0.05], out[cmd, "pooled", 0.3])
-        assert not np.array_equal(out[cmd, "paper", 0.3], out[cmd, "pooled", 0.3])
+        assert not np.array_equal(out[cmd, "paper", 0.3], out[cmd, "pooled", None])
+        for opts in (("--gem-bias", "pooled", "--gamma", 0.3), ("--gamma", 0.3)):
+            path = tmp_path / "x.exr"
+            code, _, err = run_cli(cmd, toy_render, "--denoiser", "gem", *opts, "--out", path)
+            _assert_one_line_error(code, err, "--gamma has no effect on --denoiser gem under "
+                                   "--gem-bias pooled")
+            assert not path.exists()
 
 
 def _write_channels(path, channels):
@@ -517,13 +530,14 @@ def test_denoising_aware_gem_sampler_gets_gem_bias_and_gamma(tmp_path, monkeypat
 
     monkeypatch.setattr(statmc.denoisers, "gem", spy)
     counts = {}
-    for bias in ("paper", "pooled"):
+    for bias, gamma in (("paper", 0.1), ("pooled", None)):  # pooled refuses --gamma
         seen.clear()
+        opts = () if gamma is None else ("--gamma", gamma)
         code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--sampler",
-                               "denoising-aware", "--denoiser", "gem", "--gem-bias", bias,
-                               "--gamma", 0.1, "--out", tmp_path / bias, "-q")
+                               "denoising-aware", "--denoiser", "gem", "--gem-bias", bias, *opts,
+                               "--out", tmp_path / bias, "-q")
         assert code == 0, err
-        assert len(seen) >= 8 and set(seen) == {(bias, 0.1)}, seen  # one GEM per iteration
+        assert len(seen) >= 8 and set(seen) == {(bias, gamma or 0.2)}, seen  # one GEM per iteration
         counts[bias] = read_exr(tmp_path / bias / "render.exr").n
     assert counts["paper"].sum() == counts["pooled"].sum() == 8 * 24 * 16
     assert not np.array_equal(counts["paper"], counts["pooled"])
@@ -941,6 +955,16 @@ def test_options_with_effect_are_accepted(tmp_path, toy_render):
     (("--spp", "8", "--sampler", "expected-error", "--denoiser", "gaussian", "--gamma", "0.1"),
      "--gamma has no effect on --sampler expected-error"),
     (("--spp", "8", "--sampler", "denoising-aware", "--gamma", "0.1"), "--gamma has no effect"),
+    # GEM's pooled final selection does not read γ (the outputs were byte-identical)
+    (("--spp", "4", "--reconstruct", "gem", "--gamma", "0.3"),
+     "--gamma has no effect on --sampler uniform with --reconstruct gem under --gem-bias pooled "
+     "(the default)"),
+    (("--spp", "4", "--reconstruct", "gem+bins", "--bins", "2", "--gem-bias", "pooled",
+      "--gamma", "0.3"), "under --gem-bias pooled: the pooled bias estimate does not use"),
+    (("--spp", "4", "--reconstruct", "progressive", "--denoiser", "gem", "--gamma", "0.3"),
+     "--gamma has no effect"),
+    (("--spp", "8", "--sampler", "denoising-aware", "--denoiser", "gem", "--gamma", "0.3"),
+     "read only with --gem-bias paper"),
 ])
 def test_render_refuses_gem_options_it_would_ignore(tmp_path, opts, bad):
     """`render --gamma` / `--gem-bias` were accepted and dropped when nothing in the render
@@ -963,6 +987,14 @@ def test_render_accepts_gem_options_where_they_are_read(tmp_path):
         rep = json.loads((out / "report.json").read_text())
         assert rep["gamma"] == (0.1 if "--gamma" in opts else 0.2)
         assert rep["gem_bias"] == ("paper" if "--gem-bias" in opts else "pooled")
+    # an adaptive sampler reads --gamma, so it is taken beside a pooled final selection
+    import argparse
+    from statmc.cli import _render_gem_defaults
+    for sampler, denoiser in (("gem", None), ("expected-error", None), ("expected-error", "gem")):
+        args = argparse.Namespace(sampler=sampler, reconstruct="gem", denoiser=denoiser,
+                                  gamma=0.3, gem_bias=None)
+        _render_gem_defaults(args)
+        assert (args.gamma, args.gem_bias) == (0.3, "pooled")
 
 
 @pytest.mark.parametrize("kind, needle", [
