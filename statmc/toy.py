@@ -538,6 +538,8 @@ class ToyRenderer:
         total = int(cum_end[-1]) if flat.size else 0
         stats = PixelStats.empty(h, w, c)
         stats = PixelStats(stats.n, stats.mean, stats.m2, m2_cross=np.zeros((h, w, c, c)))
+        lo = hi = None
+        several = total > chunk  # chunk statistics get merged: track each pixel's range
         bar = None
         if progress:
             from tqdm.auto import tqdm
@@ -549,13 +551,23 @@ class ToyRenderer:
                 p1 = int(np.searchsorted(cum_start, b, side="left"))
                 sub = np.clip(cum_end[p0:p1], a, b) - np.clip(cum_start[p0:p1], a, b)
                 idx = np.repeat(np.arange(p0, p1, dtype=np.intp), sub)
-                part = _stats_from_deviations(idx, self._draw_dev(idx, rng), self._mu_flat, (h, w))
-                stats = part if a == 0 else stats.merge(part)
+                part = _stats_from_deviations(idx, self._draw_dev(idx, rng), self._mu_flat,
+                                              (h, w), bounds=several)
+                if not several:
+                    stats = part
+                elif a == 0:
+                    stats, lo, hi = part
+                else:
+                    stats = stats.merge(part[0])
+                    np.minimum(lo, part[1], out=lo)
+                    np.maximum(hi, part[2], out=hi)
                 if bar is not None:
                     bar.update(b - a)
         finally:
             if bar is not None:
                 bar.close()
+        if several:  # the merge's rounding may leave the range too: pin again
+            stats = _pin_to_sample_range(stats, lo, hi)
         feats = self.features() if features else {}
         meta = {"renderer": "toy", "scene": self.scene,
                 "seed": seed if isinstance(seed, (int, np.integer)) or seed is None else repr(seed)}
@@ -570,7 +582,7 @@ class ToyRenderer:
                            chunk_size=chunk_size)
 
 
-def _stats_from_deviations(idx, dev, mu, shape):
+def _stats_from_deviations(idx, dev, mu, shape, *, bounds=False):
     """PixelStats of samples given as deviations from the known pixel means.
 
     Parameters
@@ -582,6 +594,17 @@ def _stats_from_deviations(idx, dev, mu, shape):
     mu : (H*W, C) ndarray
         The shift ``μ`` (here the exact pixel means).
     shape : (H, W)
+    bounds : bool, optional
+        Also return each pixel's sample range.
+
+    Returns
+    -------
+    stats : PixelStats
+        With ``m2_cross``.
+    lo, hi : (H*W, C) float64 ndarray, only with ``bounds=True``
+        Smallest and largest sample ``μ + d`` of each pixel and channel (``+inf`` and
+        ``−inf`` where the pixel has no sample), for :func:`_pin_to_sample_range` after
+        merging chunks.
 
     Notes
     -----
@@ -590,8 +613,12 @@ def _stats_from_deviations(idx, dev, mu, shape):
     Because the shift is the true mean, ``(Σd)²/n`` is only ``O(1/n)`` of ``Σd²``, so
     there is no catastrophic cancellation (unlike unshifted ``Σx² − (Σx)²/n``).  The
     plain two-pass reference is :meth:`PixelStats.from_pixel_samples`; the tests
-    compare the two.  Runs whose samples are all equal in a channel get ``M2 = 0``
-    exactly in that channel and in its cross terms.
+    compare the two.  The samples are ``x = fl(μ + d)`` (as :meth:`ToyRenderer.sample_values`
+    returns them), so their extremes are ``fl(μ + min d)`` and ``fl(μ + max d)`` (rounding
+    is monotone).  Each mean is clipped to that range (the mean of real numbers lies in it;
+    the shifted sum does only up to rounding), so a run whose samples are all equal in a
+    channel gets exactly their value, and ``M2 = 0`` exactly in that channel and in its
+    cross terms (as :func:`_pin_to_sample_range` does after a merge).
     """
     h, w = shape
     c = dev.shape[0]
@@ -599,9 +626,9 @@ def _stats_from_deviations(idx, dev, mu, shape):
     pix = idx[starts]
     counts = np.diff(np.r_[starts, idx.shape[0]])
     s1 = np.add.reduceat(dev, starts, axis=1)
-    # runs of identical samples (e.g. a firefly pixel without a hit) have M2 = 0 exactly,
-    # which the shifted sums would only give up to rounding
-    flat = np.maximum.reduceat(dev, starts, axis=1) == np.minimum.reduceat(dev, starts, axis=1)
+    lo_run = mu[pix].T + np.minimum.reduceat(dev, starts, axis=1)   # smallest sample x
+    hi_run = mu[pix].T + np.maximum.reduceat(dev, starts, axis=1)   # largest sample x
+    flat = lo_run == hi_run  # all samples equal (e.g. a firefly pixel without a hit)
     ia, ib = np.triu_indices(c, 1)
     s_ab = np.empty((ia.size, starts.size))
     for p, (a, b) in enumerate(zip(ia, ib)):
@@ -612,12 +639,49 @@ def _stats_from_deviations(idx, dev, mu, shape):
     mean = np.zeros((h * w, c))
     m2 = np.zeros((h * w, c))
     n[pix] = counts
-    mean[pix] = mu[pix] + (s1 / counts).T
+    mean[pix] = np.clip(mu[pix].T + s1 / counts, lo_run, hi_run).T
     m2[pix] = np.where(flat, 0.0, np.maximum(s2 - s1 * s1 / counts, 0.0)).T
     cross = np.zeros((h * w, c, c))
     cross[pix[:, None], ia, ib] = np.where(flat[ia] | flat[ib], 0.0, s_ab - s1[ia] * s1[ib] / counts).T
     cross[:, ib, ia] = cross[:, ia, ib]
     k = np.arange(c)
     cross[:, k, k] = m2
-    return PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c),
-                      m2_cross=cross.reshape(h, w, c, c))
+    stats = PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c),
+                       m2_cross=cross.reshape(h, w, c, c))
+    if not bounds:
+        return stats
+    lo = np.full((h * w, c), np.inf)
+    hi = np.full((h * w, c), -np.inf)
+    lo[pix], hi[pix] = lo_run.T, hi_run.T
+    return stats, lo, hi
+
+
+def _pin_to_sample_range(stats, lo, hi):
+    """Undo rounding that moved a pixel's statistics outside what its samples allow.
+
+    Parameters
+    ----------
+    stats : PixelStats
+        With ``m2_cross``, the render's own (corrected in place and returned).
+    lo, hi : (H*W, C) ndarray
+        Smallest and largest sample of each pixel and channel (``±inf`` where ``n = 0``).
+
+    Notes
+    -----
+    The mean of real numbers lies in ``[min x, max x]``; the shifted sums
+    ``μ + Σd/n`` (and Chan's merge) honour that only up to rounding, which made e.g. a
+    firefly pixel without a hit (every sample exactly 0) return a mean of ``−1e-16``, a
+    negative radiance.  Here each mean is clipped to ``[lo, hi]`` — a change of at most
+    the rounding residue, and none at all for means already inside — so a channel whose
+    samples are all equal (``lo == hi``) gets exactly that value, and its ``M2`` and its
+    cross terms are set to exactly 0.
+    """
+    h, w, c = stats.mean.shape
+    seen = (stats.n > 0)[..., None]
+    np.clip(stats.mean, lo.reshape(h, w, c), hi.reshape(h, w, c), out=stats.mean, where=seen)
+    pix, ch = np.nonzero((lo == hi) & seen.reshape(h * w, 1))
+    i, j = np.divmod(pix, w)
+    stats.m2[i, j, ch] = 0.0
+    stats.m2_cross[i, j, ch, :] = 0.0
+    stats.m2_cross[i, j, :, ch] = 0.0
+    return stats
