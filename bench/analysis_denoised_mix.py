@@ -96,7 +96,7 @@ def toy_denoised(n, truevar=False, H=32, spp=16):
     return res
 
 
-def toy_bins(n, H=32, spp=16, B=4):
+def toy_bins(n, truevar=False, H=32, spp=16, B=4):
     r = ToyRenderer("mixed", width=H, height=H)
     mu = r.true_mean()
     res = {k: [] for k in VARIANTS}
@@ -104,9 +104,10 @@ def toy_bins(n, H=32, spp=16, B=4):
         bins = [r.render_uniform(spp // B, seed=(33, i, b), features=False) for b in range(B)]
         full = merge_bins(bins)
         ys = np.stack([b.mean for b in bins])
+        mv = r.true_var() / spp if truevar else full.mean_var
         for mode in VARIANTS:
             cbm._MIX_REL_BINS = mode
-            out, info = cbm.combine_bins(ys, full.mean_var, _blur, size=7, probes=4, rng=i,
+            out, info = cbm.combine_bins(ys, mv, _blur, size=7, probes=4, rng=i,
                                          bin_probes=0, extra_output=True)
             z, rel = info["full_denoised"], info["rel"]
             rho = (info["combined"] - z)[None]
@@ -212,6 +213,8 @@ def main(argv=None):
                models)
         report(f"combine_bins (4 bins of 4 spp), the same scene and blur, {a.draws} draws",
                toy_bins(a.draws), ("bins",))
+        report("  ... with the true variance in place of mean_var", toy_bins(a.draws, True),
+               ("bins",))
         print(f"(toy part {time.time() - t0:.0f} s)")
     if a.part in ("scenes", "all"):
         scenes(a.scenes, a.spp, a.seeds)
