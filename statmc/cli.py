@@ -636,7 +636,22 @@ def cmd_denoise(args) -> int:
     from .exr import read_exr
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
-    stats = read_exr(args.input, spp=args.spp)
+    needs_stats = args.variance or args.denoiser == "gem"
+    if needs_stats:
+        try:
+            stats = read_exr(args.input, spp=args.spp)
+        except FileFormatError as e:
+            if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
+                raise
+            what = "--variance" if args.variance else "--denoiser gem"
+            raise FileFormatError(f"{str(e).rstrip('.')}. {what} reads the file's statistics; "
+                                  "--denoiser oidn or gaussian without --variance denoises a "
+                                  "plain image.") from None
+    else:
+        # Plain denoising reads the colour and OIDN's features (albedo, normal) only: a plain
+        # RGB image needs neither Variance.* nor SampleCount (nor --spp).
+        stats = read_exr(args.input, spp=1 if args.spp is None else args.spp,
+                         spp_if_missing=args.spp is None, require_variance=False)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -920,8 +935,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("file", help="EXR file")
     i.set_defaults(func=cmd_info)
 
-    d = sub.add_parser("denoise", help="denoise a statistics EXR (OIDN uses its albedo/normal)")
-    d.add_argument("input", help="statistics EXR (R,G,B, Variance.*, SampleCount or --spp)")
+    d = sub.add_parser("denoise", help="denoise an EXR (OIDN uses its albedo/normal)")
+    d.add_argument("input", help="EXR with R,G,B; --variance and --denoiser gem need its "
+                                 "statistics (Variance.*, and SampleCount or --spp)")
     d.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
                    help="default oidn")
     d.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")

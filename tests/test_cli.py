@@ -356,6 +356,43 @@ def _write_channels(path, channels):
                  {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}).write(str(path))
 
 
+def test_denoise_takes_a_plain_image(tmp_path, toy_render):
+    """Regression: `denoise --denoiser oidn|gaussian` (no --variance) refused a plain RGB EXR
+    without Variance.* and SampleCount (say a reconstruction.exr), which it never reads.  It
+    denoises it now, with OIDN's albedo/normal when the file has them; --variance and
+    --denoiser gem still need the statistics and say why."""
+    from statmc import denoisers
+    from statmc.exr import read_exr, read_image
+    from statmc.progressive import bind_denoiser
+    st = read_exr(toy_render)
+    rgb = {c: st.mean[..., k] for k, c in enumerate("RGB")}
+    feats = {**{f"Albedo.{c}": st.albedo[..., k] for k, c in enumerate("RGB")},
+             **{f"N.{c}": st.normal[..., k] for k, c in enumerate("XYZ")}}
+    plain, with_features = tmp_path / "plain.exr", tmp_path / "feat.exr"
+    _write_channels(plain, rgb)
+    _write_channels(with_features, {**rgb, **feats})
+    x = read_image(plain)
+    got = {}
+    for name, path in (("gaussian", plain), ("oidn", plain), ("oidn", with_features)):
+        out = tmp_path / f"{name}-{path.stem}.exr"
+        code, _, err = run_cli("denoise", path, "--denoiser", name, "--out", out, "-q")
+        assert code == 0, err
+        got[name, path.stem] = read_image(out)
+    np.testing.assert_array_equal(got["gaussian", "plain"], denoisers.get("gaussian", sigma=1.0)(x))
+    np.testing.assert_array_equal(got["oidn", "plain"], denoisers.oidn()(x))
+    # the features are read: the same as the statistics file's OIDN (which binds them)
+    np.testing.assert_array_equal(got["oidn", "feat"], bind_denoiser("oidn", st)(x))
+    assert not np.array_equal(got["oidn", "feat"], got["oidn", "plain"])
+    for opts, what in ((("--variance",), "--variance"), (("--denoiser", "gem"), "--denoiser gem")):
+        code, _, err = run_cli("denoise", plain, *opts, "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, f"{what} reads the file's statistics; --denoiser oidn "
+                               "or gaussian without --variance denoises a plain image.")
+        assert "has no Variance.R" in err and not (tmp_path / "x.exr").exists()
+    # --spp is still checked against a SampleCount channel
+    code, _, err = run_cli("denoise", toy_render, "--spp", 3, "--out", tmp_path / "x.exr")
+    _assert_one_line_error(code, err, "--spp disagrees with the SampleCount channel")
+
+
 def _stat_channels(exr):
     """The channels of a statistics EXR as float32 arrays, to edit and write back."""
     from statmc.exr import read_channels
@@ -474,16 +511,17 @@ def test_file_errors_name_the_command_line_options(tmp_path, toy_render):
     nan["G"] = ch["G"].copy()
     nan["G"][1, 2] = np.nan
     _write_channels(tmp_path / "nan.exr", nan)
-    for cmd in ("reconstruct", "denoise", "progressive"):
-        code, _, err = run_cli(cmd, tmp_path / "nocount.exr", "--out", tmp_path / "o.exr")
+    # (plain `denoise` reads neither counts nor variances: test_denoise_takes_a_plain_image)
+    for cmd in (("reconstruct",), ("denoise", "--variance"), ("progressive",)):
+        code, _, err = run_cli(*cmd, tmp_path / "nocount.exr", "--out", tmp_path / "o.exr")
         _assert_one_line_error(code, err, "--spp N")
         assert "spp=" not in err
-        code, _, err = run_cli(cmd, toy_render, "--spp", 3, "--out", tmp_path / "o.exr")
+        code, _, err = run_cli(*cmd, toy_render, "--spp", 3, "--out", tmp_path / "o.exr")
         _assert_one_line_error(code, err, "omit --spp")
-        code, _, err = run_cli(cmd, tmp_path / "novar.exr", "--out", tmp_path / "o.exr")
+        code, _, err = run_cli(*cmd, tmp_path / "novar.exr", "--out", tmp_path / "o.exr")
         _assert_one_line_error(code, err, "Variance.R")
         assert "require_variance" not in err
-        code, _, err = run_cli(cmd, tmp_path / "nan.exr", "--out", tmp_path / "o.exr")
+        code, _, err = run_cli(*cmd, tmp_path / "nan.exr", "--out", tmp_path / "o.exr")
         _assert_one_line_error(code, err, "1 NaN")
         assert "nonfinite=" not in err
     code, _, err = run_cli("metrics", tmp_path / "nan.exr", toy_render)
