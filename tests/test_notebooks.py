@@ -1,4 +1,5 @@
-"""The notebooks in notebooks/ run top to bottom without an error, and match their sources.
+"""The notebooks in notebooks/ run top to bottom without an error, and match their sources
+byte for byte (a rebuild with notebooks/_build.py would change nothing).
 
 Each notebook is executed by nbclient in a fresh ``python3`` kernel of this interpreter
 (ipykernel is in the ``test`` extra; jupyter_client launches the kernel with
@@ -55,6 +56,42 @@ def test_notebook_matches_its_source(path):
         want = [(c.cell_type, c.source) for c in _builder().build(f.read()).cells]
     got = [(c.cell_type, c.source) for c in nbformat.read(path, as_version=4).cells]
     assert got == want, f"{os.path.basename(path)} is out of date: run notebooks/_build.py"
+
+
+def test_rebuild_changes_nothing(tmp_path):
+    """Regression (fresh-clone trial): nbformat gave every cell a random id, so running
+    notebooks/_build.py in a clean clone rewrote all three notebooks (49 lines, ids only).
+    Build (without executing) into a temporary folder, twice, and compare bytes with the
+    committed files."""
+    build = _builder()
+    first = build.main(out_dir=str(tmp_path), quiet=True)
+    assert sorted(os.path.basename(p) for p in first) == [os.path.basename(p) for p in NOTEBOOKS]
+    again = tmp_path / "again"
+    again.mkdir()
+    build.main(out_dir=str(again), quiet=True)
+    for path in first:
+        name = os.path.basename(path)
+        with open(path, "rb") as f:
+            built = f.read()
+        with open(again / name, "rb") as f:
+            assert f.read() == built, f"two builds of {name} differ: the build is not deterministic"
+        with open(os.path.join(NB_DIR, name), "rb") as f:
+            committed = f.read()
+        assert built == committed, (f"notebooks/{name} differs from a fresh build: run "
+                                    ".venv/bin/python notebooks/_build.py and commit it")
+        nb = nbformat.reads(built.decode("utf-8"), as_version=4)
+        nbformat.validate(nb)
+        ids = [c.id for c in nb.cells]
+        assert len(set(ids)) == len(ids)
+
+
+def test_cell_ids_follow_nbformat_rules():
+    cell_id = _builder().cell_id
+    assert cell_id("01_verify_the_theorems", 3) == "01_verify_the_theorems-03"
+    assert cell_id("a b.c", 120) == "a-b-c-120"
+    long = cell_id("x" * 100, 7)
+    assert len(long) == 64 and long.endswith("-07")
+    assert cell_id("", 0) == "cell-00"
 
 
 @pytest.mark.parametrize("path", [_param(p) for p in NOTEBOOKS])
