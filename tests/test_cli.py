@@ -87,6 +87,47 @@ def test_metrics_and_info_print_json(tmp_path, toy_ref):
     assert "SampleCount" in json.dumps(info) and "Variance.R" in json.dumps(info)
 
 
+def test_info_summarises_stencil_covariance_and_bins(tmp_path, toy_render):
+    """Regression: `statmc info` listed a --crn file's stencil as one group per offset (225
+    groups, 691 channels at 15x15) and its layout named neither Covariance.*, the stencil nor
+    sample bins.  Each family is now one entry, and the layout names them."""
+    from statmc.exr import bin_channels, exr_info, spatial_covariance_channels
+    ch = _stat_channels(toy_render)
+    h, w = ch["R"].shape
+    rng = np.random.default_rng(0)
+    cov = rng.uniform(0, 1, (h, w, 5, 5, 3))
+    extra = {**spatial_covariance_channels(cov, ch["SampleCount"]),
+             **bin_channels(rng.uniform(0, 1, (3, h, w, 3)), rng.uniform(0, 1, (3, h, w, 3)))}
+    extra = {k: np.asarray(v, np.float32) for k, v in extra.items()}
+    extra["SpatialCovariance.-1+2.G"][3, 4] = np.nan
+    path = tmp_path / "crn.exr"
+    _write_channels(path, {**ch, **extra})
+    code, out, err = run_cli("info", path)
+    assert code == 0, err
+    info = json.loads(out)
+    full = exr_info(path)
+    assert len(full["groups"]) > 25 + 6                  # what was printed before
+    layout = info["layout"]
+    assert layout["covariance"] is True and layout["spatial_covariance"] == "stencil 5x5"
+    assert layout["bins"] == 3 and layout["bins_denoised"] is True
+    assert info["groups"]["SpatialCovariance.<dy><dx>"] == ("stencil 5x5: 25 offsets (dy, dx) x "
+                                                            "R,G,B = 75 channels")
+    assert info["groups"]["Bin<b>"] == info["groups"]["Bin<b>.Denoised"] == (
+        "3 bins x R,G,B = 9 channels")
+    assert not any(g.startswith(("SpatialCovariance.+", "SpatialCovariance.-", "Bin0"))
+                   for g in info["groups"])
+    assert info["channel_count"] == len(full["channels"]) == len(ch) + 75 + 18
+    assert info["channels"]["SpatialCovariance.<dy><dx>.<R|G|B>"] == "float"
+    assert {k: v for k, v in info["channels"].items() if "<" not in k} == {
+        k: v for k, v in full["channels"].items() if k in ch}
+    assert info["groups"]["Covariance"] == ["Covariance.GB", "Covariance.RB", "Covariance.RG"]
+    assert info["nonfinite"] == {"SpatialCovariance.<dy><dx>": {"nan": 1, "inf": 0}}
+    # a plain render: nothing to summarise, the new layout keys say so
+    code, out, err = run_cli("info", toy_render)
+    layout = json.loads(out)["layout"]
+    assert (layout["spatial_covariance"], layout["bins"], layout["bins_denoised"]) == (None, None, False)
+
+
 @pytest.mark.parametrize("args, needle", [
     (["render", "no-such-scene", "--spp", "4", "--out", "{tmp}/x"], "no-such-scene"),
     (["render", "{tmp}/missing.xml", "--spp", "4", "--out", "{tmp}/x"], "missing.xml"),
