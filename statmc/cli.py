@@ -452,7 +452,11 @@ def cmd_render(args) -> int:
     report = {
         "scene": args.scene, "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
-        "sampler": args.sampler, "reconstruct": args.reconstruct, "gamma": args.gamma,
+        # a --sample-map render is not uniform: name the map and how it was read
+        "sampler": "sample-map" if sample_map is not None else args.sampler,
+        "sample_map": None if sample_map is None else {
+            "path": args.sample_map, "used_as": "counts" if args.spp is None else "density"},
+        "reconstruct": args.reconstruct, "gamma": args.gamma,
         "gem_bias": args.gem_bias, "crn": bool(args.crn), "bins": args.bins,
         "stencil": args.stencil if args.crn else None,
         "spp": total / n.size, "total_samples": total,

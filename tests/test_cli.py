@@ -73,6 +73,15 @@ def test_render_with_integer_and_density_maps(tmp_path):
                            "--out", tmp_path / "b", "-q")
     assert code == 0, err
     assert read_exr(tmp_path / "b" / "render.exr").n.sum() == 4 * 16 * 24
+    # report.json said "sampler": "uniform" for both: it names the map and how it was used
+    for d, name, use in (("a", "counts.npy", "counts"), ("b", "dens.npy", "density")):
+        rep = json.loads((tmp_path / d / "report.json").read_text())
+        assert rep["sampler"] == "sample-map"
+        assert rep["sample_map"] == {"path": str(tmp_path / name), "used_as": use}
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--size", "4x4", "--out",
+                           tmp_path / "c", "-q")
+    rep = json.loads((tmp_path / "c" / "report.json").read_text())
+    assert (rep["sampler"], rep["sample_map"]) == ("uniform", None)
 
 
 def test_metrics_and_info_print_json(tmp_path, toy_ref):
