@@ -181,8 +181,8 @@ def load_scene_dict(name: str, width: int | None = None, height: int | None = No
 
     Examples
     --------
-    >>> d = load_scene_dict("cornell-box", 32, 24)            # doctest: +SKIP
-    >>> d["sensor"]["film"]["width"], d["sensor"]["film"]["rfilter"]["type"]  # doctest: +SKIP
+    >>> d = load_scene_dict("cornell-box", 32, 24)
+    >>> d["sensor"]["film"]["width"], d["sensor"]["film"]["rfilter"]["type"]
     (32, 'box')
     """
     if name not in _BUILDERS:
