@@ -710,6 +710,29 @@ def cmd_progressive(args) -> int:
     return 0
 
 
+def _same_file(a: str, b: str) -> bool:
+    """Whether two paths name one file (the same path, or links to the same file)."""
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # a missing file: reported by the read
+        return False
+
+
+def _check_window(size: int, h: int, w: int, path: str) -> None:
+    """Refuse a combination window wider than an ``h × w`` image can use: a tap more than
+    ``max(h, w) − 1`` pixels from the centre is outside the image for every pixel and gets
+    no weight, so ``2·max(h, w) − 1`` is the largest useful ``--size`` (a wider one only
+    costs memory: the weights are ``H·W·size²`` floats)."""
+    largest = 2 * max(h, w) - 1
+    if size > largest:
+        raise InputError(f"--size {size} is wider than a {w}x{h} image can use ({path}): taps "
+                         f"more than {max(h, w) - 1} pixels from the centre are outside the image "
+                         f"for every pixel and get no weight; the largest useful --size is "
+                         f"{largest}.")
+
+
 def _combine_bins_file(args) -> int:
     """`statmc combine BINS.exr`: Eq. 14 on the file's bins and their denoised images."""
     from . import combine as cb
@@ -727,6 +750,7 @@ def _combine_bins_file(args) -> int:
                          "--spp out.")
     ys, zs = bins
     B, h, w, _ = ys.shape
+    _check_window(args.size, h, w, args.y)
     if B < 2:
         raise InputError(f"{args.y} holds {B} sample bin; Eq. 14 needs at least 2.")
     if args.weights == "statistical":
@@ -749,6 +773,10 @@ def cmd_combine(args) -> int:
     if args.z is None:
         return _combine_bins_file(args)
     _check_out_file(args.out, [args.y, args.z])
+    if _same_file(args.y, args.z):
+        raise InputError(f"Y and Z are the same file ({args.y!r} and {args.z!r}); combine an "
+                         "independent render Y with a correlated image Z of the same scene, "
+                         "e.g. a `statmc render --crn` render.")
     try:
         y_stats = read_exr(args.y, spp=args.spp)
     except FileFormatError:
@@ -761,6 +789,7 @@ def cmd_combine(args) -> int:
                 "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
+    _check_window(args.size, h, w, args.y)
     if args.weights == "statistical":
         try:
             # --spp (for a Y without SampleCount) applies to Z only if Z has none either
@@ -1052,7 +1081,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
-    c.add_argument("--size", type=_odd_int, default=15, help="odd window width (default 15)")
+    c.add_argument("--size", type=_odd_int, default=15,
+                   help="odd window width (default 15), at most 2·max(H, W) − 1 for an H×W image")
     c.add_argument("--sigma", type=POSITIVE, default=None,
                    help="spatial σ of --weights gaussian in pixels (default 3)")
     c.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)

@@ -211,6 +211,16 @@ def toy_render(tmp_path_factory):
     return d / "render.exr"
 
 
+@pytest.fixture(scope="module")
+def toy_render2(tmp_path_factory):
+    """An independent render of toy_render's scene (another seed): a Z for `combine`."""
+    d = tmp_path_factory.mktemp("z")
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 8, "--size", "24x16", "--seed", 1,
+                           "--out", d, "-q")
+    assert code == 0, err
+    return d / "render.exr"
+
+
 @pytest.mark.parametrize("den", ["gaussian", "gem", "oidn"])
 def test_denoise_lowers_error_and_writes_variance(tmp_path, toy_render, toy_ref, den):
     from statmc.exr import read_exr, read_image
@@ -264,6 +274,46 @@ def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
     assert code == 2 and "same size" in err and not (tmp_path / "x.exr").exists()
     code, _, err = run_cli("combine", toy_render, z, "--weights", "uniform", "--out", z)
     assert code == 2 and "overwrite" in err
+
+
+def test_combine_refuses_the_same_file_twice(tmp_path, toy_render):
+    """Regression: `combine Y.exr Y.exr` was taken silently (Y combined with itself); the same
+    path, another spelling of it, or a link to it is refused in one line."""
+    import shutil
+    link, hard = tmp_path / "link.exr", tmp_path / "hard.exr"
+    os.symlink(toy_render, link)
+    os.link(toy_render, hard)
+    dotted = os.path.join(os.path.dirname(toy_render), ".", os.path.basename(toy_render))
+    for z in (toy_render, dotted, link, hard):
+        code, _, err = run_cli("combine", toy_render, z, "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, "Y and Z are the same file")
+        assert not (tmp_path / "x.exr").exists()
+    copy = tmp_path / "copy.exr"   # another file (with equal content) is not this check's
+    shutil.copy(toy_render, copy)
+    code, _, err = run_cli("combine", toy_render, copy, "--out", tmp_path / "x.exr", "-q")
+    assert code == 0, err
+
+
+def test_combine_refuses_a_window_wider_than_the_image(tmp_path, toy_render, toy_render2):
+    """Regression: `combine --size 99999` tried to allocate the H·W·size² weights and failed
+    with 'out of memory (596 TiB)'.  A window wider than 2·max(H, W) − 1 has taps outside
+    the image for every pixel; it is refused up front, naming the image size and the
+    largest useful --size, in both forms; that size itself is accepted."""
+    d = tmp_path / "b"
+    code, _, err = run_cli("render", "toy:edges", "--size", "6x4", "--spp", 4,
+                           "--reconstruct", "gem+bins", "--bins", 2, "--out", d, "-q")
+    assert code == 0, err
+    for files, wh, largest in (((toy_render, toy_render2), "24x16", 47),
+                               ((d / "bins.exr",), "6x4", 11)):
+        for size in (99999, largest + 2):
+            code, _, err = run_cli("combine", *files, "--weights", "uniform", "--size", size,
+                                   "--out", tmp_path / "x.exr")
+            _assert_one_line_error(code, err, f"--size {size} is wider than a {wh} image can use")
+            assert f"the largest useful --size is {largest}" in err
+            assert "out of memory" not in err and not (tmp_path / "x.exr").exists()
+    code, _, err = run_cli("combine", d / "bins.exr", "--weights", "uniform", "--size", 11,
+                           "--out", tmp_path / "x.exr", "-q")
+    assert code == 0, err
 
 
 def test_progressive_command_and_denoising_aware_render(tmp_path, toy_render, toy_ref):
@@ -501,17 +551,18 @@ def test_spp_help_and_library_agree_on_whole_numbers():
 
 
 @pytest.mark.parametrize("cmd", ["reconstruct", "denoise", "progressive", "combine", "reference"])
-def test_out_paths_are_refused_before_any_work(tmp_path, toy_render, cmd):
+def test_out_paths_are_refused_before_any_work(tmp_path, toy_render, toy_render2, cmd):
     """Regression: `--out x.png` wrote the EXR and then the PNG preview onto the same path
     (the EXR was lost); an --out under a file or in an unwritable directory failed after the
     work with an OSError naming a temporary file."""
     inp = tmp_path / "in.exr"
     os.link(toy_render, inp)
+    os.link(toy_render2, tmp_path / "in2.exr")
     (tmp_path / "file.txt").write_text("a file, not a directory")
     (tmp_path / "pv.png").mkdir()
     before = _files(tmp_path)
     head = {"reference": ["reference", "toy:mixed", "--spp", 4, "--size", "24x16"],
-            "combine": ["combine", inp, inp, "--weights", "uniform"]}.get(cmd, [cmd, inp])
+            "combine": ["combine", inp, tmp_path / "in2.exr", "--weights", "uniform"]}.get(cmd, [cmd, inp])
     for out, needle in ((tmp_path / "x.png", ".exr"), (tmp_path / "x.txt", ".exr"),
                         (tmp_path / "file.txt" / "x.exr", "not a directory"),
                         (tmp_path, "directory"), ("/proc/statmc-test.exr", "cannot create a file"),
@@ -712,9 +763,12 @@ def test_one_spp_files_are_refused_where_a_variance_is_needed(tmp_path):
     code, _, err = run_cli("render", "toy:mixed", "--spp", 1, "--size", "24x16", "--out", tmp_path, "-q")
     assert code == 0, err
     one = tmp_path / "render.exr"
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 1, "--size", "24x16", "--seed", 1,
+                           "--out", tmp_path / "z", "-q")
+    assert code == 0, err
     for args in (["progressive", one], ["denoise", one, "--denoiser", "gem"],
                  ["denoise", one, "--denoiser", "gaussian", "--variance"],
-                 ["combine", one, one]):
+                 ["combine", one, tmp_path / "z" / "render.exr"]):
         code, _, err = run_cli(*args, "--out", tmp_path / "x.exr")
         _assert_one_line_error(code, err, "fewer than 2 samples")
     for rec in ("progressive", "oidn+combine"):
@@ -806,9 +860,13 @@ def test_crn_render_refused_where_independent_pixels_are_assumed(tmp_path):
     Cornell box at 16 spp OIDN took an independent render's relMSE 0.016 -> 0.0028 but a
     CRN render's only 0.014 -> 0.014), also as the input of reconstruct, denoise and
     progressive.  One line, nothing written."""
+    import shutil
     y_dir, z_dir = _render_y_and_crn_z(tmp_path, "12x8", 2, 3)
+    z2_dir = tmp_path / "z2"      # another CRN file (Y and Z may not be one file)
+    z2_dir.mkdir()
+    shutil.copy(z_dir / "render.exr", z2_dir / "render.exr")
     for weights in ("statistical", "uniform"):
-        for y, z in ((z_dir, y_dir), (z_dir, z_dir)):
+        for y, z in ((z_dir, y_dir), (z_dir, z2_dir)):
             out = tmp_path / f"c-{weights}.exr"
             code, _, err = run_cli("combine", y / "render.exr", z / "render.exr", "--size", 3,
                                    "--weights", weights, "--out", out, "-q")
@@ -900,9 +958,11 @@ def test_files_with_empty_or_single_sample_pixels_are_refused_where_variances_ar
                            tmp_path / "map.npy", "--out", r, "-q")
     assert code == 0, err
     f = r / "render.exr"
+    import shutil
+    shutil.copy(f, tmp_path / "z.exr")    # Y and Z may not be one file
     for args in (("progressive", f, "--denoiser", "gaussian"),
                  ("denoise", f, "--denoiser", "oidn", "--variance"),
-                 ("combine", f, f, "--weights", "statistical")):
+                 ("combine", f, tmp_path / "z.exr", "--weights", "statistical")):
         out = tmp_path / "o.exr"
         code, _, err = run_cli(*args, "--out", out, "-q")
         assert code != 0 and "2 of its 384 pixels" in err and "Traceback" not in err, err
@@ -1008,21 +1068,21 @@ def test_cli_gamma_default_is_gems():
      "--gamma and --gem-bias"),
     (("combine", "--weights", "statistical", "--sigma", "2"), "--sigma"),
 ])
-def test_options_without_effect_are_refused(tmp_path, toy_render, args, bad):
+def test_options_without_effect_are_refused(tmp_path, toy_render, toy_render2, args, bad):
     """An option the command would ignore is refused in one line, before any output."""
     out = tmp_path / "o.exr"
-    files = (toy_render, toy_render) if args[0] == "combine" else (toy_render,)
+    files = (toy_render, toy_render2) if args[0] == "combine" else (toy_render,)
     code, _, err = run_cli(args[0], *files, *args[1:], "--out", out, "-q")
     assert code != 0 and bad in err and "no effect" in err and "Traceback" not in err
     assert not out.exists()
 
 
-def test_options_with_effect_are_accepted(tmp_path, toy_render):
+def test_options_with_effect_are_accepted(tmp_path, toy_render, toy_render2):
     for args in (("denoise", toy_render, "--denoiser", "gem", "--gamma", "0.1", "--gem-bias",
                   "paper"),
                  ("denoise", toy_render, "--denoiser", "gaussian", "--sigma", "2"),
                  ("progressive", toy_render, "--denoiser", "gem", "--gem-bias", "paper"),
-                 ("combine", toy_render, toy_render, "--weights", "gaussian", "--sigma", "2")):
+                 ("combine", toy_render, toy_render2, "--weights", "gaussian", "--sigma", "2")):
         out = tmp_path / f"{args[0]}-{len(args)}.exr"
         code, _, err = run_cli(*args, "--out", out, "-q")
         assert code == 0, err
