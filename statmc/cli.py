@@ -842,7 +842,8 @@ def cmd_reference(args) -> int:
                              progress=not args.quiet, features=True)
     _write_result(args.out, stats, stats.mean, inputs=(), quiet=True)
     if not args.quiet:
-        print(f"wrote {args.out} ({spp} spp in {-(-spp // per_pass)} passes)")
+        passes = -(-spp // per_pass)
+        print(f"wrote {args.out} ({spp} spp in {passes} pass{'' if passes == 1 else 'es'})")
     return 0
 
 
@@ -1021,7 +1022,9 @@ def build_parser() -> argparse.ArgumentParser:
     ref.add_argument("--spp", type=POSITIVE_INT, required=True, help="total samples per pixel")
     ref.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     ref.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
-    ref.add_argument("--seed", type=SEED, default=1_000_003, help="random seed of the first pass")
+    ref.add_argument("--seed", type=SEED, default=1_000_003,
+                     help="random seed of the first pass; pass k uses seed + 7919 k (default "
+                          "1000003, far from the renders' default 0)")
     ref.add_argument("--pass-spp", type=POSITIVE_INT, default=256,
                      help="samples per pixel per pass (default 256)")
     ref.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary line")

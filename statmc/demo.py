@@ -133,10 +133,17 @@ def run(out: str, *, scene: str = "cornell-box", size=(128, 128), spps=(4, 16, 6
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/demo")
-    p.add_argument("--scene", default="cornell-box")
-    p.add_argument("--ref-spp", type=int, default=4096)
+    from .cli import POSITIVE_INT
+    p = argparse.ArgumentParser(prog="python -m statmc.demo",
+                                description=__doc__.splitlines()[0].replace("``", "`"))
+    p.add_argument("--out", default="out/demo",
+                   help="output directory (default out/demo); the reference is cached in "
+                        "cache/ beside it (out/cache)")
+    p.add_argument("--scene", default="cornell-box",
+                   help="scene rendered at 128x128: a built-in name (`statmc scenes`), "
+                        "toy:NAME or a Mitsuba XML path (default cornell-box)")
+    p.add_argument("--ref-spp", type=POSITIVE_INT, default=4096,
+                   help="samples per pixel of the reference, a positive integer (default 4096)")
     a = p.parse_args(argv)
     run(a.out, scene=a.scene, ref_spp=a.ref_spp)
 

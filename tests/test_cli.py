@@ -1352,3 +1352,44 @@ def test_denoise_seed_only_where_it_seeds_something(tmp_path, toy_render, extra,
 def test_library_keyword_stencil_reads_as_the_option():
     from statmc.cli import _cli_message
     assert _cli_message("use a smaller `stencil`.", "render") == "use a smaller --stencil."
+
+
+def test_python_dash_m_statmc_runs_the_command_line():
+    """`python -m statmc` failed ("No module named statmc.__main__")."""
+    p = subprocess.run([sys.executable, "-m", "statmc", "--version"], capture_output=True,
+                       text=True, timeout=120)
+    from statmc import __version__
+    assert p.returncode == 0 and p.stdout.strip() == f"statmc {__version__}", p.stderr
+
+
+def test_reference_help_gives_the_seed_default_and_summary_says_1_pass(tmp_path, capsys):
+    """`reference --seed` help gave no default; the summary line said "1 passes"."""
+    code, out, _ = run_cli("reference", "--help")
+    assert code == 0 and "default 1000003" in " ".join(out.split())
+    code, out, err = run_cli("reference", "toy:constant", "--spp", 4, "--pass-spp", 4,
+                             "--size", "4x4", "--out", tmp_path / "r.exr")
+    assert code == 0, err
+    assert out.strip().endswith("(4 spp in 1 pass)"), out
+    code, out, err = run_cli("reference", "toy:constant", "--spp", 5, "--pass-spp", 4,
+                             "--size", "4x4", "--out", tmp_path / "r.exr")
+    assert code == 0 and out.strip().endswith("(5 spp in 2 passes)"), out + err
+
+
+def test_demo_help_names_the_module_and_explains_every_option(capsys):
+    """`python -m statmc.demo --help` showed "usage: demo.py" and options without help;
+    --ref-spp took 0 and negative numbers."""
+    from statmc.demo import main as demo_main
+    with pytest.raises(SystemExit) as e:
+        demo_main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert e.value.code == 0 and out.startswith("usage: python -m statmc.demo ")
+    for opt, text in (("--out OUT", "output directory (default out/demo)"),
+                      ("--scene SCENE", "scene rendered at 128x128"),
+                      ("--ref-spp REF_SPP", "samples per pixel of the reference")):
+        assert f"{opt} {text}" in out, (opt, out)
+    assert "(default cornell-box)" in out and "(default 4096)" in out
+    assert "demo.py" not in out
+    for bad in ("0", "-3", "2.5"):
+        with pytest.raises(SystemExit) as e:
+            demo_main(["--ref-spp", bad])
+        assert e.value.code == 2 and "positive integer" in capsys.readouterr().err
