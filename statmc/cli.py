@@ -763,6 +763,23 @@ def _combine_bins_file(args) -> int:
     return 0
 
 
+def _has_bins(stats) -> bool:
+    """Whether a file read by ``read_exr`` holds sample bins (``Bin<b>.R/G/B`` channels)."""
+    import re
+
+    from .exr import BIN
+    pat = re.compile(rf"^{BIN}\d+\.(Denoised\.)?[RGB]$")
+    return any(pat.match(c) for c in stats.meta.get("extra_channels", ()))
+
+
+def _refuse_bins_as_y(path) -> None:
+    """Refuse a sample-bins file as combine's Y beside a Z (it is combined alone)."""
+    from .exr import read_bins
+    if read_bins(path) is not None:
+        raise InputError(f"{path} is a sample-bins file (Bin<b>.* channels); combine it "
+                         "alone, without Z: `statmc combine BINS.exr --out OUT.exr`.")
+
+
 def cmd_combine(args) -> int:
     from . import combine as cb
     from .exr import read_exr, read_image
@@ -777,20 +794,33 @@ def cmd_combine(args) -> int:
         raise InputError(f"Y and Z are the same file ({args.y!r} and {args.z!r}); combine an "
                          "independent render Y with a correlated image Z of the same scene, "
                          "e.g. a `statmc render --crn` render.")
+    statistical = args.weights == "statistical"
+    if not statistical:
+        _refuse_unused(args, ["spp"], f"with --weights {args.weights} (it is the sample count "
+                       "of a Y without SampleCount, which only --weights statistical reads)")
     try:
-        y_stats = read_exr(args.y, spp=args.spp)
-    except FileFormatError:
-        from .exr import read_bins
-        if read_bins(args.y) is not None:
-            raise InputError(f"{args.y} is a sample-bins file (Bin<b>.* channels); combine it "
-                             "alone, without Z: `statmc combine BINS.exr --out OUT.exr`.") from None
+        if statistical:
+            y_stats = read_exr(args.y, spp=args.spp)
+        else:
+            # Fixed weights read Y's colour only: a plain RGB image needs neither Variance.*
+            # nor SampleCount.  Read as statistics all the same, so that a --crn render
+            # (SpatialCovariance.*) or a bins file is still recognised by its channels.
+            y_stats = read_exr(args.y, spp=1, spp_if_missing=True, require_variance=False)
+    except FileFormatError as e:
+        _refuse_bins_as_y(args.y)
+        if statistical and any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
+            raise FileFormatError(f"{str(e).rstrip('.')}. --weights statistical reads Y's "
+                                  "statistics; --weights uniform or gaussian combine a plain "
+                                  "image.") from None
         raise
+    if _has_bins(y_stats):
+        _refuse_bins_as_y(args.y)
     _refuse_crn(y_stats, args.y, "Y must be an independent render (Back 2020 §3.1, Eq. 11); "
                 "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
     _check_window(args.size, h, w, args.y)
-    if args.weights == "statistical":
+    if statistical:
         try:
             # --spp (for a Y without SampleCount) applies to Z only if Z has none either
             z_stats = read_exr(args.z, spp=args.spp, spp_if_missing=True)
@@ -1072,8 +1102,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("combine", help="combine an independent Y and a correlated Z (Back 2020 "
                                         "Eq. 8), or sample bins with their denoised images (Eq. 14)")
-    c.add_argument("y", help="statistics EXR of the independent render, or a bins.exr of "
-                             "`statmc render --reconstruct gem+bins|oidn+bins` (then without Z)")
+    c.add_argument("y", help="EXR of the independent render (its statistics for --weights "
+                             "statistical: Variance.*, and SampleCount or --spp; R,G,B alone "
+                             "for uniform and gaussian), or a bins.exr of `statmc render "
+                             "--reconstruct gem+bins|oidn+bins` (then without Z)")
     c.add_argument("z", nargs="?", default=None,
                    help="correlated image whose noise is independent of Y's, e.g. a "
                         "`statmc render --crn` render (with --weights statistical its covariance "
@@ -1088,7 +1120,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odd window width (default 15), at most 2·max(H, W) − 1 for an H×W image")
     c.add_argument("--sigma", type=POSITIVE, default=None,
                    help="spatial σ of --weights gaussian in pixels (default 3)")
-    c.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
+    c.add_argument("--spp", type=POSITIVE_INT,
+                   help=SPP_HELP + "; read by --weights statistical only")
     c.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     c.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     c.set_defaults(func=cmd_combine)

@@ -276,6 +276,58 @@ def test_combine_weights_and_errors(tmp_path, toy_render, toy_ref):
     assert code == 2 and "overwrite" in err
 
 
+def test_combine_fixed_weights_take_a_plain_image_as_y(tmp_path, toy_render, toy_render2):
+    """Regression: `combine Y Z --weights uniform|gaussian` refused a plain RGB Y without
+    Variance.* and SampleCount (exit 2, 'has no Variance.R...'), which these weights never
+    read.  It is combined now, exactly as the statistics file with the same colour; --spp
+    (read by nothing there) is refused; --weights statistical still needs Y's statistics and
+    says why; a --crn render (SpatialCovariance.*) or a bins file is still refused as Y even
+    without Variance.*."""
+    from statmc import combine as cb
+    from statmc.exr import read_exr, read_image, spatial_covariance_channels
+    st = read_exr(toy_render)
+    rgb = {c: st.mean[..., k] for k, c in enumerate("RGB")}
+    plain = tmp_path / "plain.exr"
+    _write_channels(plain, rgb)
+    y, z = read_image(plain), read_image(toy_render2)
+    h, w, _ = y.shape
+    for weights, wt in (("uniform", cb.uniform_weights(h, w, 1, 5)),
+                        ("gaussian", cb.gaussian_weights(h, w, 1, 5, 3.0))):
+        got = {}
+        for name, path in (("plain", plain), ("stats", toy_render)):
+            out = tmp_path / f"{weights}-{name}.exr"
+            code, _, err = run_cli("combine", path, toy_render2, "--weights", weights,
+                                   "--size", 5, "--out", out, "-q")
+            assert code == 0, err
+            got[name] = read_image(out)
+        np.testing.assert_array_equal(got["plain"], got["stats"])
+        np.testing.assert_array_equal(got["plain"], cb.combine(y, z, wt))
+        code, _, err = run_cli("combine", plain, toy_render2, "--weights", weights, "--spp", 8,
+                               "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, f"--spp has no effect with --weights {weights}")
+    code, _, err = run_cli("combine", plain, toy_render2, "--out", tmp_path / "x.exr")
+    _assert_one_line_error(code, err, "--weights statistical reads Y's statistics; --weights "
+                           "uniform or gaussian combine a plain image.")
+    assert "has no Variance.R" in err and "require_variance" not in err
+    # a CRN file as Y, recognised by its SpatialCovariance.* channels without Variance.*
+    cov = np.random.default_rng(0).uniform(0, 1, (h, w, 3, 3, 3))
+    crn = tmp_path / "crn.exr"
+    _write_channels(crn, {**rgb, **spatial_covariance_channels(cov, np.full((h, w), 8))})
+    bins_dir = tmp_path / "b"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", "--spp", 8, "--reconstruct",
+                           "gem+bins", "--bins", 2, "--out", bins_dir, "-q")
+    assert code == 0, err
+    for yy, needle, all_weights in (
+            (crn, "is a common-random-number render", ("uniform", "gaussian")),
+            (bins_dir / "bins.exr", "combine it alone, without Z",
+             ("uniform", "gaussian", "statistical"))):
+        for weights in all_weights:
+            code, _, err = run_cli("combine", yy, toy_render2, "--weights", weights,
+                                   "--size", 3, "--out", tmp_path / "x.exr")
+            _assert_one_line_error(code, err, needle)
+    assert not (tmp_path / "x.exr").exists()
+
+
 def test_combine_refuses_the_same_file_twice(tmp_path, toy_render):
     """Regression: `combine Y.exr Y.exr` was taken silently (Y combined with itself); the same
     path, another spelling of it, or a link to it is refused in one line."""
