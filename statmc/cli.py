@@ -1160,18 +1160,40 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version (0) and argument errors (2, one line printed)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
+    return run_command(functools.partial(args.func, args), prog="statmc",
+                       label=f"statmc {args.command}", debug=args.debug,
+                       wording=functools.partial(_cli_message, command=args.command))
+
+
+_MEMORY_HINT = "use a smaller --size, --spp, --stencil or input image."
+
+
+def run_command(call, *, prog: str, label: str | None = None, debug: bool = False,
+                wording=None, memory_hint: str = _MEMORY_HINT) -> int:
+    """Run ``call()`` as a command-line program and return its exit status (``call``'s
+    return value, None meaning 0): the error handling of every ``statmc`` command, shared
+    with ``python -m statmc.demo``.
+
+    Bad input — :class:`InputError`, :class:`FileFormatError` (both ``ValueError``), other
+    ``ValueError``, ``OSError`` and ``MemoryError`` (with ``memory_hint``) — prints one line
+    ``LABEL: error: MESSAGE`` on stderr (``wording`` may rewrite the message) and gives 2;
+    Ctrl-C prints ``PROG: interrupted`` (130), SIGTERM ``PROG: terminated`` (143, after
+    ``finally`` blocks ran, as for Ctrl-C); a reader that left the pipe gives 141 silently.
+    Warnings print as one line ``LABEL: warning: ...``.  With ``debug`` errors propagate
+    (the traceback) and warnings keep Python's format.  ``label`` defaults to ``prog``."""
+    label = label or prog
     previous = _on_sigterm(_terminate)
     try:
         from .exr import capturing_openexr_output
         with warnings.catch_warnings(), capturing_openexr_output():  # one-line errors
-            if not args.debug:  # one line per warning, without the source file and line
-                warnings.showwarning = functools.partial(_show_warning, args.command)
-            return int(args.func(args) or 0)
+            if not debug:  # one line per warning, without the source file and line
+                warnings.showwarning = functools.partial(_show_warning, label)
+            return int(call() or 0)
     except KeyboardInterrupt:
-        print("statmc: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
     except _Terminated:  # `kill`, `timeout`: clean up (staged outputs) as on Ctrl-C
-        print("statmc: terminated", file=sys.stderr)
+        print(f"{prog}: terminated", file=sys.stderr)
         return 143  # 128 + SIGTERM
     except BrokenPipeError:  # `statmc metrics ... | head`: the reader left; stop quietly
         try:
@@ -1180,23 +1202,24 @@ def main(argv=None) -> int:
             pass
         return 141  # 128 + SIGPIPE, as a shell reports a process killed by it
     except (ValueError, OSError, MemoryError) as e:  # InputError and FileFormatError are ValueErrors
-        if args.debug:
+        if debug:
             raise
-        msg = _cli_message(str(e), args.command)
+        msg = wording(str(e)) if wording else str(e)
         if isinstance(e, MemoryError):
             msg = (f"out of memory ({msg or 'MemoryError'}); expected inputs that fit in memory: "
-                   "use a smaller --size, --spp, --stencil or input image.")
-        print(f"statmc {args.command}: error: {msg}", file=sys.stderr)
+                   f"{memory_hint}")
+        print(f"{label}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
     finally:
         _on_sigterm(previous)
 
 
-def _show_warning(command, message, category, filename, lineno, file=None, line=None):
-    """``warnings.showwarning`` of the command line: ``statmc CMD: warning: ...`` on stderr."""
+def _show_warning(label, message, category, filename, lineno, file=None, line=None):
+    """``warnings.showwarning`` of the command line: ``statmc CMD: warning: ...`` on stderr
+    (``label`` is ``statmc CMD``)."""
     text = str(message)
     text = text[len("statmc: "):] if text.startswith("statmc: ") else text
-    print(f"statmc {command}: warning: {text}", file=sys.stderr)
+    print(f"{label}: warning: {text}", file=sys.stderr)
 
 
 class _Terminated(BaseException):

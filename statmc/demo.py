@@ -9,14 +9,14 @@ the adaptive sampling-density maps, a log-log convergence plot and ``results.jso
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
+import sys
 import time
 
 import numpy as np
 
-from .errors import as_int
+from .errors import FileFormatError, as_int
 
 # name -> (sampler, reconstruction)
 METHODS = {
@@ -53,7 +53,11 @@ def cached_reference(renderer, spp: int, cache_dir: str, *, seed: int = 1_000_00
     name = f"{renderer.name}-{renderer.width}x{renderer.height}-{spp}spp.exr"
     path = os.path.join(cache_dir, name.replace("/", "_").replace(":", "_"))
     if os.path.exists(path):
-        return read_image(path), path
+        try:
+            return read_image(path), path
+        except FileFormatError as e:  # say, a render interrupted by a full disk
+            raise FileFormatError(f"{str(e).rstrip('.')}; it is a cached reference: delete it "
+                                  "to render it again.") from None
     stats = render_reference(renderer, spp, pass_spp=pass_spp, seed=seed)
     write_exr(path, stats)
     write_png_preview(path[:-4] + ".png", stats.mean)
@@ -114,10 +118,13 @@ def run(out: str, *, scene: str = "cornell-box", size=(128, 128), spps=(4, 16, 6
     from .plots import write_convergence_plot
     from .renderers import make_renderer
 
-    os.makedirs(out, exist_ok=True)
+    from .cli import _check_writable_dir
+    # bad input is refused before anything is written (an unknown scene made an empty --out)
     renderer = make_renderer(scene, width=size[0], height=size[1])
+    _check_writable_dir(out, out)
     cache = os.path.join(os.path.dirname(os.path.abspath(out)), "cache")
     ref, ref_path = cached_reference(renderer, ref_spp, cache)
+    os.makedirs(out, exist_ok=True)
     rows = compare(renderer, ref, spps, seed=seed, out=out)
     series = {m: ([r["spp"] for r in rows if r["method"] == m],
                   [r["relmse"] for r in rows if r["method"] == m]) for m in METHODS}
@@ -132,10 +139,14 @@ def run(out: str, *, scene: str = "cornell-box", size=(128, 128), spps=(4, 16, 6
     return rows
 
 
-def main(argv=None):
-    from .cli import POSITIVE_INT
-    p = argparse.ArgumentParser(prog="python -m statmc.demo",
-                                description=__doc__.splitlines()[0].replace("``", "`"))
+def main(argv=None) -> int:
+    """The ``python -m statmc.demo`` entry: its exit status.  Bad input (an unknown
+    ``--scene``, an ``--out`` that cannot be written, ...) prints one line and gives 2, as
+    the ``statmc`` commands do (:func:`statmc.cli.run_command`); ``--debug`` shows the
+    traceback."""
+    from .cli import POSITIVE_INT, _Parser, run_command
+    p = _Parser(prog="python -m statmc.demo",
+                description=__doc__.splitlines()[0].replace("``", "`"))
     p.add_argument("--out", default="out/demo",
                    help="output directory (default out/demo); the reference is cached in "
                         "cache/ beside it (out/cache)")
@@ -144,9 +155,15 @@ def main(argv=None):
                         "toy:NAME or a Mitsuba XML path (default cornell-box)")
     p.add_argument("--ref-spp", type=POSITIVE_INT, default=4096,
                    help="samples per pixel of the reference, a positive integer (default 4096)")
+    p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     a = p.parse_args(argv)
-    run(a.out, scene=a.scene, ref_spp=a.ref_spp)
+
+    def demo():
+        run(a.out, scene=a.scene, ref_spp=a.ref_spp)
+
+    return run_command(demo, prog=p.prog, debug=a.debug,
+                       memory_hint="use a smaller --ref-spp or another --scene.")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1445,3 +1445,53 @@ def test_demo_help_names_the_module_and_explains_every_option(capsys):
         with pytest.raises(SystemExit) as e:
             demo_main(["--ref-spp", bad])
         assert e.value.code == 2 and "positive integer" in capsys.readouterr().err
+
+
+def test_demo_reports_bad_input_in_one_line(tmp_path, capsys, monkeypatch):
+    """Regression: `python -m statmc.demo --scene nosuchscene` (an unknown scene, an --out
+    that is a file, a corrupt cached reference) printed a Python traceback and left an
+    empty --out.  It reports one line and exits 2 like the statmc commands (it shares
+    statmc.cli.run_command: Ctrl-C 130, out of memory with a hint); --debug re-raises."""
+    import statmc.demo as demo
+    from statmc.errors import InputError
+    from statmc.renderers import make_renderer
+    (tmp_path / "afile").write_text("not a directory")
+    (tmp_path / "cache").mkdir()
+    r = make_renderer("toy:constant", width=128, height=128)
+    bad = tmp_path / "cache" / f"{r.name.replace(':', '_')}-128x128-8spp.exr"
+    bad.write_bytes(b"not an EXR file")
+    for args, needle in ((["--scene", "nosuchscene"], "scene 'nosuchscene' is neither a file"),
+                         (["--scene", "toy:nope"], "unknown toy scene 'toy:nope'"),
+                         (["--scene", "toy:constant", "--out", str(tmp_path / "afile")],
+                          "is not a directory"),
+                         (["--scene", "toy:constant", "--ref-spp", "8"],
+                          "it is a cached reference: delete it to render it again")):
+        code = demo.main(["--out", str(tmp_path / "d"), *args])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("python -m statmc.demo: error: "), err
+        assert needle in lines[0] and "Traceback" not in err
+        assert not (tmp_path / "d").exists()
+    with pytest.raises(InputError, match="nosuchscene"):
+        demo.main(["--scene", "nosuchscene", "--debug"])
+    for exc, code, needle in ((KeyboardInterrupt(), 130, "python -m statmc.demo: interrupted"),
+                              (MemoryError("Unable to allocate 9 TiB"), 2,
+                               "out of memory (Unable to allocate 9 TiB); expected inputs that "
+                               "fit in memory: use a smaller --ref-spp or another --scene.")):
+        def fail(*a, exc=exc, **k):
+            raise exc
+        monkeypatch.setattr(demo, "run", fail)
+        assert demo.main([]) == code
+        assert needle in capsys.readouterr().err
+    monkeypatch.setattr(demo, "run", lambda *a, **k: [{"relmse": 1.0}])
+    assert demo.main([]) == 0
+
+
+def test_python_dash_m_statmc_demo_exits_2_on_bad_input(tmp_path):
+    """The module entry itself: one line on stderr, exit status 2 (was a traceback, 1)."""
+    p = subprocess.run([sys.executable, "-m", "statmc.demo", "--scene", "nosuchscene",
+                        "--out", str(tmp_path / "d")], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2 and p.stderr.startswith("python -m statmc.demo: error: scene "), p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and not (tmp_path / "d").exists()
