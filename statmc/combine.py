@@ -1726,8 +1726,10 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     J = 1 if mix is None else len(models)
     betas = np.empty((J, H, W, C))
     nums = np.empty((H, W, J))
-    gains = np.empty((J, H, W, C)) if mix is not None else None
-    wgains = np.empty((J, H, W, C)) if mix is not None else None
+    # the per-pixel SURE terms are kept for extra_output only (2 J H W C float64: 0.2 GB at 1080p)
+    keep = mix is not None and extra_output
+    gains = np.empty((J, H, W, C)) if keep else None
+    wgains = np.empty((J, H, W, C)) if keep else None
     # Steps 1-3 in bands of rows (the smoothed stencils and weights of the whole image
     # would take H W (2 m² C 8 + k² 4) bytes, 4.4 GB at 1080p, and the raw stencils 2.5 GB
     # more while smoothing): a band's smoothed stencils need the
@@ -1752,8 +1754,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
                 gain = _mix_gain(yb, zb, beta, mv[lo:hi], w, V, pr.jv[:, lo:hi])
                 wg = gain * rel[lo:hi]
                 nums[a:b, :, j] = wg.sum(axis=-1)[a - lo:b - lo]
-                gains[j, a:b] = gain[a - lo:b - lo]
-                wgains[j, a:b] = wg[a - lo:b - lo]
+                if keep:
+                    gains[j, a:b] = gain[a - lo:b - lo]
+                    wgains[j, a:b] = wg[a - lo:b - lo]
             del w, beta
         del cov_z, cov_yz, V
     del moments
@@ -1995,7 +1998,7 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     rel = _mix_rel(ybar, z, _MIX_REL_BINS, pr, mv)
     nums = np.empty((H, W, 1))
     gains = np.empty((H, W, C))
-    wgains = np.empty((H, W, C))
+    wgains = np.empty((H, W, C)) if whole else None      # for extra_output only
     jac, diag = pr, None
     if bin_probes:
         # Per-bin Jacobians J_b (probes at each bin, v ~ ±√(B σ²)): the Stein terms
@@ -2018,7 +2021,8 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
         wg = gain * rel[lo:hi]
         nums[a:b, :, 0] = wg.sum(axis=-1)[a - lo:b - lo]
         gains[a:b] = gain[a - lo:b - lo]
-        wgains[a:b] = wg[a - lo:b - lo]
+        if whole:
+            wgains[a:b] = wg[a - lo:b - lo]
 
     beta, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole, loo=True,
                            band=band, extra_row_bytes=W * k * k * 4, z_bias=_MIX_Z_BIAS)
