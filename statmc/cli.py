@@ -720,17 +720,28 @@ def _same_file(a: str, b: str) -> bool:
         return False
 
 
-def _check_window(size: int, h: int, w: int, path: str) -> None:
-    """Refuse a combination window wider than an ``h × w`` image can use: a tap more than
-    ``max(h, w) − 1`` pixels from the centre is outside the image for every pixel and gets
-    no weight, so ``2·max(h, w) − 1`` is the largest useful ``--size`` (a wider one only
-    costs memory: the weights are ``H·W·size²`` floats)."""
+DEFAULT_COMBINE_SIZE = 15  # combine's window width when --size is not given
+
+
+def _window_size(args, h: int, w: int, path: str) -> int:
+    """combine's window width for an ``h × w`` image: the default 15 when --size is not
+    given (on any image: on a small one its outside taps get no weight), else the --size
+    given, refused when wider than the image can use.
+
+    A tap more than ``max(h, w) − 1`` pixels from the centre is outside the image for every
+    pixel and gets no weight, so ``2·max(h, w) − 1`` is the largest useful width; a wider
+    --size only costs memory (the weights are ``H·W·size²`` floats: --size 99999 asked for
+    hundreds of TiB).  The default is not narrowed to it: ``gaussian_weights`` normalise
+    over the whole window, so a narrower one changes the output in the last bit."""
+    if args.size is None:
+        return DEFAULT_COMBINE_SIZE
     largest = 2 * max(h, w) - 1
-    if size > largest:
-        raise InputError(f"--size {size} is wider than a {w}x{h} image can use ({path}): taps "
-                         f"more than {max(h, w) - 1} pixels from the centre are outside the image "
-                         f"for every pixel and get no weight; the largest useful --size is "
-                         f"{largest}.")
+    if args.size > largest:
+        raise InputError(f"--size {args.size} is wider than a {w}x{h} image can use ({path}): "
+                         f"taps more than {max(h, w) - 1} pixels from the centre are outside "
+                         f"the image for every pixel and get no weight; the largest useful "
+                         f"--size is {largest}.")
+    return args.size
 
 
 def _combine_bins_file(args) -> int:
@@ -750,7 +761,7 @@ def _combine_bins_file(args) -> int:
                          "--spp out.")
     ys, zs = bins
     B, h, w, _ = ys.shape
-    _check_window(args.size, h, w, args.y)
+    args.size = _window_size(args, h, w, args.y)
     if B < 2:
         raise InputError(f"{args.y} holds {B} sample bin; Eq. 14 needs at least 2.")
     if args.weights == "statistical":
@@ -819,7 +830,8 @@ def cmd_combine(args) -> int:
                 "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)
     h, w, _ = y.shape
-    _check_window(args.size, h, w, args.y)
+    size_given = args.size is not None
+    args.size = _window_size(args, h, w, args.y)
     if statistical:
         try:
             # --spp (for a Y without SampleCount) applies to Z only if Z has none either
@@ -849,8 +861,9 @@ def cmd_combine(args) -> int:
         if _is_crn(z_stats):                       # a CRN render's stencil (a second read)
             cov_z = read_spatial_covariance(args.z, z_stats.n)
         if cov_z.ndim == 5 and cov_z.shape[2] < args.size:
+            got = f"{args.size}" if size_given else f"the default {args.size}"
             raise InputError(f"{args.z} holds a {cov_z.shape[2]}x{cov_z.shape[2]} covariance "
-                             f"stencil; --size must be at most {cov_z.shape[2]} (got {args.size}).")
+                             f"stencil; --size must be at most {cov_z.shape[2]} (got {got}).")
         weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32), cov_z,
                                          args.size)
     out = cb.combine(y, z, weights)
@@ -1116,8 +1129,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
-    c.add_argument("--size", type=_odd_int, default=15,
-                   help="odd window width (default 15), at most 2·max(H, W) − 1 for an H×W image")
+    c.add_argument("--size", type=_odd_int, default=None,
+                   help="odd window width (default 15, on any image); a given --size must be "
+                        "at most 2·max(H, W) − 1 for an H×W image")
     c.add_argument("--sigma", type=POSITIVE, default=None,
                    help="spatial σ of --weights gaussian in pixels (default 3)")
     c.add_argument("--spp", type=POSITIVE_INT,

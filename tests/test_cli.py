@@ -368,6 +368,50 @@ def test_combine_refuses_a_window_wider_than_the_image(tmp_path, toy_render, toy
     assert code == 0, err
 
 
+def test_combine_default_size_fits_small_images(tmp_path):
+    """Regression: the check of dffda54 refused combine's own default --size 15 on any image
+    with max(H, W) <= 7 ('--size 15 is wider than a 6x4 image can use'), which had worked.
+    Without --size the window is 15 again on any image (byte-identical to the library's at
+    15, as before dffda54); a --size the user gives is still refused when wider than
+    2·max(H, W) − 1."""
+    from statmc import combine as cb
+    from statmc.exr import read_bins, read_exr, read_image
+    d = tmp_path / "tiny"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "6x4", "--spp", 8,
+                           "--reconstruct", "gem+bins", "--out", d, "-q")
+    assert code == 0, err
+    z = tmp_path / "z"
+    code, _, err = run_cli("render", "toy:mixed", "--size", "6x4", "--spp", 8, "--seed", 1,
+                           "--out", z, "-q")
+    assert code == 0, err
+    ys, zs = read_bins(d / "bins.exr")
+    code, _, err = run_cli("combine", d / "bins.exr", "--out", tmp_path / "b.exr", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_image(tmp_path / "b.exr"),
+                                  cb.combine_bin_images(ys, zs, size=15).astype(np.float32))
+    code, _, err = run_cli("combine", d / "bins.exr", "--size", 11, "--out", tmp_path / "b11.exr",
+                           "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_image(tmp_path / "b11.exr"), read_image(tmp_path / "b.exr"))
+    # the two-file form, each --weights: the library at the old default 15
+    y_st, z_st = read_exr(d / "render.exr"), read_exr(z / "render.exr")
+    y, zz = y_st.mean.astype(np.float32), z_st.mean.astype(np.float32)
+    h, w, _ = y.shape
+    expect = {"uniform": cb.uniform_weights(h, w, 1, 15),
+              "gaussian": cb.gaussian_weights(h, w, 1, 15, 3.0),
+              "statistical": cb.statistical_weights(y, zz, y_st.mean_var.astype(np.float32),
+                                                    z_st.mean_var.astype(np.float32), 15)}
+    for weights, wt in expect.items():
+        out = tmp_path / f"{weights}.exr"
+        code, _, err = run_cli("combine", d / "render.exr", z / "render.exr", "--weights", weights,
+                               "--out", out, "-q")
+        assert code == 0, err
+        np.testing.assert_array_equal(read_image(out), cb.combine(y, zz, wt).astype(np.float32))
+    for files in ((d / "bins.exr",), (d / "render.exr", z / "render.exr")):
+        code, _, err = run_cli("combine", *files, "--size", 15, "--out", tmp_path / "x.exr")
+        _assert_one_line_error(code, err, "--size 15 is wider than a 6x4 image can use")
+
+
 def test_progressive_command_and_denoising_aware_render(tmp_path, toy_render, toy_ref):
     from statmc.exr import read_channels, read_exr, read_image
     from statmc.metrics import mse
