@@ -22,19 +22,25 @@ def _as_tuple(protect):
     return tuple(protect)
 
 
+def same_file(a, b) -> bool:
+    """Whether the paths ``a`` and ``b`` name one file: :func:`os.path.samefile` when both
+    exist (hard links, symlinks, ``dir/link/..`` through a symlinked directory), else the
+    equality of their :func:`os.path.realpath` (a file not written yet)."""
+    a, b = os.fspath(a), os.fspath(b)
+    if os.path.exists(a) and os.path.exists(b):
+        with contextlib.suppress(OSError):
+            return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
 def check_not_input(path, protect=()) -> None:
     """Raise :class:`InputError` when ``path`` names the same file as any of ``protect``."""
     path = os.fspath(path)
-    real = os.path.realpath(path)
     for q in _as_tuple(protect):
         if q is None:
             continue
         q = os.fspath(q)
-        same = os.path.realpath(q) == real
-        if not same and os.path.exists(path) and os.path.exists(q):
-            with contextlib.suppress(OSError):
-                same = os.path.samefile(path, q)  # hard links
-        if same:
+        if same_file(path, q):
             raise InputError(f"refusing to write {path!r}: it is the input file {q!r}; "
                              "choose another output path (statmc never overwrites an input).")
 

@@ -710,16 +710,6 @@ def cmd_progressive(args) -> int:
     return 0
 
 
-def _same_file(a: str, b: str) -> bool:
-    """Whether two paths name one file (the same path, or links to the same file)."""
-    if os.path.abspath(a) == os.path.abspath(b):
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:  # a missing file: reported by the read
-        return False
-
-
 DEFAULT_COMBINE_SIZE = 15  # combine's window width when --size is not given
 
 
@@ -801,7 +791,9 @@ def cmd_combine(args) -> int:
     if args.z is None:
         return _combine_bins_file(args)
     _check_out_file(args.out, [args.y, args.z])
-    if _same_file(args.y, args.z):
+    from ._atomic import same_file
+    # a missing file is reported by the read ("does not exist"), not as the same file
+    if os.path.exists(args.y) and os.path.exists(args.z) and same_file(args.y, args.z):
         raise InputError(f"Y and Z are the same file ({args.y!r} and {args.z!r}); combine an "
                          "independent render Y with a correlated image Z of the same scene, "
                          "e.g. a `statmc render --crn` render.")

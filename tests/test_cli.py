@@ -346,6 +346,34 @@ def test_combine_refuses_the_same_file_twice(tmp_path, toy_render):
     assert code == 0, err
 
 
+def test_combine_same_file_check_resolves_symlinked_dirs_and_missing_files(tmp_path, toy_render,
+                                                                           toy_render2):
+    """Regression: the same-file check compared abspath lexically.  With a symlinked
+    directory ``A/L -> ../B/C``, ``A/L/../y.exr`` is ``B/y.exr``, another file than
+    ``A/y.exr``, but was refused as 'the same file'; and ``missing.exr ./missing.exr`` was
+    called the same file instead of not found.  It now shares statmc._atomic.same_file with
+    the output checks (samefile when both exist, else realpath)."""
+    import shutil
+
+    from statmc._atomic import same_file
+    a, c = tmp_path / "A", tmp_path / "B" / "C"
+    a.mkdir()
+    c.mkdir(parents=True)
+    shutil.copy(toy_render, a / "y.exr")
+    shutil.copy(toy_render2, tmp_path / "B" / "y.exr")
+    os.symlink(os.path.join("..", "B", "C"), a / "L")
+    z = os.path.join(a, "L", "..", "y.exr")
+    assert not same_file(a / "y.exr", z) and same_file(tmp_path / "B" / "y.exr", z)
+    code, _, err = run_cli("combine", a / "y.exr", z, "--out", tmp_path / "x.exr", "-q")
+    assert code == 0, err
+    missing = tmp_path / "missing.exr"
+    dotted = os.path.join(tmp_path, ".", "missing.exr")
+    assert same_file(missing, dotted)            # an output path not written yet
+    code, _, err = run_cli("combine", missing, dotted, "--out", tmp_path / "y.exr")
+    _assert_one_line_error(code, err, "does not exist")
+    assert "same file" not in err and not (tmp_path / "y.exr").exists()
+
+
 def test_combine_refuses_a_window_wider_than_the_image(tmp_path, toy_render, toy_render2):
     """Regression: `combine --size 99999` tried to allocate the H·W·size² weights and failed
     with 'out of memory (596 TiB)'.  A window wider than 2·max(H, W) − 1 has taps outside
