@@ -641,6 +641,10 @@ def cmd_denoise(args) -> int:
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
     needs_stats = args.variance or args.denoiser == "gem"
+    if not needs_stats:
+        _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it is "
+                       "the sample count of a file without SampleCount, which only --variance "
+                       "and --denoiser gem read)")
     if needs_stats:
         try:
             stats = read_exr(args.input, spp=args.spp)
@@ -653,9 +657,8 @@ def cmd_denoise(args) -> int:
                                   "plain image.") from None
     else:
         # Plain denoising reads the colour and OIDN's features (albedo, normal) only: a plain
-        # RGB image needs neither Variance.* nor SampleCount (nor --spp).
-        stats = read_exr(args.input, spp=1 if args.spp is None else args.spp,
-                         spp_if_missing=args.spp is None, require_variance=False)
+        # RGB image needs neither Variance.* nor SampleCount (and --spp was refused).
+        stats = read_exr(args.input, spp=1, spp_if_missing=True, require_variance=False)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -1082,7 +1085,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--denoiser", choices=["oidn", "gem", "gaussian"], default="oidn",
                    help="default oidn")
     d.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
-    d.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
+    d.add_argument("--spp", type=POSITIVE_INT,
+                   help=SPP_HELP + "; read by --variance and --denoiser gem only")
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
     _add_gem_options(d, "--denoiser gem", refuse_unused=True)

@@ -612,9 +612,38 @@ def test_denoise_takes_a_plain_image(tmp_path, toy_render):
         _assert_one_line_error(code, err, f"{what} reads the file's statistics; --denoiser oidn "
                                "or gaussian without --variance denoises a plain image.")
         assert "has no Variance.R" in err and not (tmp_path / "x.exr").exists()
-    # --spp is still checked against a SampleCount channel
-    code, _, err = run_cli("denoise", toy_render, "--spp", 3, "--out", tmp_path / "x.exr")
+    # --spp is still checked against a SampleCount channel where the statistics are read
+    code, _, err = run_cli("denoise", toy_render, "--variance", "--spp", 3,
+                           "--out", tmp_path / "x.exr")
     _assert_one_line_error(code, err, "--spp disagrees with the SampleCount channel")
+
+
+def test_denoise_refuses_spp_where_nothing_reads_it(tmp_path, toy_render):
+    """Regression: `denoise plain.exr --denoiser oidn --spp 4` took --spp silently, which
+    nothing reads without --variance or --denoiser gem (the output was the same without
+    it).  It is refused, as combine refuses it with --weights uniform|gaussian; a
+    statistics file without SampleCount under --variance or --denoiser gem still reads it."""
+    from statmc.exr import read_image
+    st = _stat_channels(toy_render)
+    plain = tmp_path / "plain.exr"
+    _write_channels(plain, {c: st[c] for c in "RGB"})
+    for path in (plain, toy_render):
+        for den in ("oidn", "gaussian"):
+            code, _, err = run_cli("denoise", path, "--denoiser", den, "--spp", 4,
+                                   "--out", tmp_path / "x.exr")
+            _assert_one_line_error(code, err, f"--spp has no effect on --denoiser {den} "
+                                   "without --variance")
+            assert not (tmp_path / "x.exr").exists()
+    no_counts = tmp_path / "no-counts.exr"
+    _write_channels(no_counts, {k: v for k, v in st.items() if k != "SampleCount"})
+    for opts in (("--variance", "--denoiser", "gaussian"), ("--denoiser", "gem")):
+        out = tmp_path / f"{opts[-1]}.exr"
+        code, _, err = run_cli("denoise", no_counts, *opts, "--spp", 8, "--out", out, "-q")
+        assert code == 0, err
+        ref = tmp_path / f"{opts[-1]}-ref.exr"
+        code, _, err = run_cli("denoise", toy_render, *opts, "--out", ref, "-q")
+        assert code == 0, err
+        np.testing.assert_array_equal(read_image(out), read_image(ref))
 
 
 def _stat_channels(exr):
