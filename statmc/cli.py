@@ -769,11 +769,8 @@ def _combine_bins_file(args) -> int:
 
 def _has_bins(stats) -> bool:
     """Whether a file read by ``read_exr`` holds sample bins (``Bin<b>.R/G/B`` channels)."""
-    import re
-
-    from .exr import BIN
-    pat = re.compile(rf"^{BIN}\d+\.(Denoised\.)?[RGB]$")
-    return any(pat.match(c) for c in stats.meta.get("extra_channels", ()))
+    from .exr import _BIN_CHANNEL
+    return any(_BIN_CHANNEL.match(c) for c in stats.meta.get("extra_channels", ()))
 
 
 def _refuse_bins_as_y(path) -> None:
@@ -900,13 +897,26 @@ def cmd_metrics(args) -> int:
 
 
 # Channel families that `statmc info` summarises instead of listing one group per member:
-# (pattern of the channel name, the family's group name, the family's channel pattern).
-_INFO_FAMILIES = (
-    (r"^SpatialCovariance\.([+-]\d+)([+-]\d+)\.([RGB])$", "SpatialCovariance.<dy><dx>",
-     "SpatialCovariance.<dy><dx>.<R|G|B>"),
-    (r"^Bin(\d+)\.([RGB])$", "Bin<b>", "Bin<b>.<R|G|B>"),
-    (r"^Bin(\d+)\.Denoised\.([RGB])$", "Bin<b>.Denoised", "Bin<b>.Denoised.<R|G|B>"),
-)
+# the family's group name -> the family's channel pattern.
+_INFO_FAMILIES = {
+    "SpatialCovariance.<dy><dx>": "SpatialCovariance.<dy><dx>.<R|G|B>",
+    "Bin<b>": "Bin<b>.<R|G|B>",
+    "Bin<b>.Denoised": "Bin<b>.Denoised.<R|G|B>",
+}
+
+
+def _info_family(name: str):
+    """``(group, match)`` of a channel in one of :data:`_INFO_FAMILIES` (``match.group(1)``
+    the bin number, or with ``group(2)`` the stencil offset dy, dx), else None.  The
+    patterns are statmc.exr's."""
+    from .exr import _BIN_CHANNEL, _SPATIAL_CHANNEL
+    mt = _SPATIAL_CHANNEL.match(name)
+    if mt:
+        return "SpatialCovariance.<dy><dx>", mt
+    mt = _BIN_CHANNEL.match(name)
+    if mt:
+        return ("Bin<b>.Denoised" if mt.group(2) else "Bin<b>"), mt
+    return None
 
 
 def _summarise_info(info: dict) -> dict:
@@ -915,22 +925,18 @@ def _summarise_info(info: dict) -> dict:
     one entry each, and named in ``layout``: ``covariance`` (``Covariance.RG/RB/GB``),
     ``spatial_covariance`` (``"stencil MxM"``), ``bins`` (their number) and
     ``bins_denoised``."""
-    import re
-
     from .exr import _COV
-    pats = [(re.compile(rx), group, chan) for rx, group, chan in _INFO_FAMILIES]
-    members = {group: [] for _, group, _ in pats}       # family -> [(match, name)]
+    members = {group: [] for group in _INFO_FAMILIES}   # family -> [match]
     channels, family_of = {}, {}
     for name, ptype in info["channels"].items():
-        for rx, group, chan in pats:
-            mt = rx.match(name)
-            if mt:
-                members[group].append(mt)
-                family_of[name] = group
-                types = channels.setdefault(chan, [])
-                if ptype not in types:
-                    types.append(ptype)
-                break
+        fam = _info_family(name)
+        if fam:
+            group, mt = fam
+            members[group].append(mt)
+            family_of[name] = group
+            types = channels.setdefault(_INFO_FAMILIES[group], [])
+            if ptype not in types:
+                types.append(ptype)
         else:
             channels[name] = ptype
     channels = {k: ", ".join(v) if isinstance(v, list) else v for k, v in channels.items()}

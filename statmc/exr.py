@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 import sys
 import tempfile
 import threading
@@ -53,8 +54,14 @@ _MAX_F32_COUNT = 2 ** 24         # integers above this are not all representable
 _TONEMAPS = ("srgb", "reinhard", "aces")
 #: Prefix of the neighbour-covariance channels ``SpatialCovariance.<dy><dx>.<R|G|B>``.
 SPATIAL_COVARIANCE = "SpatialCovariance"
+# A neighbour-covariance channel name (read_spatial_covariance, statmc.cli): groups 1, 2
+# the offset dy, dx (signed), 3 the colour channel.
+_SPATIAL_CHANNEL = re.compile(rf"^{SPATIAL_COVARIANCE}\.([+-]\d+)([+-]\d+)\.([RGB])$")
 #: Prefix of the sample-bin channels ``Bin<b>.<C>`` and ``Bin<b>.Denoised.<C>``.
 BIN = "Bin"
+# A sample-bin channel name, the one definition of the pattern (read_bins, statmc.cli):
+# groups 1 the bin number, 2 "Denoised." or None, 3 the colour channel R, G or B.
+_BIN_CHANNEL = re.compile(rf"^{BIN}(\d+)\.(Denoised\.)?([RGB])$")
 
 
 # ---------------------------------------------------------------------------- reading
@@ -672,14 +679,11 @@ def read_spatial_covariance(path, n=None):
     partial stencil (a missing offset or channel) raises
     :class:`~statmc.errors.FileFormatError` naming what is missing.
     """
-    import re
-
     p = _name(path)
     _, arrays, _ = _open(p)
-    pat = re.compile(rf"^{SPATIAL_COVARIANCE}\.([+-]\d+)([+-]\d+)\.([RGB])$")
     found = {}
     for name in arrays:
-        mt = pat.match(name)
+        mt = _SPATIAL_CHANNEL.match(name)
         if mt:
             found[(int(mt.group(1)), int(mt.group(2)), mt.group(3))] = name
     if not found:
@@ -744,14 +748,11 @@ def read_bins(path):
     ``(ys, zs)``, each ``(B, H, W, 3)`` float32 (``zs`` is ``None`` without
     ``Bin<b>.Denoised.*`` channels), or ``None`` if the file has no bins.  A gap in the
     bin numbers or a missing channel raises :class:`~statmc.errors.FileFormatError`."""
-    import re
-
     p = _name(path)
     _, arrays, _ = _open(p)
-    pat = re.compile(rf"^{BIN}(\d+)\.(Denoised\.)?([RGB])$")
     found = set()
     for name in arrays:
-        mt = pat.match(name)
+        mt = _BIN_CHANNEL.match(name)
         if mt:
             found.add((int(mt.group(1)), bool(mt.group(2))))
     if not found:

@@ -137,6 +137,32 @@ def test_info_summarises_stencil_covariance_and_bins(tmp_path, toy_render):
     assert (layout["spatial_covariance"], layout["bins"], layout["bins_denoised"]) == (None, None, False)
 
 
+def test_bin_channel_names_agree_between_exr_and_cli(tmp_path):
+    """The sample-bin channel pattern is statmc.exr's alone (read_bins, and the CLI's
+    _has_bins and `info` summary, which had their own copies): names near it are no bins
+    for any of the three, Bin<b>.R/G/B and Bin<b>.Denoised.R/G/B are bins for all."""
+    from types import SimpleNamespace
+
+    from statmc import cli
+    from statmc.exr import read_bins
+    img = np.zeros((3, 4), np.float32)
+    near = ["Bin0.A", "Bin.R", "Bin0.Denoised.X", "bin0.R", "Bin0.R.x", "Bin0.Denoised",
+            "BinA.R", "Bin0.Denoised.Denoised.R"]
+    bins = [f"Bin{b}.{d}{c}" for b in (0, 1) for d in ("", "Denoised.") for c in "RGB"]
+    for names, nbins in ((near, None), (near + bins, 2)):
+        path = tmp_path / f"b{nbins}.exr"
+        _write_channels(path, {n: img for n in ["R", "G", "B"] + names})
+        got = read_bins(path)
+        assert (None if got is None else got[0].shape[0]) == nbins
+        assert cli._has_bins(SimpleNamespace(meta={"extra_channels": names})) == bool(nbins)
+        code, out, err = run_cli("info", path)
+        assert code == 0, err
+        info = json.loads(out)
+        assert info["layout"]["bins"] == nbins
+        assert info["layout"]["bins_denoised"] is bool(nbins)
+        assert set(near) <= set(info["channels"])          # listed one by one, not as bins
+
+
 @pytest.mark.parametrize("args, needle", [
     (["render", "no-such-scene", "--spp", "4", "--out", "{tmp}/x"], "no-such-scene"),
     (["render", "{tmp}/missing.xml", "--spp", "4", "--out", "{tmp}/x"], "missing.xml"),
