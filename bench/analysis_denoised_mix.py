@@ -6,7 +6,8 @@ The mix of :func:`statmc.combine.combine_denoised` (``mix="local"``, the default
 relMSE-weighted error, ``λᵀGλ − 2bᵀλ``, ``b_j = −E[Σ_c rel_c (z_c − μ_c) ρ_{j,c}]``.  Stein's
 lemma turns ``b`` into observable terms only when ``rel_c`` and the weights of pixel ``c``
 do not move with ``y_c``.  Three relMSE weights are compared on the same draws and
-renders (``statmc.combine._MIX_REL``, :func:`statmc.combine._mix_rel`):
+renders; the library keeps only the first, and this script swaps the others in for its
+hook :func:`statmc.combine._mix_rel` (:func:`mix_rel`, restored on exit):
 
 * ``z`` (the default, "old"): ``1 / (z² + 0.01)``, which moves with ``y_c`` through ``z_c``;
 * ``loo``: ``1 / (ỹ² + 0.01)``, ``ỹ_c`` the 5x5 mean of ``y`` leaving ``c`` out;
@@ -38,11 +39,12 @@ on 2 loaded cores.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 
 import numpy as np
 from scipy import stats
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, uniform_filter
 
 import statmc.combine as cbm
 from statmc import metrics
@@ -50,9 +52,55 @@ from statmc.pipeline import merge_bins, reconstruct_stats
 from statmc.toy import ToyRenderer
 
 SCENES = ("cornell-box", "glossy-spheres", "textured-dof", "glass-caustic")
-#: old = the library's default relMSE weights of the mix; the others: ``_mix_rel`` modes
-VARIANTS = ("z", "loo", "zc")
+#: Half-width of the 5x5 boxes of the ``loo`` and ``zc`` weights.
+RADIUS = 2
+
+
+def _rel_loo(y, z, pr, mean_var):
+    """``1 / (ỹ² + 0.01)``, ``ỹ_c`` the mean of ``y`` over the 5x5 box of pixels around
+    ``c`` leaving ``c`` out (taps outside the image dropped): independent of ``y_c``, but a
+    worse stand-in for ``μ`` in the metric's ``1 / (μ² + 0.01)`` (the box crosses edges)."""
+    n = 2 * RADIUS + 1
+    num = uniform_filter(y, (n, n, 1), mode="constant") * (n * n) - y
+    den = uniform_filter(np.ones(y.shape[:2]), n, mode="constant") * (n * n) - 1.0
+    yl = num / np.maximum(den, 1.0)[..., None]
+    return 1.0 / (yl * yl + 0.01)
+
+
+def _rel_zc(y, z, pr, mean_var):
+    """``1 / (ẑ² + 0.01)``, ``ẑ = z + Ĵ (z − y)``: ``z`` with the centre's first-order
+    share replaced (``∂ẑ_c/∂y_c = J_cc² ≈ 0``), ``Ĵ`` the 5x5 ratio of ``σ² J_cc`` from the
+    probes ``pr`` (``mean_i v_c (J v)_c``) to ``mean_var``, clipped to ``[0, 1]``."""
+    dcc = np.zeros(z.shape)
+    for i in range(pr.K):
+        dcc += pr.v(i) * pr.jv[i]
+    dcc /= max(pr.K, 1)
+    n = 2 * RADIUS + 1
+    num = uniform_filter(dcc, (n, n, 1), mode="reflect")
+    den = uniform_filter(np.asarray(mean_var, np.float64), (n, n, 1), mode="reflect")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        jcc = np.where(den > 0, np.clip(num / den, 0.0, 1.0), 0.0)
+    zc = z + jcc * (z - y)
+    return 1.0 / (zc * zc + 0.01)
+
+
+#: The relMSE weights of the mix: ``z`` is the library's own (its hook, 1 / (z² + 0.01)).
+REL = {"z": cbm._mix_rel, "loo": _rel_loo, "zc": _rel_zc}
+VARIANTS = tuple(REL)
 MODES = {"old": "z", "new": "zc"}          # the scenes part (``--new``)
+
+
+@contextlib.contextmanager
+def mix_rel(mode):
+    """Within the block, ``combine_denoised`` and ``combine_bins`` pool their mix with the
+    weights ``REL[mode]`` (they look the hook ``statmc.combine._mix_rel`` up at each call);
+    the library's own hook is restored on leaving, also on an error."""
+    saved = cbm._mix_rel
+    cbm._mix_rel = REL[mode]
+    try:
+        yield
+    finally:
+        cbm._mix_rel = saved
 
 
 def _blur(x):
@@ -85,14 +133,13 @@ def toy_denoised(n, truevar=False, H=32, spp=16):
         st = r.render_uniform(spp, seed=(71, i), features=False)
         mv = r.true_var() / spp if truevar else st.mean_var
         for mode in VARIANTS:
-            cbm._MIX_REL = mode
-            out, info = cbm.combine_denoised(st.mean, mv, _blur, size=7, probes=4, rng=i,
-                                             extra_output=True)
+            with mix_rel(mode):
+                out, info = cbm.combine_denoised(st.mean, mv, _blur, size=7, probes=4, rng=i,
+                                                 extra_output=True)
             z, rho, rel = info["denoised"], info["combined"] - info["denoised"][None], info["rel"]
             est = info["weighted_gain"].sum(axis=(1, 2, 3))
             tru = (-(z - mu) * rho * rel).sum(axis=(1, 2, 3))
             res[mode].append(_row(est, tru, rho, rel, mu, z, out, info["gain"]))
-    cbm._MIX_REL = "z"                     # the library default
     return res
 
 
@@ -106,15 +153,14 @@ def toy_bins(n, truevar=False, H=32, spp=16, B=4):
         ys = np.stack([b.mean for b in bins])
         mv = r.true_var() / spp if truevar else full.mean_var
         for mode in VARIANTS:
-            cbm._MIX_REL_BINS = mode
-            out, info = cbm.combine_bins(ys, mv, _blur, size=7, probes=4, rng=i,
-                                         bin_probes=0, extra_output=True)
+            with mix_rel(mode):
+                out, info = cbm.combine_bins(ys, mv, _blur, size=7, probes=4, rng=i,
+                                             bin_probes=0, extra_output=True)
             z, rel = info["full_denoised"], info["rel"]
             rho = (info["combined"] - z)[None]
             est = np.array([info["weighted_gain"].sum()])
             tru = (-(z - mu) * rho * rel).sum(axis=(1, 2, 3))
             res[mode].append(_row(est, tru, rho, rel, mu, z, out, info["gain"][None]))
-    cbm._MIX_REL_BINS = "z"
     return res
 
 
@@ -168,14 +214,13 @@ def scenes(names, spps, seeds):
                     base = reconstruct_stats(st, den)[0]
                     acc.setdefault(f"{den} base", []).append(metrics.relmse(np.asarray(base, np.float64), ref))
                     for key, mode in MODES.items():
-                        cbm._MIX_REL = mode
                         t0 = time.perf_counter()
-                        img, maps = reconstruct_stats(st, method, seed=s, **kw)
+                        with mix_rel(mode):
+                            img, maps = reconstruct_stats(st, method, seed=s, **kw)
                         acc.setdefault(f"{den} {key}", []).append(
                             metrics.relmse(np.asarray(img, np.float64), ref))
                         acc.setdefault(f"{den} {key} λ", []).append(float(np.mean(maps["mix"])))
                         acc.setdefault(f"{den} {key} s", []).append(time.perf_counter() - t0)
-            cbm._MIX_REL = "z"
             for den in ("gem", "oidn"):
                 base = np.array(acc[f"{den} base"])
                 o, n_ = np.array(acc[f"{den} old"]), np.array(acc[f"{den} new"])

@@ -1130,15 +1130,6 @@ DEFAULT_BIN_PROBES = 2
 #: ``z_bias``): "pairs" keeps them independent of the pixel noise model that "estimate"
 #: subtracts (docs/combine.md, "The bias of the SURE terms").
 _MIX_Z_BIAS = "pairs"
-#: The relMSE weights of the SURE mix (:func:`_mix_rel`) of combine_denoised and of
-#: combine_bins: "z", ``1 / (z² + 0.01)`` (the default); "loo" and "zc", two weights that do
-#: not move with ``y_c`` as Stein's lemma needs.  Both removed the bias of the estimate of
-#: combine_denoised on toy ``mixed`` but made the built-in scenes worse (session 9: "loo"
-#: cornell-box 16 spp 0.745 -> 0.945x OIDN, "zc" 0.745 -> 0.764x), so they are not the
-#: default; kept for ``bench/analysis_denoised_mix.py`` (docs/combine.md).
-_MIX_REL = "z"
-_MIX_REL_BINS = "z"
-_MIX_REL_RADIUS = 2
 #: Memory of one band of rows (bytes) of the per-pixel weights (float32) and smoothed
 #: moment stencils (float64) of :func:`combine_denoised`, :func:`combine_bins` and
 #: :func:`combine_bin_images`, margins included (:func:`_band_rows`).
@@ -1512,47 +1503,20 @@ def _mix_gain(y, z, beta, mean_var, w, V, JV):
     return (y - z) * (beta - z) - a_c * mean_var + cross
 
 
-def _mix_rel(y, z, mode, pr=None, mean_var=None):
-    """The relMSE weights of the SURE mix per pixel and channel: ``mode="z"``,
-    ``1 / (z² + 0.01)`` (the default, :data:`_MIX_REL`); ``"loo"``, ``1 / (ỹ² + 0.01)`` with
-    ``ỹ_c`` the mean of ``y`` over the 5x5 box of pixels around ``c`` *leaving ``c`` out*
-    (taps outside the image dropped); ``"zc"``, ``1 / (ẑ² + 0.01)`` with
-    ``ẑ = z + Ĵ (z − y)``, ``z`` with the centre's first-order share replaced
-    (``∂ẑ_c/∂y_c = J_cc² ≈ 0``), ``Ĵ`` the 5x5 ratio of ``σ² J_cc`` from the probes ``pr``
-    (``mean_i v_c (J v)_c``) to ``mean_var``, clipped to ``[0, 1]``.
+def _mix_rel(y, z, pr, mean_var):
+    """The relMSE weights ``1 / (z² + 0.01)`` with which the SURE mix of
+    :func:`combine_denoised` and :func:`combine_bins` pools ``G`` and ``b`` (ε = 0.01 of
+    Rousselle et al. 2011, as the relMSE metric), per pixel and channel, ``(H, W, C)``.
 
-    The mix pools ``b = −E[Σ_c rel_c (z_c − μ_c) ρ_c]``; Stein's lemma (and the exact
-    covariance identity for any noise, when ``ρ_c`` is affine in ``y_c``) turns
-    ``E[ε_c rel_c ρ_c]`` into ``rel_c σ_c² E[∂ρ_c/∂y_c]`` only if ``rel_c`` does not move
-    with ``y_c``.  ``1 / (z_c² + 0.01)`` (sessions 7–8, ``_MIX_REL = "z"``) does, through
-    ``z_c``; with heavy-tailed pixels that biases the estimate (toy ``mixed``, fixed
-    weights and blur, 300 renders: +4.0 ± 0.9, p = 1e-15; with ``ỹ``: −0.3 ± 1.0,
-    p = 0.49), since the neighbours' ``y`` are independent of ``y_c``.  But ``ỹ`` is a
-    worse stand-in for ``μ`` in the metric's ``1 / (μ² + 0.01)`` (a 5x5 box across edges),
-    and the mix with it, or with ``"zc"``, was worse on the built-in scenes
-    (``docs/combine.md``, "Is the mix of combine_denoised biased?"), so ``"z"`` stays."""
-    if mode == "z":
-        return 1.0 / (z * z + 0.01)
-    from scipy.ndimage import uniform_filter
-
-    if mode == "zc":
-        dcc = np.zeros(z.shape)
-        for i in range(pr.K):
-            dcc += pr.v(i) * pr.jv[i]
-        dcc /= max(pr.K, 1)
-        n = 2 * _MIX_REL_RADIUS + 1
-        num = uniform_filter(dcc, (n, n, 1), mode="reflect")
-        den = uniform_filter(np.asarray(mean_var, np.float64), (n, n, 1), mode="reflect")
-        with np.errstate(divide="ignore", invalid="ignore"):
-            jcc = np.where(den > 0, np.clip(num / den, 0.0, 1.0), 0.0)
-        zc = z + jcc * (z - y)
-        return 1.0 / (zc * zc + 0.01)
-
-    n = 2 * _MIX_REL_RADIUS + 1
-    num = uniform_filter(y, (n, n, 1), mode="constant") * (n * n) - y
-    den = uniform_filter(np.ones(y.shape[:2]), n, mode="constant") * (n * n) - 1.0
-    yl = num / np.maximum(den, 1.0)[..., None]
-    return 1.0 / (yl * yl + 0.01)
+    ``y`` (the render, or the bin mean ``ȳ``), the probes ``pr`` (:class:`_Probes`) and
+    ``mean_var`` are not read: they are the arguments of this hook, so that a study can swap
+    in other weights without a copy of the mix (``bench/analysis_denoised_mix.py``).
+    Stein's lemma needs ``rel_c`` not to move with ``y_c``, and ``1 / (z_c² + 0.01)`` does,
+    through ``z_c``; with heavy-tailed pixels that biases the pooled estimate of ``b``.  Two
+    weights free of ``y_c`` removed that bias on toy ``mixed`` but made the built-in scenes
+    worse (session 9; ``docs/combine.md``, "Is the mix of combine_denoised biased?"), so
+    these stay."""
+    return 1.0 / (z * z + 0.01)
 
 
 def _check_mix(mix, mix_sigma) -> float:
@@ -1722,7 +1686,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     mv = np.asarray(mean_var, np.float64)
     sm = np.maximum(_box(mv, 2), 0.0)
     var_w = {"smooth": sm, "raw": mv, "max": np.maximum(mv, sm)}
-    rel = _mix_rel(yy, z, _MIX_REL, pr, mean_var)
+    rel = _mix_rel(yy, z, pr, mv)
     J = 1 if mix is None else len(models)
     betas = np.empty((J, H, W, C))
     nums = np.empty((H, W, J))
@@ -1995,7 +1959,7 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     # of b = −E[(z − μ) ρ] per pixel (_mix_gain at ȳ with the bin-summed normalised weights
     # ā_t = Σ_b w_{t,b} / W_c; see Notes), in the bands of the weights.
     z = pr.z
-    rel = _mix_rel(ybar, z, _MIX_REL_BINS, pr, mv)
+    rel = _mix_rel(ybar, z, pr, mv)
     nums = np.empty((H, W, 1))
     gains = np.empty((H, W, C))
     wgains = np.empty((H, W, C)) if whole else None      # for extra_output only
