@@ -135,7 +135,7 @@ def toy_denoised(n, truevar=False, H=32, spp=16):
         for mode in VARIANTS:
             with mix_rel(mode):
                 out, info = cbm.combine_denoised(st.mean, mv, _blur, size=7, probes=4, rng=i,
-                                                 extra_output=True)
+                                                 extra_output=True, sure_terms=True)
             z, rho, rel = info["denoised"], info["combined"] - info["denoised"][None], info["rel"]
             est = info["weighted_gain"].sum(axis=(1, 2, 3))
             tru = (-(z - mu) * rho * rel).sum(axis=(1, 2, 3))
@@ -155,7 +155,7 @@ def toy_bins(n, truevar=False, H=32, spp=16, B=4):
         for mode in VARIANTS:
             with mix_rel(mode):
                 out, info = cbm.combine_bins(ys, mv, _blur, size=7, probes=4, rng=i,
-                                             bin_probes=0, extra_output=True)
+                                             bin_probes=0, extra_output=True, sure_terms=True)
             z, rel = info["full_denoised"], info["rel"]
             rho = (info["combined"] - z)[None]
             est = np.array([info["weighted_gain"].sum()])

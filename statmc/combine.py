@@ -1519,6 +1519,16 @@ def _mix_rel(y, z, pr, mean_var):
     return 1.0 / (z * z + 0.01)
 
 
+def _check_sure_terms(sure_terms, extra_output):
+    """Check ``sure_terms`` of :func:`combine_denoised` / :func:`combine_bins`."""
+    if not isinstance(sure_terms, (bool, np.bool_)):
+        raise InputError(f"`sure_terms` must be True or False; got {sure_terms!r}.")
+    if sure_terms and not extra_output:
+        raise InputError("`sure_terms=True` adds the SURE terms to the dict of "
+                         "`extra_output`; pass extra_output=True as well (got "
+                         f"extra_output={extra_output!r}).")
+
+
 def _check_mix(mix, mix_sigma) -> float:
     """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins`;
     returns ``mix_sigma`` as a float."""
@@ -1558,7 +1568,7 @@ def _pooled_mix(z, betas, nums, rel, mix, sigma):
 def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT_PROBES,
                      stencil=DEFAULT_STENCIL, smooth=DEFAULT_MOMENT_SMOOTH, patch=2,
                      var=("smooth", "max"), mix="local", mix_sigma=DEFAULT_MIX_SIGMA, rng=None,
-                     extra_output=False):
+                     extra_output=False, sure_terms=False):
     """A black-box denoiser made better by the combination kernel (Back et al. 2020 [1]_).
 
     ``y`` is the render (independent pixels), ``z = denoiser(y)`` the correlated image.
@@ -1611,11 +1621,17 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
         Seeds the probe vectors.
     extra_output : bool
         Also return a dict with ``denoised`` (``z``), ``combined`` (the ``β̂_j``,
-        ``(J, H, W, C)``), ``mix`` (``λ``, ``(H, W, J)``, or ``(J,)`` for ``"global"``),
-        ``gain`` (the per-pixel estimates of ``b_j = −E[(z − μ)(β̂_j − z)]``,
-        ``(J, H, W, C)``) and ``weighted_gain`` (those of the relMSE-weighted
-        ``−E[rel (z − μ)(β̂_j − z)]`` that the mix pools) and ``rel`` (those relMSE weights,
-        ``1 / (z² + 0.01)``, ``(H, W, C)``); all three None without a mix.
+        ``(J, H, W, C)``) and ``mix`` (``λ``, ``(H, W, J)``, or ``(J,)`` for ``"global"``;
+        None without a mix).
+    sure_terms : bool
+        Only with ``extra_output``: the dict also holds the per-pixel SURE terms of the mix,
+        ``gain`` (the estimates of ``b_j = −E[(z − μ)(β̂_j − z)]``, ``(J, H, W, C)``),
+        ``weighted_gain`` (those of the relMSE-weighted ``−E[rel (z − μ)(β̂_j − z)]`` that
+        the mix pools, ``(J, H, W, C)``) and ``rel`` (those relMSE weights,
+        ``1 / (z² + 0.01)``, ``(H, W, C)``); all three None without a mix.  Without
+        ``sure_terms`` the keys are absent and the two ``(J, H, W, C)`` float64 arrays are
+        never allocated (0.2 GB at 1920x1080 with the default two models).  The output is
+        the same either way.
 
     Returns
     -------
@@ -1679,6 +1695,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
                          f"them; got {var!r}.")
     ms = _check_mix(mix, mix_sigma)
     k = _check_window_options(size, stencil, smooth, patch)
+    _check_sure_terms(sure_terms, extra_output)
     pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3)
     z = pr.z
     H, W, C = z.shape
@@ -1690,8 +1707,8 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     J = 1 if mix is None else len(models)
     betas = np.empty((J, H, W, C))
     nums = np.empty((H, W, J))
-    # the per-pixel SURE terms are kept for extra_output only (2 J H W C float64: 0.2 GB at 1080p)
-    keep = mix is not None and extra_output
+    # the per-pixel SURE terms are kept for sure_terms only (2 J H W C float64: 0.2 GB at 1080p)
+    keep = mix is not None and sure_terms
     gains = np.empty((J, H, W, C)) if keep else None
     wgains = np.empty((J, H, W, C)) if keep else None
     # Steps 1-3 in bands of rows (the smoothed stencils and weights of the whole image
@@ -1730,15 +1747,17 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     else:
         out, lam = _pooled_mix(z, betas, nums, rel, mix, ms)
     if extra_output:
-        return out, {"denoised": z, "combined": betas, "mix": lam, "gain": gains,
-                     "weighted_gain": wgains, "rel": None if mix is None else rel}
+        info = {"denoised": z, "combined": betas, "mix": lam}
+        if sure_terms:
+            info.update(gain=gains, weighted_gain=wgains, rel=None if mix is None else rel)
+        return out, info
     return out
 
 
 def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_STENCIL,
                  probes=DEFAULT_PROBES, smooth=DEFAULT_MOMENT_SMOOTH, patch=2, mix="local",
                  mix_sigma=DEFAULT_MIX_SIGMA, bin_probes=None, rng=None, extra_output=False,
-                 return_denoised=False):
+                 return_denoised=False, sure_terms=False):
     """Multi-buffer combination (Eq. 14 of Back et al. 2020 [1]_) of ``B`` sample bins
     and their per-bin denoised images, with classical statistical weights.
 
@@ -1797,14 +1816,18 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         Also return ``{"denoised": (B, H, W, C) z_b, "weights": (H, W, B, k, k)}`` (the
         weights of the whole image at once, whatever their size); with a mix also
         ``"full_denoised"`` (``z = f(ȳ)``), ``"combined"`` (``β̂``), ``"mix"`` (``λ``,
-        ``(H, W, 1)``, or ``(1,)`` for ``"global"``), ``"gain"`` (the per-pixel
-        estimate of ``b = −E[(z − μ)(β̂ − z)]``, ``(H, W, C)``), ``"weighted_gain"`` (the
-        same times ``"rel"``, what the mix pools) and ``"rel"`` (its relMSE weights
-        ``1 / (z² + 0.01)``).
+        ``(H, W, 1)``, or ``(1,)`` for ``"global"``) and ``"gain"`` (the per-pixel
+        estimate of ``b = −E[(z − μ)(β̂ − z)]``, ``(H, W, C)``).
     return_denoised : bool
         Also return the denoised bins ``(B, H, W, C)``, as ``(out, z_b)``, keeping the
         weights in bands (``extra_output`` forms the weights of the whole image: about
         7.5 GB at 1080p with ``B = 4``).
+    sure_terms : bool
+        Only with ``extra_output``: with a mix the dict also holds ``"weighted_gain"``
+        (``"gain"`` times ``"rel"``, what the mix pools, ``(H, W, C)``) and ``"rel"`` (its
+        relMSE weights ``1 / (z² + 0.01)``, ``(H, W, C)``), as :func:`combine_denoised`'s
+        ``sure_terms`` (``"gain"`` is returned with ``extra_output`` alone, as before);
+        without it these keys are absent.  The output is the same either way.
 
     Returns
     -------
@@ -1831,11 +1854,11 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
     Peak memory at 1920x1080 (``B = 4``, defaults, GEM's kernel): the inputs plus 1.9 GiB
     (4.9 GiB before the stencils were banded; ``bench/bench_combine.py --part memory``;
     1.94 GiB with the mix).  The mix adds the bin-summed weights of a band (counted in the
-    band's size) and a few ``(H, W, C)`` float64 images (``z``, ``β̂``, the SURE terms;
-    50 MB each at 1080p); a black box's per-bin probes keep ``B · bin_probes`` images of
-    ``J_b v`` (float32) and their signs: 2.26 GiB above the inputs at 1080p for the same
-    kernel behind a plain callable.  The output equals the one-piece result to the bit
-    (tested).
+    band's size) and a few ``(H, W, C)`` float64 images (``z``, ``β̂``, the relMSE weights;
+    50 MB each at 1080p; the per-pixel SURE terms are kept only for ``extra_output``); a
+    black box's per-bin probes keep ``B · bin_probes`` images of ``J_b v`` (float32) and
+    their signs: 2.26 GiB above the inputs at 1080p for the same kernel behind a plain
+    callable.  The output equals the one-piece result to the bit (tested).
 
     *Scale.*  As for :func:`combine_denoised`: without the mix the output is
     scale-equivariant (``ys`` ×a, ``mean_var`` ×a², a scale-equivariant denoiser); the mix
@@ -1905,10 +1928,11 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
        Rendered Images". Computer Graphics Forum 41(2), 2022.
        https://doi.org/10.1111/cgf.14454
     """
+    _check_sure_terms(sure_terms, extra_output)
     out, info = _combine_bins(ys, mean_var, denoiser, size=size, stencil=stencil,
                               probes=probes, smooth=smooth, patch=patch, mix=mix,
                               mix_sigma=mix_sigma, bin_probes=bin_probes, rng=rng,
-                              whole=extra_output)
+                              whole=extra_output, sure_terms=sure_terms)
     if extra_output:
         return out, info
     if return_denoised:
@@ -1917,9 +1941,11 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
 
 
 def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patch, mix,
-                  mix_sigma, rng, whole, bin_probes=None):
+                  mix_sigma, rng, whole, bin_probes=None, sure_terms=False):
     """:func:`combine_bins`; returns ``(out, info)``, ``info`` as its ``extra_output``
-    (``"weights"`` only with ``whole``, else None: the weights stay in bands)."""
+    (``"weights"`` only with ``whole``, else None: the weights stay in bands; with a mix
+    ``"gain"`` only with ``whole`` or ``sure_terms``, else None, and ``"weighted_gain"`` and
+    ``"rel"`` with ``sure_terms``)."""
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
     _check_limit("ys", yb, VALUE_LIMIT)                # statistical weights: up front
     _check_float32_range("ys", yb)                     # the denoiser's float32 copies
@@ -1961,8 +1987,9 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     z = pr.z
     rel = _mix_rel(ybar, z, pr, mv)
     nums = np.empty((H, W, 1))
-    gains = np.empty((H, W, C))
-    wgains = np.empty((H, W, C)) if whole else None      # for extra_output only
+    # the per-pixel SURE terms are kept for extra_output / sure_terms only (50 MB each at 1080p)
+    gains = np.empty((H, W, C)) if whole or sure_terms else None
+    wgains = np.empty((H, W, C)) if sure_terms else None
     jac, diag = pr, None
     if bin_probes:
         # Per-bin Jacobians J_b (probes at each bin, v ~ ±√(B σ²)): the Stein terms
@@ -1984,16 +2011,20 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
             gain -= diag[lo:hi]
         wg = gain * rel[lo:hi]
         nums[a:b, :, 0] = wg.sum(axis=-1)[a - lo:b - lo]
-        gains[a:b] = gain[a - lo:b - lo]
-        if whole:
+        if gains is not None:
+            gains[a:b] = gain[a - lo:b - lo]
+        if sure_terms:
             wgains[a:b] = wg[a - lo:b - lo]
 
     beta, w = _banded_eq14(yb, zs, var_y, moments, m, k, int(patch), whole=whole, loo=True,
                            band=band, extra_row_bytes=W * k * k * 4, z_bias=_MIX_Z_BIAS)
     del moments
     out, lam = _pooled_mix(z, beta[None], nums, rel, mix, ms)
-    return out, {"denoised": zs, "weights": w, "full_denoised": z, "combined": beta,
-                 "mix": lam, "gain": gains, "weighted_gain": wgains, "rel": rel}
+    info = {"denoised": zs, "weights": w, "full_denoised": z, "combined": beta, "mix": lam,
+            "gain": gains}
+    if sure_terms:
+        info.update(weighted_gain=wgains, rel=rel)
+    return out, info
 
 
 def _check_window_options(size, stencil, smooth, patch):

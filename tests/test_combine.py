@@ -1713,14 +1713,15 @@ def test_bin_probes_have_one_bins_variance():
 
 def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
     """With the mix the weights, Eq. 14 and the SURE terms are formed in bands (margin
-    k // 2 + patch): output, λ, β̂ and the SURE terms equal the one-piece ones to the bit;
+    k // 2 + patch): output, λ, β̂ and the SURE terms (kept in bands with ``sure_terms``)
+    equal the one-piece ones to the bit;
     a margin one row short changes them.  mix=None stays the output of before (the
     unmixed Eq. 14, not the leave-centre-out β̂ of the mix)."""
     import statmc.combine as cbm
     bins, full, f = _bins_and_kernel(seed=5)
     ys = np.stack([b.mean for b in bins])
     B, H, W, _ = ys.shape
-    kw = dict(size=7, patch=2, rng=1, extra_output=True)
+    kw = dict(size=7, patch=2, rng=1, extra_output=True, sure_terms=True)
     whole = {mix: cbm.combine_bins(ys, full.mean_var, f, mix=mix, **kw)
              for mix in ("local", "global")}
     plain = cbm.combine_bins(ys, full.mean_var, f, size=7, patch=2, rng=1)
@@ -1736,10 +1737,10 @@ def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
         seen.clear()
         got, ginfo = cbm._combine_bins(ys, full.mean_var, f, size=7, stencil=5, probes=8,
                                        smooth=2, patch=2, mix=mix, mix_sigma=16.0, rng=1,
-                                       whole=False)
+                                       whole=False, sure_terms=True)
         assert len(seen) > 2 and max(seen) < H                         # banded
         np.testing.assert_array_equal(got, out)
-        for key in ("combined", "mix", "gain", "full_denoised"):
+        for key in ("combined", "mix", "gain", "weighted_gain", "rel", "full_denoised"):
             np.testing.assert_array_equal(ginfo[key], info[key])
     # a black box (the same kernel behind a plain callable): probes at each bin too
     box = lambda x: f(x)                                               # noqa: E731
@@ -1749,7 +1750,7 @@ def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
     one, oinfo = cbm._combine_bins(ys, full.mean_var, box, whole=True, **kw)
     monkeypatch.setattr(cbm, "BAND_BYTES", _band_bytes(10, W, B + 1, 7, 5))
     seen.clear()
-    got, ginfo = cbm._combine_bins(ys, full.mean_var, box, whole=False, **kw)
+    got, ginfo = cbm._combine_bins(ys, full.mean_var, box, whole=False, sure_terms=True, **kw)
     assert len(seen) > 2 and max(seen) < H
     np.testing.assert_array_equal(got, one)
     np.testing.assert_array_equal(ginfo["gain"], oinfo["gain"])
@@ -1825,29 +1826,37 @@ def test_combine_without_the_mix_is_scale_equivariant():
                 assert not np.allclose(big / a, base, rtol=1e-9, atol=1e-12), fn.__name__
 
 
-def test_combine_denoised_extra_output_holds_the_pooled_sure_terms():
-    """``extra_output`` of ``combine_denoised`` returns the per-pixel Stein estimates
-    ``gain`` of ``b_j = −E[(z − μ) ρ_j]`` and ``weighted_gain`` = ``gain / (z² + 0.01)``,
-    the terms the mix pools: the global λ recomputed from them is the returned one;
-    without a mix both are None and the output is unchanged."""
+def test_combine_denoised_sure_terms_hold_the_pooled_sure_terms():
+    """``extra_output=True, sure_terms=True`` of ``combine_denoised`` returns the per-pixel
+    Stein estimates ``gain`` of ``b_j = −E[(z − μ) ρ_j]`` and ``weighted_gain`` =
+    ``gain / (z² + 0.01)``, the terms the mix pools: the global λ recomputed from them is
+    the returned one; ``extra_output`` alone returns the same output, ``z``, ``β̂`` and λ to
+    the bit without those keys; without a mix they are None and the output is unchanged."""
     import statmc.combine as cbm
     from statmc import denoisers
 
     st = ToyRenderer("edges", width=20, height=18).render_uniform(16, seed=4, features=False)
     f = denoisers.gaussian(1.5)
     out, info = combine_denoised(st.mean, st.mean_var, f, size=7, probes=4, mix="global",
-                                 rng=3, extra_output=True)
+                                 rng=3, extra_output=True, sure_terms=True)
     z, betas = info["denoised"], info["combined"]
     assert info["gain"].shape == info["weighted_gain"].shape == betas.shape
+    np.testing.assert_array_equal(info["rel"], 1.0 / (z * z + 0.01))
     np.testing.assert_array_equal(info["weighted_gain"], info["gain"] * (1.0 / (z * z + 0.01)))
+    short_out, short = combine_denoised(st.mean, st.mean_var, f, size=7, probes=4,
+                                        mix="global", rng=3, extra_output=True)
+    assert set(short) == {"denoised", "combined", "mix"}
+    np.testing.assert_array_equal(short_out, out)
+    for key in short:
+        np.testing.assert_array_equal(short[key], info[key])
     rho = betas - z[None]
     G = np.einsum("jhwc,khwc,hwc->jk", rho, rho, 1.0 / (z * z + 0.01))
     lam = cbm._simplex_mix(G, info["weighted_gain"].sum(axis=(1, 2, 3)))
     np.testing.assert_allclose(lam, info["mix"], atol=1e-9)
     np.testing.assert_allclose(out, z + np.einsum("jhwc,j->hwc", rho, info["mix"]), atol=1e-12)
     plain, pinfo = combine_denoised(st.mean, st.mean_var, f, size=7, probes=4, mix=None,
-                                    rng=3, extra_output=True)
-    assert pinfo["gain"] is None and pinfo["weighted_gain"] is None
+                                    rng=3, extra_output=True, sure_terms=True)
+    assert pinfo["gain"] is None and pinfo["weighted_gain"] is None and pinfo["rel"] is None
     np.testing.assert_array_equal(plain, combine_denoised(st.mean, st.mean_var, f, size=7,
                                                           probes=4, mix=None, rng=3))
 
@@ -1888,3 +1897,111 @@ def test_relmse_weights_from_z_bias_the_stein_estimate_with_heavy_tailed_pixels(
         d["loo"].append((err * rel_loo(y)).sum())
     p = {mode: stats.ttest_1samp(v, 0.0).pvalue for mode, v in d.items()}
     assert p["z"] < ALPHA and p["loo"] > ALPHA, (p, {m: np.mean(v) for m, v in d.items()})
+
+
+def test_combine_denoised_keeps_the_sure_terms_only_when_asked():
+    """The per-pixel SURE terms (``gain``, ``weighted_gain``: two ``(J, H, W, C)`` float64
+    arrays, 0.2 GB at 1080p) are allocated only with ``sure_terms=True``: with it the
+    traced peak memory rises by their size (within 5 %) over ``extra_output`` alone, which
+    the CLI path (``reconstruct_stats(..., "oidn+combine" | "combine")``) uses for the mix.
+    Before ``sure_terms`` existed, ``extra_output=True`` always allocated them.  One numba
+    thread: the parallel kernels' traced temporaries vary by ±0.4 MB with the scheduling
+    (measured), one thread makes the peak repeat to within 0.2 kB."""
+    import gc
+    import tracemalloc
+
+    import numba
+
+    from statmc import denoisers
+
+    H, W = 48, 40
+    st = ToyRenderer("edges", width=W, height=H).render_uniform(8, seed=4, features=False)
+    f = denoisers.gaussian(1.5)
+
+    def peak(**kw):
+        gc.collect()
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        tracemalloc.start()
+        try:
+            out = combine_denoised(st.mean, st.mean_var, f, size=5, probes=2, stencil=3,
+                                   rng=1, extra_output=True, **kw)
+            return tracemalloc.get_traced_memory()[1], out
+        finally:
+            tracemalloc.stop()
+            numba.set_num_threads(threads)
+
+    peak()                                                   # compile the kernels first
+    short, (o1, i1) = peak()
+    full, (o2, i2) = peak(sure_terms=True)
+    terms = 2 * 2 * H * W * 3 * 8                            # J = 2 models ("smooth", "max")
+    assert not {"gain", "weighted_gain", "rel"} & set(i1)
+    assert i2["gain"].nbytes + i2["weighted_gain"].nbytes == terms
+    assert abs((full - short) - terms) < 0.05 * terms, (short, full, terms)
+    np.testing.assert_array_equal(o1, o2)
+
+
+def test_sure_terms_needs_extra_output():
+    """``sure_terms`` adds keys to the dict of ``extra_output``: without it, or given a
+    non-bool, it is refused up front (the denoiser never runs)."""
+    from statmc.combine import combine_bins
+
+    y = np.ones((6, 6, 3))
+
+    def never(x):
+        raise AssertionError("the denoiser ran")
+
+    for fn, data in ((combine_denoised, y), (combine_bins, np.stack([y, y]))):
+        with pytest.raises(InputError, match="pass extra_output=True"):
+            fn(data, np.ones((6, 6, 3)), never, size=3, sure_terms=True)
+        with pytest.raises(InputError, match="`sure_terms` must be True or False; got 'yes'"):
+            fn(data, np.ones((6, 6, 3)), never, size=3, extra_output=True, sure_terms="yes")
+
+
+def test_combine_bins_sure_terms_add_the_weighted_gain():
+    """``combine_bins``' ``extra_output`` returns ``gain`` as before; ``sure_terms=True``
+    adds ``weighted_gain`` = ``gain / (z² + 0.01)`` and ``rel``; the rest, and the output,
+    are the same to the bit."""
+    from statmc import denoisers
+    from statmc.combine import combine_bins
+    from statmc.pipeline import merge_bins
+
+    r = ToyRenderer("mixed", width=20, height=18)
+    bins = [r.render_uniform(4, seed=(5, b), features=False) for b in range(4)]
+    ys = np.stack([b.mean for b in bins])
+    mv = merge_bins(bins).mean_var
+    f = denoisers.gaussian(1.5)
+    o1, i1 = combine_bins(ys, mv, f, size=7, probes=3, rng=2, extra_output=True)
+    o2, i2 = combine_bins(ys, mv, f, size=7, probes=3, rng=2, extra_output=True, sure_terms=True)
+    assert "gain" in i1 and not {"weighted_gain", "rel"} & set(i1)
+    assert set(i2) == set(i1) | {"weighted_gain", "rel"}
+    np.testing.assert_array_equal(o1, o2)
+    for key in i1:
+        np.testing.assert_array_equal(i1[key], i2[key])
+    z = i2["full_denoised"]
+    np.testing.assert_array_equal(i2["rel"], 1.0 / (z * z + 0.01))
+    np.testing.assert_array_equal(i2["weighted_gain"], i2["gain"] * i2["rel"])
+
+
+def test_reconstruct_stats_combine_reads_the_mix_without_the_sure_terms(monkeypatch):
+    """The CLI path (``render --reconstruct oidn+combine``, ``reconstruct --method
+    oidn+combine``: ``reconstruct_stats``) asks ``combine_denoised`` for the mix only, so the
+    per-pixel SURE terms are never allocated there; its ``"mix"`` map is Σλ."""
+    import statmc.combine as cbm
+    from statmc.pipeline import reconstruct_stats
+
+    seen = []
+    real = cbm.combine_denoised
+
+    def spy(*args, **kw):
+        res = real(*args, **kw)
+        seen.append((kw, res[1]))
+        return res
+
+    monkeypatch.setattr(cbm, "combine_denoised", spy)
+    st = ToyRenderer("edges", width=20, height=16).render_uniform(8, seed=2)
+    img, maps = reconstruct_stats(st, "combine", denoiser="gaussian", seed=1)
+    assert len(seen) == 1
+    kw, info = seen[0]
+    assert not kw.get("sure_terms", False) and not {"gain", "weighted_gain", "rel"} & set(info)
+    np.testing.assert_array_equal(maps["mix"], np.asarray(info["mix"], np.float32).sum(axis=-1))
