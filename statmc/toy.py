@@ -538,8 +538,6 @@ class ToyRenderer:
         total = int(cum_end[-1]) if flat.size else 0
         stats = PixelStats.empty(h, w, c)
         stats = PixelStats(stats.n, stats.mean, stats.m2, m2_cross=np.zeros((h, w, c, c)))
-        lo = hi = None
-        several = total > chunk  # chunk statistics get merged: track each pixel's range
         bar = None
         if progress:
             from tqdm.auto import tqdm
@@ -551,23 +549,16 @@ class ToyRenderer:
                 p1 = int(np.searchsorted(cum_start, b, side="left"))
                 sub = np.clip(cum_end[p0:p1], a, b) - np.clip(cum_start[p0:p1], a, b)
                 idx = np.repeat(np.arange(p0, p1, dtype=np.intp), sub)
-                part = _stats_from_deviations(idx, self._draw_dev(idx, rng), self._mu_flat,
-                                              (h, w), bounds=several)
-                if not several:
-                    stats = part
-                elif a == 0:
-                    stats, lo, hi = part
-                else:
-                    stats = stats.merge(part[0])
-                    np.minimum(lo, part[1], out=lo)
-                    np.maximum(hi, part[2], out=hi)
+                part = _stats_from_deviations(idx, self._draw_dev(idx, rng), self._mu_flat, (h, w))
+                # Chan's merge keeps each mean between the two merged ones and a flat
+                # channel exactly flat (see _stats_from_deviations' Notes), so the
+                # per-chunk range guarantee carries over without tracking the ranges
+                stats = part if a == 0 else stats.merge(part)
                 if bar is not None:
                     bar.update(b - a)
         finally:
             if bar is not None:
                 bar.close()
-        if several:  # the merge's rounding may leave the range too: pin again
-            stats = _pin_to_sample_range(stats, lo, hi)
         feats = self.features() if features else {}
         meta = {"renderer": "toy", "scene": self.scene,
                 "seed": seed if isinstance(seed, (int, np.integer)) or seed is None else repr(seed)}
@@ -582,7 +573,7 @@ class ToyRenderer:
                            chunk_size=chunk_size)
 
 
-def _stats_from_deviations(idx, dev, mu, shape, *, bounds=False):
+def _stats_from_deviations(idx, dev, mu, shape):
     """PixelStats of samples given as deviations from the known pixel means.
 
     Parameters
@@ -594,17 +585,11 @@ def _stats_from_deviations(idx, dev, mu, shape, *, bounds=False):
     mu : (H*W, C) ndarray
         The shift ``μ`` (here the exact pixel means).
     shape : (H, W)
-    bounds : bool, optional
-        Also return each pixel's sample range.
 
     Returns
     -------
-    stats : PixelStats
+    PixelStats
         With ``m2_cross``.
-    lo, hi : (H*W, C) float64 ndarray, only with ``bounds=True``
-        Smallest and largest sample ``μ + d`` of each pixel and channel (``+inf`` and
-        ``−inf`` where the pixel has no sample), for :func:`_pin_to_sample_range` after
-        merging chunks.
 
     Notes
     -----
@@ -618,7 +603,18 @@ def _stats_from_deviations(idx, dev, mu, shape, *, bounds=False):
     is monotone).  Each mean is clipped to that range (the mean of real numbers lies in it;
     the shifted sum does only up to rounding), so a run whose samples are all equal in a
     channel gets exactly their value, and ``M2 = 0`` exactly in that channel and in its
-    cross terms (as :func:`_pin_to_sample_range` does after a merge).
+    cross terms.
+
+    Both guarantees survive :meth:`PixelStats.merge` of chunks, so :meth:`ToyRenderer.render`
+    needs no correction after merging.  With ``a < b`` the merged mean is
+    ``fl(a + fl(fl(b − a)·t))``, ``t = fl(n_b/n) ≤ (1 − 1/n)(1 + u)``: the increment is
+    ``≥ 0`` and below ``(b − a)(1 − 1/n + u)(1 + u)² < b − a`` while ``n < 1/(3u) ≈ 3·10¹⁵``
+    (``u = 2⁻⁵³``), so the sum lies in ``[a, b]`` before rounding and, ``a`` and ``b``
+    being floats, after it (``t = 1`` only when ``n_a = 0``, where ``a = 0`` and the result
+    is ``b`` exactly); the union's range contains ``[a, b]``.  A channel flat over the
+    union is flat at one value in both parts, so ``δ = 0`` and its ``M2`` and cross terms
+    stay exactly 0.  tests/test_toy.py checks the merge on adversarial pairs and chunked
+    renders down to one sample per chunk.
     """
     h, w = shape
     c = dev.shape[0]
@@ -646,42 +642,5 @@ def _stats_from_deviations(idx, dev, mu, shape, *, bounds=False):
     cross[:, ib, ia] = cross[:, ia, ib]
     k = np.arange(c)
     cross[:, k, k] = m2
-    stats = PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c),
-                       m2_cross=cross.reshape(h, w, c, c))
-    if not bounds:
-        return stats
-    lo = np.full((h * w, c), np.inf)
-    hi = np.full((h * w, c), -np.inf)
-    lo[pix], hi[pix] = lo_run.T, hi_run.T
-    return stats, lo, hi
-
-
-def _pin_to_sample_range(stats, lo, hi):
-    """Undo rounding that moved a pixel's statistics outside what its samples allow.
-
-    Parameters
-    ----------
-    stats : PixelStats
-        With ``m2_cross``, the render's own (corrected in place and returned).
-    lo, hi : (H*W, C) ndarray
-        Smallest and largest sample of each pixel and channel (``±inf`` where ``n = 0``).
-
-    Notes
-    -----
-    The mean of real numbers lies in ``[min x, max x]``; the shifted sums
-    ``μ + Σd/n`` (and Chan's merge) honour that only up to rounding, which made e.g. a
-    firefly pixel without a hit (every sample exactly 0) return a mean of ``−1e-16``, a
-    negative radiance.  Here each mean is clipped to ``[lo, hi]`` — a change of at most
-    the rounding residue, and none at all for means already inside — so a channel whose
-    samples are all equal (``lo == hi``) gets exactly that value, and its ``M2`` and its
-    cross terms are set to exactly 0.
-    """
-    h, w, c = stats.mean.shape
-    seen = (stats.n > 0)[..., None]
-    np.clip(stats.mean, lo.reshape(h, w, c), hi.reshape(h, w, c), out=stats.mean, where=seen)
-    pix, ch = np.nonzero((lo == hi) & seen.reshape(h * w, 1))
-    i, j = np.divmod(pix, w)
-    stats.m2[i, j, ch] = 0.0
-    stats.m2_cross[i, j, ch, :] = 0.0
-    stats.m2_cross[i, j, :, ch] = 0.0
-    return stats
+    return PixelStats(n.reshape(h, w), mean.reshape(h, w, c), m2.reshape(h, w, c),
+                      m2_cross=cross.reshape(h, w, c, c))

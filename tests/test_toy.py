@@ -534,14 +534,60 @@ def test_means_never_leave_their_samples_range(scene, spp, seed):
         assert n_flat > 0  # the case the regression is about is exercised
 
 
+@pytest.mark.parametrize("chunk", [1, 7])
 @pytest.mark.parametrize("scene", ["edges", "fireflies"])
-def test_means_stay_in_range_after_chunk_merges(scene):
+def test_means_stay_in_range_after_chunk_merges(scene, chunk):
     """Same guarantee when a pixel's samples are split over chunks and merged (Chan's
-    update rounds too); these scenes draw one stream, so the chunks' samples are
-    ``sample_values``' (see test_chunking_is_exact_for_single_stream_scenes)."""
+    update rounds too, but stays between the merged means: see
+    test_chan_merge_keeps_the_mean_between_the_merged_means); these scenes draw one
+    stream, so the chunks' samples are ``sample_values``' (see
+    test_chunking_is_exact_for_single_stream_scenes).  ``chunk = 1`` merges every sample."""
     r = ToyRenderer(scene, width=16, height=16)
     counts = np.random.default_rng(5).integers(0, 24, (16, 16))
-    s = r.render(counts, seed=6, chunk_size=7)
+    s = r.render(counts, seed=6, chunk_size=chunk)
     x, lo, hi = _sample_range(r, counts, 6)
     n_flat = _check_in_range(s, lo, hi)
     assert s.mean.min() >= 0 and (scene == "edges" or n_flat > 0)
+
+
+def test_chan_merge_keeps_the_mean_between_the_merged_means():
+    """What lets :meth:`ToyRenderer.render` merge chunks without re-clipping (the proof is
+    in ``toy._stats_from_deviations``' Notes): ``PixelStats.merge``'s mean
+    ``a + (b − a)·n_b/n`` stays in ``[min(a, b), max(a, b)]`` after rounding, and merging
+    two runs flat at the same value keeps that value, ``M2 = 0`` and zero cross terms
+    exactly.  Adversarial pairs: signs and magnitudes over 2^±60 (``b − a`` rounds),
+    neighbours one ulp apart, relative gaps of a few ulps, ``n_b/n`` near 0 and near 1,
+    counts up to 2^40, and empty sides (``n_a = 0`` with ``a = 0``: the result is ``b``)."""
+    rng = np.random.default_rng(123)
+    m = 400_000
+    a = rng.choice([-1.0, 1.0], m) * rng.random(m) * 2.0 ** rng.integers(-60, 60, m)
+    b = rng.choice([-1.0, 1.0], m) * rng.random(m) * 2.0 ** rng.integers(-60, 60, m)
+    q = m // 4
+    b[:q] = np.nextafter(a[:q], rng.choice([-np.inf, np.inf], q))
+    b[q:2 * q] = a[q:2 * q] * (1 + rng.integers(-8, 9, q) * 2.0 ** -52)
+    na = rng.integers(1, 2 ** rng.integers(1, 41, m), dtype=np.int64)
+    nb = rng.integers(1, 2 ** rng.integers(1, 41, m), dtype=np.int64)
+    na[:m // 3] = 1                  # n_b / n close to 1
+    nb[m // 3:2 * m // 3] = 1        # close to 0
+    na[-1000:], a[-1000:] = 0, 0.0   # a pixel the first chunk did not reach
+    one = np.zeros((1, m, 1))
+    merged = PixelStats(na[None], a[None, :, None], one).merge(
+        PixelStats(nb[None], b[None, :, None], one)).mean.ravel()
+    out = (merged < np.minimum(a, b)) | (merged > np.maximum(a, b))
+    out[-1000:] = merged[-1000:] != b[-1000:]
+    i = np.flatnonzero(out)[:3]
+    assert not out.any(), (f"{int(out.sum())} of {m} merged means leave [min(a, b), max(a, b)],"
+                           f" e.g. a={a[i]}, b={b[i]}, n_a={na[i]}, n_b={nb[i]} -> {merged[i]}")
+    # flat runs: channel 0 flat at the same value on both sides, channel 1 not
+    v = rng.standard_normal(m)
+    mean_a, mean_b = np.stack([v, v + 1], -1)[None], np.stack([v, v - 1], -1)[None]
+    m2_a, m2_b = np.stack([0 * v, v * v + 1], -1)[None], np.stack([0 * v, v * v + 2], -1)[None]
+    cross = np.zeros((1, m, 2, 2))
+    cross[..., 1, 1] = m2_a[..., 1]
+    sa = PixelStats(na[None].clip(1), mean_a, m2_a, m2_cross=cross)
+    cross_b = cross.copy()
+    cross_b[..., 1, 1] = m2_b[..., 1]
+    f = sa.merge(PixelStats(nb[None], mean_b, m2_b, m2_cross=cross_b))
+    assert np.array_equal(f.mean[..., 0], mean_a[..., 0])
+    assert np.all(f.m2[..., 0] == 0) and np.all(f.m2_cross[..., 0, :] == 0)
+    assert np.all(f.m2_cross[..., :, 0] == 0)
