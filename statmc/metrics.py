@@ -65,16 +65,21 @@ def _flip_module():
     """``flip_evaluator``, imported with its bundled OpenMP runtime set to wait passively.
 
     ``_FLIP_OMP_ENV`` is put into the environment just for the import (the moment the
-    bundled libgomp reads it) and the environment is restored right after, so neither the
-    user's environment nor any other OpenMP runtime (numba's, torch's) sees it.  Nothing is
-    changed when the user set ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` themselves, or when
-    ``flip_evaluator`` was imported before (its runtime is then already configured).
+    bundled libgomp reads it) and the environment is restored right after, so the user's
+    environment is unchanged afterwards.  The environment is process-wide, though: while
+    the import runs, every thread of the process sees ``OMP_WAIT_POLICY=PASSIVE`` (an
+    OpenMP runtime another thread loads in that moment, or a subprocess it starts, would
+    inherit it).  Nothing is changed when the user set ``OMP_WAIT_POLICY`` or
+    ``GOMP_SPINCOUNT`` themselves, or when ``flip_evaluator`` was imported before (its
+    runtime is then already configured).  When another thread is still importing it, this
+    waits for that import to finish (a plain ``import`` does) and returns the complete
+    module, not the half-initialised one ``sys.modules`` already holds.
     """
-    mod = sys.modules.get("flip_evaluator")
-    if mod is not None:
-        return mod
+    if "flip_evaluator" in sys.modules:
+        import flip_evaluator  # waits for an import still running in another thread
+        return flip_evaluator
     with _FLIP_IMPORT_LOCK:
-        if any(k in os.environ for k in _OMP_USER_CHOICE):
+        if "flip_evaluator" in sys.modules or any(k in os.environ for k in _OMP_USER_CHOICE):
             import flip_evaluator
             return flip_evaluator
         added = [k for k in _FLIP_OMP_ENV if k not in os.environ]

@@ -411,6 +411,35 @@ def test_defaults_are_the_papers_constants(pair):
 
 
 # ------------------------------------------------------------ FLIP's bundled OpenMP runtime
+_FLIP_CONCURRENT_IMPORT = """
+import sys, threading, time
+sys.path.insert(0, sys.argv[1])          # a slow stand-in package named flip_evaluator
+from statmc.metrics import _flip_module
+first = threading.Thread(target=_flip_module)
+first.start()
+while "flip_evaluator" not in sys.modules:   # the first import has begun, not finished
+    time.sleep(0.001)
+mod = _flip_module()
+print(getattr(mod, "evaluate", "half-initialised"))
+first.join()
+"""
+
+
+def test_flip_module_waits_for_an_import_running_in_another_thread(tmp_path):
+    """Regression (session 9 review): while one thread imports flip_evaluator,
+    ``sys.modules`` already holds the half-initialised package; ``_flip_module`` returned
+    it to a second thread (which then failed on a missing ``evaluate``).  Now it waits for
+    the import, as a plain ``import`` does.  A stand-in package that takes 0.5 s to load
+    makes the window wide; the old code printed 'half-initialised'."""
+    pkg = tmp_path / "flip_evaluator"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("import time\ntime.sleep(0.5)\nevaluate = 'complete'\n")
+    p = subprocess.run([sys.executable, "-c", _FLIP_CONCURRENT_IMPORT, str(tmp_path)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "complete", p.stdout + p.stderr
+
+
 _FLIP_OMP_PROBE = """
 import os, sys
 import numpy as np
