@@ -1,5 +1,6 @@
 """The notebooks in notebooks/ run top to bottom without an error, and match their sources
-byte for byte (a rebuild with notebooks/_build.py would change nothing).
+(a rebuild with notebooks/_build.py would change no cell type, source, id or metadata, no
+output, and no notebook metadata).
 
 Each notebook is executed by nbclient in a fresh ``python3`` kernel of this interpreter
 (ipykernel is in the ``test`` extra; jupyter_client launches the kernel with
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import glob
 import importlib.util
+import json
 import os
 import time
 
@@ -58,11 +60,47 @@ def test_notebook_matches_its_source(path):
     assert got == want, f"{os.path.basename(path)} is out of date: run notebooks/_build.py"
 
 
+def _content(text):
+    """What a rebuild must keep of a notebook file's JSON: the notebook metadata and each
+    cell's type, id, source, metadata (and a code cell's outputs and execution count).
+    Not the layout (indentation, key order, a source as one string or a list of lines,
+    nbformat_minor), which the unpinned nbformat may write differently."""
+    nb = json.loads(text)
+
+    def src(s):
+        return "".join(s) if isinstance(s, list) else s
+
+    return {"metadata": nb.get("metadata"),
+            "cells": [{"cell_type": c.get("cell_type"), "id": c.get("id"),
+                       "source": src(c.get("source", "")), "metadata": c.get("metadata"),
+                       "outputs": c.get("outputs"), "execution_count": c.get("execution_count")}
+                      for c in nb.get("cells", [])]}
+
+
+def test_content_ignores_layout_but_not_ids_or_sources():
+    """The comparison of test_rebuild_changes_nothing: blind to how nbformat lays out the
+    JSON, not to what the notebook holds."""
+    cell = {"cell_type": "code", "id": "a-00", "metadata": {}, "source": ["x = 1\n", "y"],
+            "outputs": [], "execution_count": None}
+    nb = {"cells": [cell], "metadata": {"kernelspec": {"name": "python3"}},
+          "nbformat": 4, "nbformat_minor": 5}
+    base = _content(json.dumps(nb, indent=1))
+    relaid = dict(nb, nbformat_minor=6, cells=[dict(cell, source="x = 1\ny")])
+    assert _content(json.dumps(relaid, indent=2, sort_keys=True)) == base
+    for change in ({"id": "a-01"}, {"source": "x = 2\ny"}, {"cell_type": "markdown"},
+                   {"metadata": {"tags": ["t"]}}, {"execution_count": 1}):
+        assert _content(json.dumps(dict(nb, cells=[dict(cell, **change)]))) != base, change
+    assert _content(json.dumps(dict(nb, metadata={}))) != base
+
+
 def test_rebuild_changes_nothing(tmp_path):
     """Regression (fresh-clone trial): nbformat gave every cell a random id, so running
     notebooks/_build.py in a clean clone rewrote all three notebooks (49 lines, ids only).
-    Build (without executing) into a temporary folder, twice, and compare bytes with the
-    committed files."""
+    Build (without executing) into a temporary folder, twice, and compare with the
+    committed files what the notebook holds (:func:`_content`: cells' type, id, source,
+    metadata and outputs; the notebook metadata), not bytes: the JSON layout is nbformat's
+    (not pinned), so a new nbformat that writes it differently does not fail this test,
+    while a build that changes an id or a source does."""
     build = _builder()
     first = build.main(out_dir=str(tmp_path), quiet=True)
     assert sorted(os.path.basename(p) for p in first) == [os.path.basename(p) for p in NOTEBOOKS]
@@ -71,18 +109,21 @@ def test_rebuild_changes_nothing(tmp_path):
     build.main(out_dir=str(again), quiet=True)
     for path in first:
         name = os.path.basename(path)
-        with open(path, "rb") as f:
-            built = f.read()
-        with open(again / name, "rb") as f:
-            assert f.read() == built, f"two builds of {name} differ: the build is not deterministic"
-        with open(os.path.join(NB_DIR, name), "rb") as f:
-            committed = f.read()
+        with open(path, encoding="utf-8") as f:
+            built_text = f.read()
+        built = _content(built_text)
+        with open(again / name, encoding="utf-8") as f:
+            assert _content(f.read()) == built, (f"two builds of {name} differ: the build is "
+                                                 "not deterministic")
+        with open(os.path.join(NB_DIR, name), encoding="utf-8") as f:
+            committed = _content(f.read())
         assert built == committed, (f"notebooks/{name} differs from a fresh build: run "
                                     ".venv/bin/python notebooks/_build.py and commit it")
-        nb = nbformat.reads(built.decode("utf-8"), as_version=4)
+        nb = nbformat.reads(built_text, as_version=4)
         nbformat.validate(nb)
         ids = [c.id for c in nb.cells]
         assert len(set(ids)) == len(ids)
+        assert all(not c.get("outputs") for c in committed["cells"])  # committed without outputs
 
 
 def test_cell_ids_follow_nbformat_rules():
