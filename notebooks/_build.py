@@ -6,7 +6,9 @@ A source runs as a script too, which is handy while editing it:
 ``.venv/bin/python notebooks/src/01_verify_the_theorems.py``.  After editing, run
 ``.venv/bin/python notebooks/_build.py`` and commit the ``.ipynb`` files (written
 without outputs); ``tests/test_notebooks.py`` executes every notebook top to bottom and
-checks that a rebuild would leave the committed files byte for byte unchanged.
+checks that a rebuild would leave the committed notebooks' content unchanged (cell
+types, ids, sources, metadata; compared as parsed JSON, so a newer nbformat that lays the
+file out differently does not count as a change).
 
 The build is deterministic: cell ids (nbformat 4.5 requires one per cell, and
 ``nbformat.v4.new_*_cell`` draws a random one) are set to ``<notebook name>-<cell index>``
