@@ -725,11 +725,13 @@ def _window_size(args, h: int, w: int, path: str) -> int:
     pixel and gets no weight, so ``2·max(h, w) − 1`` is the largest useful width; a wider
     --size only costs memory (the weights are ``H·W·size²`` floats: --size 99999 asked for
     hundreds of TiB).  The default is not narrowed to it: ``gaussian_weights`` normalise
-    over the whole window, so a narrower one changes the output in the last bit."""
+    over the whole window, so a narrower one changes the output in the last bit.  For the
+    same reason a --size up to the default is always taken (``--size 15`` typed out does
+    what leaving it out does)."""
     if args.size is None:
         return DEFAULT_COMBINE_SIZE
     largest = 2 * max(h, w) - 1
-    if args.size > largest:
+    if args.size > max(largest, DEFAULT_COMBINE_SIZE):
         raise InputError(f"--size {args.size} is wider than a {w}x{h} image can use ({path}): "
                          f"taps more than {max(h, w) - 1} pixels from the centre are outside "
                          f"the image for every pixel and get no weight; the largest useful "
@@ -852,6 +854,9 @@ def cmd_combine(args) -> int:
         cov_z = z_stats.mean_var.astype(np.float32)
         if _is_crn(z_stats):                       # a CRN render's stencil (a second read)
             cov_z = read_spatial_covariance(args.z, z_stats.n)
+        if cov_z.ndim == 5 and not size_given:
+            # the default window, no wider than the stencil (render --crn --stencil 5 at 1080p)
+            args.size = min(args.size, cov_z.shape[2])
         if cov_z.ndim == 5 and cov_z.shape[2] < args.size:
             got = f"{args.size}" if size_given else f"the default {args.size}"
             raise InputError(f"{args.z} holds a {cov_z.shape[2]}x{cov_z.shape[2]} covariance "
@@ -1132,8 +1137,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=None,
-                   help="odd window width (default 15, on any image); a given --size must be "
-                        "at most 2·max(H, W) − 1 for an H×W image")
+                   help="odd window width (default 15 on any image, or a --crn Z's narrower "
+                        "stencil width); a given --size must be at most max(15, 2·max(H, W) − 1) "
+                        "for an H×W image")
     c.add_argument("--sigma", type=POSITIVE, default=None,
                    help="spatial σ of --weights gaussian in pixels (default 3)")
     c.add_argument("--spp", type=POSITIVE_INT,

@@ -411,7 +411,7 @@ def test_combine_refuses_a_window_wider_than_the_image(tmp_path, toy_render, toy
     assert code == 0, err
     for files, wh, largest in (((toy_render, toy_render2), "24x16", 47),
                                ((d / "bins.exr",), "6x4", 11)):
-        for size in (99999, largest + 2):
+        for size in (99999, max(largest, 15) + 2):     # up to the default 15 is always taken
             code, _, err = run_cli("combine", *files, "--weights", "uniform", "--size", size,
                                    "--out", tmp_path / "x.exr")
             _assert_one_line_error(code, err, f"--size {size} is wider than a {wh} image can use")
@@ -461,9 +461,15 @@ def test_combine_default_size_fits_small_images(tmp_path):
                                "--out", out, "-q")
         assert code == 0, err
         np.testing.assert_array_equal(read_image(out), cb.combine(y, zz, wt).astype(np.float32))
-    for files in ((d / "bins.exr",), (d / "render.exr", z / "render.exr")):
-        code, _, err = run_cli("combine", *files, "--size", 15, "--out", tmp_path / "x.exr")
-        _assert_one_line_error(code, err, "--size 15 is wider than a 6x4 image can use")
+    # --size 15 typed out does what leaving it out does (it was refused: review, session 9)
+    code, _, err = run_cli("combine", d / "bins.exr", "--size", 15, "--out", tmp_path / "b15.exr",
+                           "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_image(tmp_path / "b15.exr"), read_image(tmp_path / "b.exr"))
+    code, _, err = run_cli("combine", d / "render.exr", z / "render.exr", "--size", 15,
+                           "--out", tmp_path / "x15.exr", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_image(tmp_path / "x15.exr"), read_image(tmp_path / "statistical.exr"))
 
 
 def test_progressive_command_and_denoising_aware_render(tmp_path, toy_render, toy_ref):
@@ -1018,6 +1024,12 @@ def test_render_crn_writes_the_stencil_and_combine_uses_it(tmp_path):
                            "--out", tmp_path / "c7.exr", "-q")
     assert code != 0 and "5x5 covariance stencil; --size must be at most 5" in err
     assert not (tmp_path / "c7.exr").exists()
+    # without --size the default window is narrowed to the stencil (it was refused: 'got the
+    # default 15', so render --crn --stencil 5, the 1080p setting, needed --size 5 spelled out)
+    code, _, err = run_cli("combine", y_dir / "render.exr", z_dir / "render.exr",
+                           "--out", tmp_path / "cd.exr", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_image(tmp_path / "cd.exr"), read_image(out))
     code, _, err = run_cli("render", "cornell-box", "--size", "24x16", "--spp", 4, "--stencil", 5,
                            "--out", tmp_path / "nocrn", "-q")
     assert code != 0 and "--stencil" in err and "needs --crn" in err
