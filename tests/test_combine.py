@@ -1742,6 +1742,12 @@ def test_combine_bins_mix_in_bands_of_rows_equals_one_piece(monkeypatch):
         np.testing.assert_array_equal(got, out)
         for key in ("combined", "mix", "gain", "weighted_gain", "rel", "full_denoised"):
             np.testing.assert_array_equal(ginfo[key], info[key])
+        # the banded path without sure_terms (reconstruct_bins) keeps no per-pixel SURE terms
+        got2, ginfo2 = cbm._combine_bins(ys, full.mean_var, f, size=7, stencil=5, probes=8,
+                                         smooth=2, patch=2, mix=mix, mix_sigma=16.0, rng=1,
+                                         whole=False)
+        np.testing.assert_array_equal(got2, out)
+        assert ginfo2["gain"] is None and ginfo2.get("weighted_gain") is None
     # a black box (the same kernel behind a plain callable): probes at each bin too
     box = lambda x: f(x)                                               # noqa: E731
     kw = dict(size=7, stencil=5, probes=8, smooth=2, patch=2, mix="local", mix_sigma=16.0,
