@@ -88,7 +88,8 @@ def test_content_ignores_layout_but_not_ids_or_sources():
     relaid = dict(nb, nbformat_minor=6, cells=[dict(cell, source="x = 1\ny")])
     assert _content(json.dumps(relaid, indent=2, sort_keys=True)) == base
     for change in ({"id": "a-01"}, {"source": "x = 2\ny"}, {"cell_type": "markdown"},
-                   {"metadata": {"tags": ["t"]}}, {"execution_count": 1}):
+                   {"metadata": {"tags": ["t"]}}, {"execution_count": 1},
+                   {"outputs": [{"output_type": "stream", "name": "stdout", "text": "x"}]}):
         assert _content(json.dumps(dict(nb, cells=[dict(cell, **change)]))) != base, change
     assert _content(json.dumps(dict(nb, metadata={}))) != base
 
@@ -96,8 +97,8 @@ def test_content_ignores_layout_but_not_ids_or_sources():
 def test_rebuild_changes_nothing(tmp_path):
     """Regression (fresh-clone trial): nbformat gave every cell a random id, so running
     notebooks/_build.py in a clean clone rewrote all three notebooks (49 lines, ids only).
-    Build (without executing) into a temporary folder, twice, and compare with the
-    committed files what the notebook holds (:func:`_content`: cells' type, id, source,
+    Build (without executing) into a temporary folder, twice: the two builds must agree
+    byte for byte, and each is compared with the committed files on what the notebook holds (:func:`_content`: cells' type, id, source,
     metadata and outputs; the notebook metadata), not bytes: the JSON layout is nbformat's
     (not pinned), so a new nbformat that writes it differently does not fail this test,
     while a build that changes an id or a source does."""
@@ -113,8 +114,9 @@ def test_rebuild_changes_nothing(tmp_path):
             built_text = f.read()
         built = _content(built_text)
         with open(again / name, encoding="utf-8") as f:
-            assert _content(f.read()) == built, (f"two builds of {name} differ: the build is "
-                                                 "not deterministic")
+            # one nbformat, one process: two builds must agree byte for byte
+            assert f.read() == built_text, (f"two builds of {name} differ: the build is "
+                                            "not deterministic")
         with open(os.path.join(NB_DIR, name), encoding="utf-8") as f:
             committed = _content(f.read())
         assert built == committed, (f"notebooks/{name} differs from a fresh build: run "
