@@ -636,29 +636,40 @@ def _render_gem_defaults(args) -> None:
     _fill_gem_defaults(args)
 
 
-def cmd_denoise(args) -> int:
+def _read_statistics(path, spp, why: str):
+    """``read_exr(path, spp=spp)``; a file without ``Variance.*`` or ``SampleCount`` is
+    refused with ``why`` (what reads them, what would take a plain image) appended."""
     from .exr import read_exr
+    try:
+        return read_exr(path, spp=spp)
+    except FileFormatError as e:
+        if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
+            raise
+        raise FileFormatError(f"{str(e).rstrip('.')}. {why}") from None
+
+
+def _read_colour(path):
+    """A file read for its colour and features only, as statistics (its channels listed in
+    ``meta``): a plain RGB image needs neither ``Variance.*`` nor ``SampleCount`` (``n = 1``
+    where it has none)."""
+    from .exr import read_exr
+    return read_exr(path, spp=1, spp_if_missing=True, require_variance=False)
+
+
+def cmd_denoise(args) -> int:
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
-    needs_stats = args.variance or args.denoiser == "gem"
-    if not needs_stats:
+    if args.variance or args.denoiser == "gem":
+        what = "--variance" if args.variance else "--denoiser gem"
+        stats = _read_statistics(args.input, args.spp, f"{what} reads the file's statistics; "
+                                 "--denoiser oidn or gaussian without --variance denoises a "
+                                 "plain image.")
+    else:
         _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it is "
                        "the sample count of a file without SampleCount, which only --variance "
                        "and --denoiser gem read)")
-    if needs_stats:
-        try:
-            stats = read_exr(args.input, spp=args.spp)
-        except FileFormatError as e:
-            if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
-                raise
-            what = "--variance" if args.variance else "--denoiser gem"
-            raise FileFormatError(f"{str(e).rstrip('.')}. {what} reads the file's statistics; "
-                                  "--denoiser oidn or gaussian without --variance denoises a "
-                                  "plain image.") from None
-    else:
-        # Plain denoising reads the colour and OIDN's features (albedo, normal) only: a plain
-        # RGB image needs neither Variance.* nor SampleCount (and --spp was refused).
-        stats = read_exr(args.input, spp=1, spp_if_missing=True, require_variance=False)
+        # plain denoising reads the colour and OIDN's features (albedo, normal) only
+        stats = _read_colour(args.input)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -805,18 +816,16 @@ def cmd_combine(args) -> int:
                        "of a Y without SampleCount, which only --weights statistical reads)")
     try:
         if statistical:
-            y_stats = read_exr(args.y, spp=args.spp)
+            y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
+                                       "statistics; --weights uniform or gaussian combine a "
+                                       "plain image.")
         else:
-            # Fixed weights read Y's colour only: a plain RGB image needs neither Variance.*
-            # nor SampleCount.  Read as statistics all the same, so that a --crn render
-            # (SpatialCovariance.*) or a bins file is still recognised by its channels.
-            y_stats = read_exr(args.y, spp=1, spp_if_missing=True, require_variance=False)
-    except FileFormatError as e:
+            # Fixed weights read Y's colour only.  Read as statistics all the same, so that
+            # a --crn render (SpatialCovariance.*) or a bins file is still recognised by its
+            # channels.
+            y_stats = _read_colour(args.y)
+    except FileFormatError:
         _refuse_bins_as_y(args.y)
-        if statistical and any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
-            raise FileFormatError(f"{str(e).rstrip('.')}. --weights statistical reads Y's "
-                                  "statistics; --weights uniform or gaussian combine a plain "
-                                  "image.") from None
         raise
     if _has_bins(y_stats):
         _refuse_bins_as_y(args.y)
