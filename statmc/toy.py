@@ -622,8 +622,9 @@ def _stats_from_deviations(idx, dev, mu, shape):
     pix = idx[starts]
     counts = np.diff(np.r_[starts, idx.shape[0]])
     s1 = np.add.reduceat(dev, starts, axis=1)
-    lo_run = mu[pix].T + np.minimum.reduceat(dev, starts, axis=1)   # smallest sample x
-    hi_run = mu[pix].T + np.maximum.reduceat(dev, starts, axis=1)   # largest sample x
+    mu_run = mu[pix].T
+    lo_run = mu_run + np.minimum.reduceat(dev, starts, axis=1)   # smallest sample x
+    hi_run = mu_run + np.maximum.reduceat(dev, starts, axis=1)   # largest sample x
     flat = lo_run == hi_run  # all samples equal (e.g. a firefly pixel without a hit)
     ia, ib = np.triu_indices(c, 1)
     s_ab = np.empty((ia.size, starts.size))
@@ -635,7 +636,7 @@ def _stats_from_deviations(idx, dev, mu, shape):
     mean = np.zeros((h * w, c))
     m2 = np.zeros((h * w, c))
     n[pix] = counts
-    mean[pix] = np.clip(mu[pix].T + s1 / counts, lo_run, hi_run).T
+    mean[pix] = np.clip(mu_run + s1 / counts, lo_run, hi_run).T
     m2[pix] = np.where(flat, 0.0, np.maximum(s2 - s1 * s1 / counts, 0.0)).T
     cross = np.zeros((h * w, c, c))
     cross[pix[:, None], ia, ib] = np.where(flat[ia] | flat[ib], 0.0, s_ab - s1[ia] * s1[ib] / counts).T
