@@ -336,9 +336,9 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     >>> import numpy as np, tempfile, os
     >>> s = PixelStats.from_mean_var(np.ones((2, 3, 3)), np.full((2, 3, 3), 0.25),
     ...                              np.full((2, 3), 4))
-    >>> path = os.path.join(tempfile.mkdtemp(), "a.exr")
-    >>> write_exr(path, s)
-    >>> t = read_exr(path)
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     write_exr(os.path.join(d, "a.exr"), s)
+    ...     t = read_exr(os.path.join(d, "a.exr"))
     >>> float(t.sample_var[0, 0, 0]), int(t.n[0, 0])
     (0.25, 4)
     """

@@ -18,6 +18,7 @@ import doctest
 import importlib
 import os
 import re
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -104,9 +105,14 @@ def test_examples_run_elsewhere_are_all_found(name):
 
 
 @pytest.mark.parametrize("name", HERE)
-def test_docstring_examples(name):
+def test_docstring_examples(name, tmp_path, monkeypatch):
     mod = _import(name)
+    # the examples' temporary files go to a folder of their own, which they must leave empty
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     result = doctest.testmod(mod, optionflags=FLAGS)
+    assert not list(scratch.iterdir()), f"examples left behind: {sorted(p.name for p in scratch.iterdir())}"
     assert result.failed == 0, "see the captured stdout for the failing examples"
     # every `>>>` line of the source is one example; a skipped or uncollected one is not attempted
     n = _n_prompts(name)
