@@ -169,6 +169,42 @@ def test_gem_selection_kernels_on_degenerate_images(hw, bias):
     np.testing.assert_array_equal(info["image"], pick)
 
 
+@pytest.mark.parametrize("final", [False, True])
+def test_stop_map_ties_keep_the_finer_scale(final, monkeypatch):
+    """A centre-excluded mean of exactly 1/2 rounds to 1 (keep the finer scale, as
+    ``postprocess_stop_maps`` documents) in ``finish_stop_map`` and in its NumPy reference.
+    Gaussian taps never give an exact tie, so both get dyadic weights: a 1x3 map with the
+    1-D kernel [1/4, 1/2, 1/4] (border-renormalised), whose middle pixel has one neighbour
+    at 1 and one at 0, all sums exact in float32.  The middle pixel's raw decision ``b``
+    is 0 or 1; with ``final`` a 0 must stay 0 (only switches to the coarser scale)."""
+    taps = np.array([0.25, 0.5, 0.25])
+    wc = np.float32(0.5)
+    sy = np.array([2.0], np.float32)                  # one row: only the centre tap
+    sx = np.array([4 / 3, 1.0, 4 / 3], np.float32)    # end columns lose one quarter tap
+
+    def dyadic(n, sigma, truncate):                     # the same weights, densely
+        a = np.zeros((n, n))
+        for i in range(n):
+            for d, t in zip((-1, 0, 1), taps):
+                if 0 <= i + d < n:
+                    a[i, i + d] = t
+        return a / a.sum(1, keepdims=True)
+
+    monkeypatch.setattr(gem, "_weight_matrix", dyadic)
+    for b in (0.0, 1.0):
+        raw = np.array([[1.0, b, 0.0]], np.float32)
+        filt = (dyadic(1, 0, 0) @ raw @ dyadic(3, 0, 0).T).astype(np.float32)
+        out = np.empty_like(raw)
+        fk.finish_stop_map(filt, raw, wc, sy, sx, final, out)
+        ref = gem._postprocess_reference(raw[None], [1.0, 2.0], final, F.DEFAULT_TRUNCATE)[0]
+        want = 0.0 if (final and b == 0.0) else 1.0     # the tie itself gives 1
+        assert out[0, 1] == want and ref[0, 1] == want, (b, out, ref)
+        # just below the tie gives 0 (towards the coarser scale)
+        filt[0, 1] = np.nextafter(filt[0, 1], np.float32(0.0))
+        fk.finish_stop_map(filt, raw, wc, sy, sx, final, out)
+        assert out[0, 1] == 0.0
+
+
 @pytest.mark.parametrize("hw", DEGENERATE)
 def test_gem_variance_kernels_on_degenerate_images(hw):
     """``difference_variance`` (``scale_rows`` + ``sep_filter`` + ``difference_variance``),
