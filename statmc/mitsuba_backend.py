@@ -717,7 +717,8 @@ class MitsubaRenderer:
         if callable(diff_scale):
             diff_scale = diff_scale(idx)
         ray.scale_differential(diff_scale)
-        L, _valid, aovs = integrator.sample(self._scene, sampler, ray, None, True)
+        # the medium the sensor sits in, as mi.render passes it (None: in vacuum)
+        L, _valid, aovs = integrator.sample(self._scene, sampler, ray, sensor.get_medium(), True)
         return idx, L * weight, aovs
 
     def _render_jit(self, counts: np.ndarray, first: np.ndarray, seed: int, progress: bool,

@@ -726,3 +726,42 @@ def test_words_wrapping_around_warn_and_repeat_a_stream():
         c = r.render(one, seed=7, features=False, first_sample=first)
     assert not np.array_equal(a.mean[0, 0], b.mean[0, 0])
     np.testing.assert_array_equal(a.mean[0, 0], c.mean[0, 0])
+
+
+# ------------------------------------------------------------------ user XML scenes
+def _xml_scene(tmp_path, body, *, name="scene.xml", size=(8, 8), sensor="", film="",
+               integrator='<integrator type="path"/>'):
+    """A small XML scene: ``body`` (shapes, emitters, media) seen by a perspective camera
+    at the origin looking down -z (``sensor``: extra sensor children)."""
+    w, h = size
+    text = f"""<scene version="3.0.0">
+  {integrator}
+  <sensor type="perspective"><float name="fov" value="40"/>{sensor}
+    <film type="hdrfilm"><integer name="width" value="{w}"/><integer name="height" value="{h}"/>
+      {film or '<rfilter type="box"/>'}</film></sensor>
+  {body}
+</scene>"""
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_camera_inside_a_medium_sees_through_it(tmp_path):
+    # regression: the sensor's medium was not passed to integrator.sample, so a camera
+    # inside fog rendered as if in vacuum (every sample 1 instead of Bernoulli(e^-1)).
+    # Purely absorbing fog (albedo 0, sigma_t 1) in a unit sphere around the camera, white
+    # sky of radiance 1: volpath's sample is 1 when the sampled free path leaves the
+    # sphere (probability e^-1) and 0 otherwise, so every pixel's expectation is e^-1.
+    path = _xml_scene(tmp_path, """
+  <medium type="homogeneous" id="fog"><rgb name="albedo" value="0"/>
+    <float name="sigma_t" value="1"/></medium>
+  <shape type="sphere"><bsdf type="null"/><ref name="interior" id="fog"/></shape>
+  <emitter type="constant"/>""", sensor='<ref name="medium" id="fog"/>',
+                      integrator='<integrator type="volpath"/>')
+    r = mb.MitsubaRenderer(path)
+    s = r.render_uniform(32, seed=3, features=False)
+    p0 = np.exp(-1.0)
+    x = s.mean[..., 0]
+    z = (x.mean() - p0) / np.sqrt(p0 * (1 - p0) / s.total_samples)
+    p = 2 * sps.norm.sf(abs(z))
+    assert p > ALPHA, f"mean {x.mean():.4f}, expected e^-1 = {p0:.4f}, z = {z:.2f}"
