@@ -366,6 +366,25 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
         raise FileFormatError(f"Mitsuba could not load scene file {str(path)!r}: {e}") from None
 
 
+def _check_integrator(mi, integrator, name: str) -> None:
+    """Refuse an integrator whose ``sample`` is not one sample of the pixel it was drawn in."""
+    supported = ("MitsubaRenderer supports Mitsuba's C++ sampling integrators (e.g. 'path', "
+                 "'volpath', 'direct')")
+    if integrator is None or hasattr(integrator, "sample_rays"):
+        raise InputError(f"scene {name!r} uses integrator {integrator!r}; {supported}.")
+    kind = integrator.class_name()
+    if not isinstance(integrator, mi.SamplingIntegrator):
+        # ptracer: a light path lands in whatever pixel it reaches, not the one drawn for
+        raise InputError(f"scene {name!r} uses Mitsuba's {kind}, a light-tracing integrator "
+                         "(such as 'ptracer') that splats paths into whatever pixels they reach, so a sample does not belong "
+                         f"to one pixel and per-pixel counts cannot steer it; {supported}: "
+                         "change the scene's <integrator type=...>.")
+    if kind == "AOVIntegrator" and re.search(r"integrators = \[\s*\]", str(integrator)):
+        raise InputError(f"scene {name!r} uses an 'aov' integrator without a nested integrator, "
+                         "so it renders no colour (every sample is black); nest one inside it, "
+                         "e.g. <integrator type=\"aov\">...<integrator type=\"path\"/></integrator>.")
+
+
 # ---------------------------------------------------------------------------- renderer
 class MitsubaRenderer:
     """Render a Mitsuba 3 scene with any number of samples in each pixel.
@@ -455,10 +474,7 @@ class MitsubaRenderer:
         film = self._sensor.film()
         self.width, self.height = (int(v) for v in film.crop_size())
         self._integrator = self._scene.integrator()
-        if self._integrator is None or hasattr(self._integrator, "sample_rays"):
-            raise InputError(f"scene {self.name!r} uses integrator {self._integrator!r}; "
-                             "MitsubaRenderer supports Mitsuba's C++ sampling integrators "
-                             "(e.g. 'path', 'volpath', 'direct').")
+        _check_integrator(mi, self._integrator, self.name)
         self._aov_integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal"})
         self._sampler = mi.load_dict({"type": "independent"})
 

@@ -765,3 +765,26 @@ def test_camera_inside_a_medium_sees_through_it(tmp_path):
     z = (x.mean() - p0) / np.sqrt(p0 * (1 - p0) / s.total_samples)
     p = 2 * sps.norm.sf(abs(z))
     assert p > ALPHA, f"mean {x.mean():.4f}, expected e^-1 = {p0:.4f}, z = {z:.2f}"
+
+
+def test_integrators_without_per_pixel_samples_are_refused(tmp_path):
+    # regression: a ptracer scene loaded and then failed in render() with Mitsuba's
+    # TypeError (no `sample` taking a ray); an aov integrator without a nested one
+    # rendered an all-black image without a word
+    ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
+            '</bsdf></shape><emitter type="constant"/>')
+    path = _xml_scene(tmp_path, ball, integrator='<integrator type="ptracer"/>')
+    with pytest.raises(InputError, match="ptracer.*<integrator type="):
+        mb.MitsubaRenderer(path)
+    path = _xml_scene(tmp_path, ball, integrator='<integrator type="aov">'
+                      '<string name="aovs" value="dd.y:depth"/></integrator>')
+    with pytest.raises(InputError, match="'aov' integrator without a nested integrator"):
+        mb.MitsubaRenderer(path)
+    # with a nested integrator the colour is the nested one's: the white furnace again
+    path = _xml_scene(tmp_path, ball, integrator='<integrator type="aov">'
+                      '<string name="aovs" value="dd.y:depth"/><integrator type="path"/>'
+                      '</integrator>', sensor='<transform name="to_world">'
+                      '<lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>')
+    s = mb.MitsubaRenderer(path).render_uniform(16, seed=4, features=False)
+    p, msg = _ttest_zero((s.mean - 1.0).mean(-1), "aov(path) furnace error")
+    assert p > ALPHA, msg
