@@ -42,10 +42,19 @@ from .features import feature_channels, pixel_features
 from .layout import kernels_to_numpy, weights_to_numpy
 from .ops import apply_kernels
 
-__all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS"]
+__all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS",
+           "F_ACT_INIT_BIAS", "F_ACT_INIT_SCALE"]
 
 #: ε of f_act (Eq. 19 of Firmino 2022): 1e-6, "to avoid the singularity" (§4.3).
 F_ACT_EPS = 1e-6
+#: Initial biases of f_act's outputs ``(x1, x2, x3)``: α starts at (1 − 0) / 1 = 0.5 with
+#: ``x3`` far above ε.  Not from the paper (which gives no initialisation): with torch's
+#: default one, ``x3 < ε`` at nearly every pixel for 7 of 10 seeds (seed 0 among them), so
+#: ``(x1 − x2)/ε`` was clamped to 0 or 1 everywhere and no gradient flowed (session 10).
+F_ACT_INIT_BIAS = (1.0, 0.0, 2.0)
+#: Factor on the default initial weights of f_act's output layer, so that ``x3`` stays
+#: near its bias (above 0.5) and α near 0.5 at every pixel of a fresh network.
+F_ACT_INIT_SCALE = 0.1
 
 
 def _int(name, v, lo, odd=False):
@@ -219,7 +228,10 @@ class MixNet(_Net):
         outputs ``(x1, x2, x3)`` and ``α = clamp((x1 − x2) / max(x3, ε), 0, 1)``, Eq. 19
         of Firmino 2022 (ε = 1e-6; the paper does not clamp, but the gate and
         ``z = x + α(y − x)`` are meant for α in [0, 1], and the clamp makes that so; its
-        gradient is 0 outside).
+        gradient is 0 outside).  The output layer starts with biases
+        :data:`F_ACT_INIT_BIAS` and weights scaled by :data:`F_ACT_INIT_SCALE`, so a fresh
+        network gives α ≈ 0.5 with ``x3`` well above ε at every pixel (with torch's default
+        initialisation most seeds start clamped everywhere, with no gradient at all).
     seed : int or None
 
     Notes
@@ -241,6 +253,11 @@ class MixNet(_Net):
         self.activation = activation
         super().__init__(feature_channels(_int("channels", channels, 1), extra=1),
                          1 if activation == "sigmoid" else 3, width, seed)
+        if activation == "f_act":          # start inside the clamp, x3 > ε (F_ACT_INIT_BIAS)
+            head = self.body[-1]
+            with torch.no_grad():
+                head.weight.mul_(F_ACT_INIT_SCALE)
+                head.bias.copy_(torch.tensor(F_ACT_INIT_BIAS, dtype=head.bias.dtype))
 
     def forward(self, features):
         """Features -> ``(N, 1, H, W)`` α in [0, 1].
