@@ -66,6 +66,9 @@ def feature_channels(channels: int = 3, *, extra: int = 0, budget: bool = False)
     for name, v in (("channels", channels), ("extra", extra)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
             raise InputError(f"`{name}` must be a non-negative int; got {v!r}.")
+    if not isinstance(budget, (bool, np.bool_)):
+        raise InputError(f"`budget` must be a bool (whether pixel_features gets a budget); "
+                         f"got {budget!r}.")
     return 2 * channels + 6 + 2 * channels * int(extra) + 2 * bool(budget)
 
 

@@ -35,12 +35,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import InputError
+from statmc.errors import InputError, as_number
 from statmc.sampling import counts_from_density
 
 from .features import feature_channels, pixel_features
 from .layout import kernels_to_numpy, weights_to_numpy
-from .ops import apply_kernels
+from .ops import apply_kernels, check_finite_tensor, check_tensor
 
 __all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS",
            "F_ACT_INIT_BIAS", "F_ACT_INIT_SCALE"]
@@ -88,11 +88,34 @@ class _Net(torch.nn.Module):
             got = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
             raise InputError(f"`features` must be an (N, {self.in_channels}, H, W) tensor "
                              f"(statmc.nn.pixel_features with this network's settings); got {got}.")
+        if features.device != self._device:
+            raise InputError(f"`features` is on device {features.device} but the network is on "
+                             f"{self._device}; move one of them (`features.to(net_device)`).")
+        check_finite_tensor("features", features)
         return self.body(features.to(self._dtype))
+
+    def _image(self, name, t, like=None):
+        """An ``(N, C, H, W)`` image tensor for this network: its dtype, on its device."""
+        check_tensor(name, t, 4, "(N, C, H, W)")
+        if t.device != self._device:
+            raise InputError(f"`{name}` is on device {t.device} but the network is on "
+                             f"{self._device}; move it (`{name}.to(net_device)`).")
+        if like is not None and t.shape != like.shape:
+            raise InputError(f"`{name}` must have the shape of `x` {tuple(like.shape)}; got "
+                             f"{tuple(t.shape)}.")
+        return t.to(self._dtype)
+
+    def _features(self, stats, **kw):
+        """:func:`pixel_features` in this network's dtype, on its device (the NumPy methods)."""
+        return pixel_features(stats, dtype=self._dtype, **kw).to(self._device)
 
     @property
     def _dtype(self):
         return next(self.parameters()).dtype
+
+    @property
+    def _device(self):
+        return next(self.parameters()).device
 
     def n_parameters(self) -> int:
         """Number of trainable parameters."""
@@ -141,12 +164,12 @@ class KernelNet(_Net):
 
     def denoise(self, features, image):
         """``apply_kernels(self(features), image)`` on ``(N, C, H, W)`` images (differentiable)."""
-        return apply_kernels(self(features), image.to(self._dtype))
+        return apply_kernels(self(features), self._image("image", image))
 
     def kernels(self, stats) -> np.ndarray:
         """The kernels for a render as statmc's ``(H, W, k, k)`` float64 array."""
         with torch.no_grad():
-            return kernels_to_numpy(self(pixel_features(stats, dtype=self._dtype)))
+            return kernels_to_numpy(self(self._features(stats)))
 
 
 class CombinerNet(_Net):
@@ -200,13 +223,13 @@ class CombinerNet(_Net):
             if ys is not None:
                 raise InputError("`ys` is for B > 1 bins; with buffers=1 the independent "
                                  "image is `stats.mean` and only `zs` (z) is given.")
-            return pixel_features(stats, extra=zs, dtype=self._dtype)
+            return self._features(stats, extra=zs)
         if ys is None or np.ndim(ys) != 4 or np.ndim(zs) != 4 \
                 or np.shape(ys)[0] != self.buffers or np.shape(zs) != np.shape(ys):
             raise InputError(f"`ys` and `zs` must both be ({self.buffers}, H, W, C) bin stacks "
                              f"for buffers={self.buffers}; got {np.shape(ys) if ys is not None else None} "
                              f"and {np.shape(zs)}.")
-        return pixel_features(stats, extra=np.concatenate([ys, zs]), dtype=self._dtype)
+        return self._features(stats, extra=np.concatenate([ys, zs]))
 
     def weights(self, stats, zs, ys=None) -> np.ndarray:
         """The weights as statmc's ``(H, W, B, k, k)`` float64 array (see :meth:`features`)."""
@@ -275,14 +298,19 @@ class MixNet(_Net):
 
     def mix(self, features, x, y):
         """``x + α (y − x)`` on ``(N, C, H, W)`` tensors (differentiable; ungated)."""
-        x = x.to(self._dtype)
-        return x + self(features) * (y.to(self._dtype) - x)
+        x = self._image("x", x)
+        y = self._image("y", y, like=x)
+        a = self(features)
+        if (a.shape[0], *a.shape[2:]) != (x.shape[0], *x.shape[2:]):
+            raise InputError(f"`x` has shape {tuple(x.shape)}, but the images must have the "
+                             f"batch size and (H, W) of `features` {tuple(features.shape)}.")
+        return x + a * (y - x)
 
     def alpha(self, stats, y) -> np.ndarray:
         """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map."""
         with torch.no_grad():
-            a = self(pixel_features(stats, extra=y, dtype=self._dtype))
-        return a[0, 0].numpy().astype(np.float64)
+            a = self(self._features(stats, extra=y))
+        return a[0, 0].cpu().numpy().astype(np.float64)
 
 
 class SamplingNet(_Net):
@@ -322,7 +350,9 @@ class SamplingNet(_Net):
 
     def sample_map(self, features, budget):
         """Eq. 11: ``budget · softmax(Φ)``, real-valued ``(N, 1, H, W)`` (differentiable)."""
-        return float(budget) * self.density(features)
+        if isinstance(budget, torch.Tensor) and budget.numel() == 1:
+            budget = budget.item()
+        return as_number("budget", budget, lo=0.0) * self.density(features)
 
     def counts(self, stats, budget: int, *, rng=None) -> np.ndarray:
         """Integer ``(H, W)`` counts, summing to ``budget`` exactly, for the next iteration.
@@ -337,5 +367,5 @@ class SamplingNet(_Net):
             Randomness of the rounding (:func:`statmc.sampling.counts_from_density`).
         """
         with torch.no_grad():
-            d = self.density(pixel_features(stats, budget=budget, dtype=self._dtype))
-        return counts_from_density(d[0, 0].numpy().astype(np.float64), budget, rng=rng)
+            d = self.density(self._features(stats, budget=budget))
+        return counts_from_density(d[0, 0].cpu().numpy().astype(np.float64), budget, rng=rng)

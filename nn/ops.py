@@ -22,6 +22,14 @@ image (the border renormalisation of docs/combine.md).  Weights must be finite e
 outside taps included (``0 · inf`` is NaN in torch); :mod:`statmc.nn.nets` produces
 softmax weights, which are.
 
+Input checks (:class:`~statmc.errors.InputError` naming the parameter, before any
+arithmetic): tensors of the documented rank, floating point, of **one dtype on one
+device** (torch would silently promote float32 to float64, or fail deep inside on a device
+mismatch), non-empty images, finite values, and for the combination kernels a finite,
+nonzero ``W_c`` at every pixel (statmc refuses the same; torch would return Inf/NaN).  The
+value checks read one boolean per tensor; they are skipped under :func:`torch.func.vmap`,
+which cannot branch on values (the ops still work there).
+
 Each function has a thin :class:`torch.nn.Module` (:class:`ApplyKernels`,
 :class:`Combine`, :class:`CombineMulti`) whose ``forward`` calls it.
 
@@ -43,16 +51,69 @@ import torch.nn.functional as F
 from statmc.errors import InputError
 
 __all__ = ["apply_kernels", "combine", "combine_multi", "ApplyKernels", "Combine",
-           "CombineMulti", "kernel_size"]
+           "CombineMulti", "kernel_size", "check_tensor", "check_finite_tensor", "check_like"]
 
 
-def _check(name, t, ndim, what):
+def check_tensor(name, t, ndim, what):
+    """``InputError`` unless ``t`` is a floating-point tensor with ``ndim`` dimensions."""
     if not isinstance(t, torch.Tensor):
         raise InputError(f"`{name}` must be a torch.Tensor {what}; got {type(t).__name__}.")
     if t.ndim != ndim:
         raise InputError(f"`{name}` must be {what}; got shape {tuple(t.shape)}.")
     if not t.is_floating_point():
         raise InputError(f"`{name}` must be a floating-point tensor; got {t.dtype}.")
+
+
+def _readable(cond):
+    """``bool(cond)`` of a one-element bool tensor, or None where torch cannot branch on a
+    value: under :func:`torch.func.vmap` (data-dependent control flow is refused there)
+    and on the ``meta`` device.  The value checks are skipped there, nowhere else."""
+    try:
+        return bool(cond)
+    except RuntimeError:
+        return None
+
+
+def check_finite_tensor(name, t):
+    """``InputError`` when ``t`` holds NaN or Inf, saying how many (as
+    :func:`statmc.errors.check_finite` does for arrays)."""
+    if _readable(torch.isfinite(t).all()) is False:
+        n_nan, n_inf = int(torch.isnan(t).sum()), int(torch.isinf(t).sum())
+        raise InputError(f"`{name}` holds {n_nan} NaN and {n_inf} Inf values; expected "
+                         "finite numbers.")
+
+
+def check_like(name, t, ref_name, ref):
+    """``InputError`` unless ``t`` has the dtype and device of ``ref`` (torch would promote
+    the dtype silently, or fail deep inside with a device error)."""
+    if t.dtype != ref.dtype:
+        raise InputError(f"`{name}` has dtype {t.dtype} but `{ref_name}` has {ref.dtype}; "
+                         f"give tensors of one dtype (e.g. `{name}.to({ref_name}.dtype)`).")
+    if t.device != ref.device:
+        raise InputError(f"`{name}` is on device {t.device} but `{ref_name}` is on "
+                         f"{ref.device}; give tensors on one device (e.g. "
+                         f"`{name}.to({ref_name}.device)`).")
+
+
+def _nonempty(name, t, dims):
+    if any(t.shape[i] == 0 for i in dims):
+        raise InputError(f"`{name}` is empty: it needs at least one channel, row and column "
+                         f"(and bin); got shape {tuple(t.shape)}.")
+
+
+def _check_weight_sums(wsum):
+    """``InputError`` unless every pixel's ``W_c`` (``(N, 1, H, W)``) is finite and nonzero,
+    as :func:`statmc.combine.combine` requires (it divides by it)."""
+    bad = ~(torch.isfinite(wsum) & (wsum != 0))
+    if _readable(bad.any()):
+        n, _, y, x = (int(i) for i in bad.nonzero()[0])
+        raise InputError(
+            f"`weights` must sum to a finite, nonzero W_c over the taps inside the image at "
+            f"every pixel; {int(bad.sum())} pixel(s) fail, the first at (image {n}, row {y}, "
+            f"column {x}) with W_c = {float(wsum[n, 0, y, x]):.4g}.  Use positive weights "
+            "(e.g. a softmax or exp of network outputs).")
+
+
 
 
 def kernel_size(taps: int, name: str = "kernels") -> int:
@@ -102,10 +163,15 @@ def apply_kernels(kernels, image):
     >>> bool(torch.equal(apply_kernels(K, img), img))
     True
     """
-    _check("kernels", kernels, 4, "(N, k·k, H, W)")
-    _check("image", image, 4, "(N, C, H, W)")
+    check_tensor("kernels", kernels, 4, "(N, k·k, H, W)")
+    check_tensor("image", image, 4, "(N, C, H, W)")
+    check_like("image", image, "kernels", kernels)
+    _nonempty("image", image, (1, 2, 3))
     _same_grid("kernels", kernels, "image", image, (0, 2, 3))
-    return _apply(kernels, image, kernel_size(kernels.shape[1]))
+    k = kernel_size(kernels.shape[1])
+    check_finite_tensor("kernels", kernels)
+    check_finite_tensor("image", image)
+    return _apply(kernels, image, k)
 
 
 def combine(y, z, weights):
@@ -137,15 +203,21 @@ def combine(y, z, weights):
     >>> bool(torch.allclose(combine(y, z, w), y))
     True
     """
-    _check("y", y, 4, "(N, C, H, W)")
-    _check("z", z, 4, "(N, C, H, W)")
-    _check("weights", weights, 4, "(N, k·k, H, W)")
+    check_tensor("y", y, 4, "(N, C, H, W)")
+    check_tensor("z", z, 4, "(N, C, H, W)")
+    check_tensor("weights", weights, 4, "(N, k·k, H, W)")
+    check_like("z", z, "y", y)
+    check_like("weights", weights, "y", y)
     if z.shape != y.shape:
         raise InputError(f"`z` must have the shape of `y` {tuple(y.shape)}; got {tuple(z.shape)}.")
+    _nonempty("y", y, (1, 2, 3))
     _same_grid("weights", weights, "y", y, (0, 2, 3))
     k = kernel_size(weights.shape[1], "weights")
-    ones = torch.ones_like(y[:, :1])
-    return z + _apply(weights, y - z, k) / _apply(weights, ones, k)
+    for name, t in (("y", y), ("z", z), ("weights", weights)):
+        check_finite_tensor(name, t)
+    wsum = _apply(weights, torch.ones_like(y[:, :1]), k)
+    _check_weight_sums(wsum)
+    return z + _apply(weights, y - z, k) / wsum
 
 
 def combine_multi(ys, zs, weights):
@@ -167,18 +239,25 @@ def combine_multi(ys, zs, weights):
         ``W_c = Σ_b (w_{c,b} + Σ_i w_{i,b})`` over the taps inside the image; evaluated as
         ``Σ_b [apply(w_b, y_b − z_b) + apply(w_b, 1) z_b] / Σ_b apply(w_b, 1)``.
     """
-    _check("ys", ys, 5, "(N, B, C, H, W)")
-    _check("zs", zs, 5, "(N, B, C, H, W)")
-    _check("weights", weights, 5, "(N, B, k·k, H, W)")
+    check_tensor("ys", ys, 5, "(N, B, C, H, W)")
+    check_tensor("zs", zs, 5, "(N, B, C, H, W)")
+    check_tensor("weights", weights, 5, "(N, B, k·k, H, W)")
+    check_like("zs", zs, "ys", ys)
+    check_like("weights", weights, "ys", ys)
     if zs.shape != ys.shape:
         raise InputError(f"`zs` must have the shape of `ys` {tuple(ys.shape)}; got {tuple(zs.shape)}.")
+    _nonempty("ys", ys, (1, 2, 3, 4))
     _same_grid("weights", weights, "ys", ys, (0, 1, 3, 4))
     N, B, C, H, W = ys.shape
     k = kernel_size(weights.shape[2], "weights")
+    for name, t in (("ys", ys), ("zs", zs), ("weights", weights)):
+        check_finite_tensor(name, t)
     w = weights.reshape(N * B, k * k, H, W)
     diff = _apply(w, (ys - zs).reshape(N * B, C, H, W), k).view(N, B, C, H, W)
     wsum = _apply(w, torch.ones_like(ys[:, :, :1]).reshape(N * B, 1, H, W), k).view(N, B, 1, H, W)
-    return (diff + wsum * zs).sum(dim=1) / wsum.sum(dim=1)
+    total = wsum.sum(dim=1)
+    _check_weight_sums(total)
+    return (diff + wsum * zs).sum(dim=1) / total
 
 
 class ApplyKernels(torch.nn.Module):

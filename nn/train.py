@@ -14,6 +14,8 @@ import torch
 
 from statmc.errors import InputError, as_number
 
+from .ops import check_finite_tensor, check_like
+
 __all__ = ["relmse_loss", "train", "RELMSE_EPS"]
 
 #: ε of relMSE: 0.01 (Rousselle et al. 2011 §7), as in :func:`statmc.metrics.relmse`.
@@ -45,6 +47,9 @@ def relmse_loss(x, ref, eps: float = RELMSE_EPS):
                          f"{type(ref).__name__}.")
     if x.shape != ref.shape:
         raise InputError(f"`ref` must have the shape of `x` {tuple(x.shape)}; got {tuple(ref.shape)}.")
+    check_like("ref", ref, "x", x)
+    check_finite_tensor("x", x)
+    check_finite_tensor("ref", ref)
     eps = as_number("eps", eps, lo=0.0)
     return torch.mean((x - ref) ** 2 / (ref * ref + eps))
 
@@ -91,6 +96,14 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
             loss = loss_fn(model, step)
             if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
                 raise InputError(f"`loss_fn` must return a scalar tensor; got {loss!r} at step {step}.")
+            if not loss.requires_grad:
+                raise InputError(f"`loss_fn` returned a loss without a gradient at step {step} "
+                                 "(requires_grad is False): it must be computed from the "
+                                 "model's output, outside torch.no_grad().")
+            if not bool(torch.isfinite(loss.detach()).all()):
+                raise InputError(f"`loss_fn` returned a non-finite loss ({float(loss.detach())}) "
+                                 f"at step {step}; stopped before the optimiser step, so the "
+                                 f"model keeps the weights it had after {step} steps.")
             opt.zero_grad()
             loss.backward()
             opt.step()

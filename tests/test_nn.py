@@ -151,6 +151,94 @@ def test_bad_input_names_the_parameter(call, name):
         call()
 
 
+_K, _IMG = torch.rand(1, 9, 4, 5), torch.rand(1, 3, 4, 5)
+_NAN = _IMG.clone()
+_NAN[0, 1, 2, 3] = float("nan")
+_INF = _K.clone()
+_INF[0, 4, 0, 0] = float("inf")
+_META = _IMG.to("meta")                       # another device, without needing CUDA
+_ST = ToyRenderer("mixed", width=5, height=4).render_uniform(2, seed=0)
+_SIGNED = torch.cat([torch.ones(1, 4, 4, 5), torch.zeros(1, 1, 4, 5), -torch.ones(1, 4, 4, 5)], 1)
+
+
+def _nan_loss(model, step):
+    return next(model.parameters()).sum() * float("nan")
+
+
+@pytest.mark.parametrize("call, name, what", [
+    # the torch twins: one dtype and one device, finite values, a non-empty image
+    (lambda: snn.apply_kernels(_K.double(), _IMG), "image", "dtype"),
+    (lambda: snn.apply_kernels(_K, _META), "image", "device"),
+    (lambda: snn.apply_kernels(_K, _NAN), "image", "1 NaN"),
+    (lambda: snn.apply_kernels(_INF, _IMG), "kernels", "1 Inf"),
+    (lambda: snn.apply_kernels(torch.rand(1, 9, 0, 5), torch.rand(1, 3, 0, 5)), "image", "empty"),
+    (lambda: snn.apply_kernels(_K, torch.rand(1, 0, 4, 5)), "image", "empty"),
+    (lambda: snn.combine(_IMG, _IMG.double(), _K), "z", "dtype"),
+    (lambda: snn.combine(_IMG, _IMG, _K.double()), "weights", "dtype"),
+    (lambda: snn.combine(_IMG, _META, _K), "z", "device"),
+    (lambda: snn.combine(_NAN, _IMG, _K), "y", "NaN"),
+    (lambda: snn.combine(_IMG, _NAN, _K), "z", "NaN"),
+    (lambda: snn.combine(_IMG, _IMG, _INF), "weights", "Inf"),
+    (lambda: snn.combine(_IMG, _IMG, torch.zeros_like(_K)), "weights", "W_c"),
+    (lambda: snn.combine(_IMG, _IMG, _SIGNED), "weights", "W_c"),
+    (lambda: snn.combine_multi(_IMG[:, None], _NAN[:, None], _K[:, None]), "zs", "NaN"),
+    (lambda: snn.combine_multi(_IMG[:, None], _IMG[:, None], _K[:, None].double()), "weights", "dtype"),
+    (lambda: snn.combine_multi(_IMG[:, None], _IMG[:, None], torch.zeros_like(_K)[:, None]), "weights", "W_c"),
+    # networks: features and images where the network is, tensors of matching shapes
+    (lambda: snn.KernelNet()(snn.pixel_features(_ST).to("meta")), "features", "device"),
+    (lambda: snn.KernelNet()(snn.pixel_features(_ST) * float("nan")), "features", "NaN"),
+    (lambda: snn.KernelNet().denoise(snn.pixel_features(_ST), _ST.mean), "image", "torch.Tensor"),
+    (lambda: snn.MixNet().mix(snn.pixel_features(_ST, extra=_ST.mean), _ST.mean, _ST.mean), "x", "torch.Tensor"),
+    (lambda: snn.MixNet().mix(snn.pixel_features(_ST, extra=_ST.mean), torch.ones(1, 3, 3, 5),
+                              torch.ones(1, 3, 3, 5)), "x", "shape"),
+    (lambda: snn.MixNet().mix(snn.pixel_features(_ST, extra=_ST.mean), _IMG, torch.ones(1, 3, 4, 4)), "y", "shape"),
+    (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), "abc"), "budget", "number"),
+    (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), float("nan")), "budget", "finite"),
+    (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), -1), "budget", ">="),
+    (lambda: snn.feature_channels(3, budget=5), "budget", "bool"),
+    # training helpers
+    (lambda: snn.relmse_loss(_IMG, _IMG.double()), "ref", "dtype"),
+    (lambda: snn.relmse_loss(_IMG, _META), "ref", "device"),
+    (lambda: snn.relmse_loss(_IMG, _NAN), "ref", "NaN"),
+    (lambda: snn.relmse_loss(_NAN, _IMG), "x", "NaN"),
+    (lambda: snn.train(snn.KernelNet(width=2), _nan_loss, 3), "loss_fn", "non-finite"),
+    (lambda: snn.train(snn.KernelNet(width=2), lambda m, s: torch.ones(()), 3), "loss_fn", "grad"),
+])
+def test_bad_tensors_are_refused_before_torch_sees_them(call, name, what):
+    """Session 10: each of these gave a silent NaN/Inf or float64 result, or a torch
+    RuntimeError/AttributeError/ValueError that named no parameter."""
+    with pytest.raises(InputError, match=f"`{name}`") as e:
+        call()
+    assert what in str(e.value), str(e.value)
+
+
+def test_ops_still_work_under_vmap_and_on_the_meta_device():
+    """The value checks (finite inputs, W_c != 0) branch on tensor values, which
+    torch.func.vmap and meta tensors refuse: they are skipped there, and only there."""
+    rng = np.random.default_rng(11)
+    K = torch.from_numpy(rng.uniform(0.1, 1, size=(3, 1, 9, 4, 5)))
+    x = torch.from_numpy(rng.normal(size=(3, 1, 2, 4, 5)))
+    torch.testing.assert_close(torch.func.vmap(snn.apply_kernels)(K, x)[:, 0],
+                               snn.apply_kernels(K[:, 0], x[:, 0]), rtol=0, atol=0)
+    torch.testing.assert_close(torch.func.vmap(snn.combine)(x, x + 1, K)[:, 0],
+                               snn.combine(x[:, 0], x[:, 0] + 1, K[:, 0]), rtol=1e-15, atol=1e-15)
+    g = torch.func.vmap(torch.func.grad(lambda k, im: snn.apply_kernels(k, im).sum()))(K, x)
+    assert g.shape == K.shape
+    assert snn.combine(*(t.to("meta") for t in (x[0], x[0], K[0]))).shape == (1, 2, 4, 5)
+    with pytest.raises(InputError, match="NaN"):           # outside vmap the checks run
+        snn.apply_kernels(K[0], x[0] * float("nan"))
+
+
+def test_nan_loss_stops_before_the_optimiser_step():
+    """The weights stay those of the last finite step (Adam with a NaN gradient would make
+    every parameter NaN)."""
+    net = snn.KernelNet(width=2)
+    before = [p.detach().clone() for p in net.parameters()]
+    with pytest.raises(InputError, match="step 0"):
+        snn.train(net, _nan_loss, 3)
+    assert all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
+
+
 # ============================================================================ features
 def _render(scene="mixed", size=24, spp=8, seed=0):
     return ToyRenderer(scene, width=size, height=size).render_uniform(spp, seed=seed)
