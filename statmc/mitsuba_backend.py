@@ -334,11 +334,52 @@ def _fmix32_drjit(mi, h):
     return _xorshift_multiply(h, _FMIX32, mi.UInt32)
 
 
-def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool):
-    """Load a Mitsuba XML scene, overriding the film size and filter when asked."""
+_PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def _check_params(params) -> dict:
+    """``params`` of :class:`MitsubaRenderer`: a mapping of ``$name`` values, as strings."""
+    if params is None:
+        return {}
+    if not hasattr(params, "items"):
+        raise InputError(f"`params` must be a mapping of scene parameter names to values "
+                         f"(the $name substitutions of the XML file); got {type(params).__name__}.")
+    out = {}
+    for k, v in params.items():
+        if (not isinstance(k, str) or not _PARAM_NAME.match(k)
+                or k in ("update_scene", "parallel")):
+            raise InputError(f"`params` names must be XML parameter names (letters, digits, "
+                             f"'_', as in $spp), not 'update_scene' or 'parallel'; got {k!r}.")
+        if isinstance(v, bool):
+            v = "true" if v else "false"
+        if not isinstance(v, (str, numbers.Real)):
+            raise InputError(f"`params` value of {k!r} must be a string or a number; "
+                             f"got {type(v).__name__}.")
+        out[k] = str(v)
+    return out
+
+
+def _mitsuba_message(path: Path, e: Exception) -> str:
+    """Mitsuba's loader error on one line, without its C++ source locations, with a hint
+    for an undefined ``$name``."""
+    msg = re.sub(r"\[[\w./]+\.(?:cpp|h):\d+\] ", "", str(e)).strip().rstrip(".!")
+    msg = re.sub(r"\s*\n\s*", " ", msg)
+    m = re.search(r"undefined parameter: \$(\w+)", msg)
+    if m:
+        name = m.group(1)
+        msg += (f"; give it a value with `params` (`-D {name}=VALUE` on the command line) or "
+                f"add <default name=\"{name}\" value=\"...\"/> to the file")
+    return f"Mitsuba could not load scene file {str(path)!r}: {msg}."
+
+
+def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool,
+              params: dict | None = None):
+    """Load a Mitsuba XML scene (``params``: values of its ``$name`` parameters),
+    overriding the film size and filter when asked."""
+    params = params or {}
     try:
         if width is None and height is None and not force_box:
-            return mi.load_file(str(path))
+            return mi.load_file(str(path), **params)
         try:
             root = ET.parse(path).getroot()
         except ET.ParseError as e:
@@ -359,11 +400,11 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
                 film.remove(rf)
             ET.SubElement(film, "rfilter", type="box")
         mi.file_resolver().prepend(str(path.resolve().parent))
-        return mi.load_string(ET.tostring(root, encoding="unicode"))
+        return mi.load_string(ET.tostring(root, encoding="unicode"), **params)
     except InputError:
         raise
     except Exception as e:  # noqa: BLE001 - Mitsuba's parser raises plain exceptions
-        raise FileFormatError(f"Mitsuba could not load scene file {str(path)!r}: {e}") from None
+        raise FileFormatError(_mitsuba_message(path, e)) from None
 
 
 def _check_integrator(mi, integrator, name: str) -> None:
@@ -376,13 +417,24 @@ def _check_integrator(mi, integrator, name: str) -> None:
     if not isinstance(integrator, mi.SamplingIntegrator):
         # ptracer: a light path lands in whatever pixel it reaches, not the one drawn for
         raise InputError(f"scene {name!r} uses Mitsuba's {kind}, a light-tracing integrator "
-                         "(such as 'ptracer') that splats paths into whatever pixels they reach, so a sample does not belong "
-                         f"to one pixel and per-pixel counts cannot steer it; {supported}: "
-                         "change the scene's <integrator type=...>.")
+                         "(such as 'ptracer') that splats paths into whatever pixels they "
+                         "reach, so a sample does not belong to one pixel and per-pixel counts "
+                         f"cannot steer it; {supported}: change the scene's <integrator>.")
     if kind == "AOVIntegrator" and re.search(r"integrators = \[\s*\]", str(integrator)):
         raise InputError(f"scene {name!r} uses an 'aov' integrator without a nested integrator, "
                          "so it renders no colour (every sample is black); nest one inside it, "
                          "e.g. <integrator type=\"aov\">...<integrator type=\"path\"/></integrator>.")
+
+
+def _warn_filter(film, name: str) -> None:
+    """Say that a film's reconstruction filter other than a box is not used."""
+    rfilter = film.rfilter()
+    if rfilter.is_box_filter():
+        return
+    warnings.warn(f"statmc: scene {name!r}: its film's {rfilter.class_name()} is not used: a "
+                  "sample counts only in the pixel it was drawn in (a box filter), so the image "
+                  "is a little sharper than mi.render's; give the film <rfilter type=\"box\"/> "
+                  "to match it.", RuntimeWarning, stacklevel=3)
 
 
 # ---------------------------------------------------------------------------- renderer
@@ -401,6 +453,10 @@ class MitsubaRenderer:
         >= 16 is found, else ``scalar_rgb``.
     chunk_samples : int, optional
         Samples traced per wavefront (bounds memory: a few hundred bytes per sample).
+    params : mapping, optional
+        Values of the ``$name`` parameters of an XML scene file (``{"spp": 64}``, as
+        ``mitsuba -D spp=64``); they override the file's ``<default>`` values, and a
+        parameter the file does not use is an error (Mitsuba's).
 
     Attributes
     ----------
@@ -413,8 +469,14 @@ class MitsubaRenderer:
 
     Notes
     -----
-    The reconstruction filter is a box: a sample counts in the pixel it was drawn in.
-    Only C++ sampling integrators (``path``, ``volpath``, ``direct``, ...) are supported.
+    The reconstruction filter is a box: a sample counts in the pixel it was drawn in (a
+    film's other filter, Gaussian by default, is not used: a ``RuntimeWarning`` says so).
+    The scene's sampler and its ``sample_count`` are not used either: the counts passed to
+    :meth:`render` are the samples, each with an independent random stream.  The image is
+    the first sensor's, in RGB whatever the film's ``pixel_format``; camera rays start in
+    the sensor's medium, as in ``mi.render``.  Only C++ sampling integrators (``path``,
+    ``volpath``, ``direct``, ``aov`` with a nested integrator, ...) are supported: light
+    tracing (``ptracer``) is refused.  A scene without emitters warns (it renders black).
     Ray differentials are scaled by ``1/sqrt(counts[i, j])``, as ``mi.render`` does for a
     uniform count (this only changes filtered bitmap texture look-ups).
 
@@ -429,8 +491,9 @@ class MitsubaRenderer:
     channels = 3
 
     def __init__(self, scene, *, width: int | None = None, height: int | None = None,
-                 variant: str | None = None, chunk_samples: int = 2 ** 21):
+                 variant: str | None = None, chunk_samples: int = 2 ** 21, params=None):
         self.chunk_samples = _check_int("chunk_samples", chunk_samples, minimum=1)
+        params = _check_params(params)
         if self.chunk_samples > 2 ** 31:
             raise InputError(f"`chunk_samples` must be <= 2**31; got {chunk_samples}.")
         if width is not None:
@@ -443,6 +506,10 @@ class MitsubaRenderer:
         self._dr = dr
         self._jit = not self.variant.startswith("scalar")
 
+        xml = (isinstance(scene, (str, os.PathLike)) and os.fspath(scene) not in BUILTIN_SCENES)
+        if params and not xml:
+            raise InputError("`params` gives values to the $name parameters of an XML scene "
+                             "file; this `scene` is not one, so leave `params` unset.")
         if hasattr(scene, "sensors") and hasattr(scene, "integrator"):
             if width is not None or height is not None:
                 raise InputError("`width`/`height` cannot be changed for an already loaded "
@@ -459,10 +526,12 @@ class MitsubaRenderer:
                     raise InputError(
                         f"`scene` {key!r} is neither a built-in scene "
                         f"({', '.join(sorted(BUILTIN_SCENES))}) nor an existing Mitsuba XML file.")
-                self._scene = _load_xml(mi, path, width, height, force_box=False)
-                if not self._jit and not self._scene.sensors()[0].film().rfilter().is_box_filter():
+                self._scene = _load_xml(mi, path, width, height, False, params)
+                sensors = self._scene.sensors()
+                if not self._jit and sensors and not sensors[0].film().rfilter().is_box_filter():
                     # the scalar fallback reads one-sample mi.render images: needs a box filter
-                    self._scene = _load_xml(mi, path, width, height, force_box=True)
+                    _warn_filter(sensors[0].film(), str(path))
+                    self._scene = _load_xml(mi, path, width, height, True, params)
                 self.name = str(path)
         else:
             raise InputError(f"`scene` must be a scene name, an XML path or a mitsuba.Scene; "
@@ -475,6 +544,12 @@ class MitsubaRenderer:
         self.width, self.height = (int(v) for v in film.crop_size())
         self._integrator = self._scene.integrator()
         _check_integrator(mi, self._integrator, self.name)
+        if self._jit:
+            _warn_filter(film, self.name)
+        if not self._scene.emitters() and self._integrator.class_name() != "DepthIntegrator":
+            warnings.warn(f"statmc: scene {self.name!r} has no emitter, so every pixel renders "
+                          "black; add one (e.g. <emitter type=\"constant\"/>).",
+                          RuntimeWarning, stacklevel=2)
         self._aov_integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal"})
         self._sampler = mi.load_dict({"type": "independent"})
 

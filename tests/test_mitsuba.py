@@ -253,9 +253,11 @@ XML = """<scene version="3.0.0">
 def test_xml_scene_with_size_override(tmp_path):
     path = tmp_path / "ball.xml"
     path.write_text(XML)
-    r = mb.MitsubaRenderer(str(path))
+    with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+        r = mb.MitsubaRenderer(str(path))
     assert (r.height, r.width) == (30, 40)
-    r = mb.MitsubaRenderer(path, width=9, height=7)
+    with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+        r = mb.MitsubaRenderer(path, width=9, height=7)
     assert (r.height, r.width, r.name) == (7, 9, str(path))
     s = r.render(np.full((7, 9), 3), seed=1, features=False)
     assert s.total_samples == 3 * 63
@@ -774,7 +776,7 @@ def test_integrators_without_per_pixel_samples_are_refused(tmp_path):
     ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
             '</bsdf></shape><emitter type="constant"/>')
     path = _xml_scene(tmp_path, ball, integrator='<integrator type="ptracer"/>')
-    with pytest.raises(InputError, match="ptracer.*<integrator type="):
+    with pytest.raises(InputError, match="ptracer.*change the scene's <integrator>"):
         mb.MitsubaRenderer(path)
     path = _xml_scene(tmp_path, ball, integrator='<integrator type="aov">'
                       '<string name="aovs" value="dd.y:depth"/></integrator>')
@@ -788,3 +790,45 @@ def test_integrators_without_per_pixel_samples_are_refused(tmp_path):
     s = mb.MitsubaRenderer(path).render_uniform(16, seed=4, features=False)
     p, msg = _ttest_zero((s.mean - 1.0).mean(-1), "aov(path) furnace error")
     assert p > ALPHA, msg
+
+
+def test_xml_parameters_take_values_and_a_missing_one_says_how(tmp_path):
+    # regression: a file using $spp without a <default> could not be loaded at all (no way
+    # to pass a value), and the error carried Mitsuba's "[parser.cpp:451]" prefix
+    ball = ('<shape type="sphere"><float name="radius" value="$r"/><bsdf type="diffuse"/></shape>'
+            '<emitter type="constant"/>')
+    path = _xml_scene(tmp_path, ball, sensor='<sampler type="independent">'
+                      '<integer name="sample_count" value="$spp"/></sampler>')
+    with pytest.raises(InputError, match=r"undefined parameter: \$(spp|r); give it a value with "
+                                         r"`params` .*<default name=") as e:
+        mb.MitsubaRenderer(path)
+    assert ".cpp:" not in str(e.value) and "\n" not in str(e.value)
+    for size in ({}, {"width": 6, "height": 4}):         # load_file and load_string paths
+        r = mb.MitsubaRenderer(path, params={"spp": 16, "r": 0.25}, **size)
+        assert r._sensor.sampler().sample_count() == 16
+        assert r._scene.shapes()[0].bbox().extents()[0] == pytest.approx(0.5)
+    with pytest.raises(InputError, match="unused parameters"):
+        mb.MitsubaRenderer(path, params={"spp": 16, "r": 0.25, "other": 1})
+    for bad, word in (([("spp", 1)], "mapping"), ({"1x": 2}, "names"),
+                      ({"parallel": 1}, "names"), ({"spp": None}, "string or a number")):
+        with pytest.raises(InputError, match=word):
+            mb.MitsubaRenderer(path, params=bad)
+    with pytest.raises(InputError, match="leave `params` unset"):
+        mb.MitsubaRenderer("cornell-box", width=8, height=8, params={"spp": 4})
+
+
+def test_a_film_filter_that_is_not_used_and_a_scene_without_light_warn(tmp_path):
+    # regression: statmc replaced a film's Gaussian filter by a box and rendered a scene
+    # without emitters as black, both without a word
+    ball = '<shape type="sphere"><bsdf type="diffuse"/></shape>'
+    path = _xml_scene(tmp_path, ball + '<emitter type="constant"/>', film='<rfilter type="gaussian"/>')
+    with pytest.warns(RuntimeWarning, match="GaussianFilter is not used.*<rfilter type=\"box\"/>"):
+        mb.MitsubaRenderer(path)
+    path = _xml_scene(tmp_path, ball + '<emitter type="constant"/>')          # a box: quiet
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mb.MitsubaRenderer(path)
+    path = _xml_scene(tmp_path, ball)
+    with pytest.warns(RuntimeWarning, match="no emitter, so every pixel renders black"):
+        r = mb.MitsubaRenderer(path)
+    assert not r.render_uniform(2, features=False).mean.any()
