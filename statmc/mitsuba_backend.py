@@ -388,6 +388,12 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
         if film is None:
             raise InputError(f"scene file {str(path)!r} has no <sensor><film> element, so its "
                              "size cannot be set; add one or leave `width`/`height` unset.")
+        crop = [el.get("name") for el in film if str(el.get("name", "")).startswith("crop_")]
+        if (width is not None or height is not None) and crop:
+            raise InputError(f"scene file {str(path)!r} has a film with a crop window "
+                             f"({', '.join(crop)}), which a new film size would not resize; "
+                             "remove the crop window from the film or leave `width`/`height` "
+                             "unset.")
         for name, value in (("width", width), ("height", height)):
             if value is None:
                 continue

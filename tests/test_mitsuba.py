@@ -832,3 +832,33 @@ def test_a_film_filter_that_is_not_used_and_a_scene_without_light_warn(tmp_path)
     with pytest.warns(RuntimeWarning, match="no emitter, so every pixel renders black"):
         r = mb.MitsubaRenderer(path)
     assert not r.render_uniform(2, features=False).mean.any()
+
+
+def test_crop_window_renders_the_window_and_refuses_a_new_size(tmp_path):
+    # the crop window of the film is what mi.render renders: same size, same pixels
+    checker = ('<bsdf type="diffuse"><texture type="checkerboard" name="reflectance">'
+               '<transform name="to_uv"><scale x="6" y="6"/></transform></texture></bsdf>')
+    path = _xml_scene(tmp_path, f'<shape type="sphere">{checker}</shape>'
+                      '<emitter type="constant"/>', size=(12, 10), film=(
+                          '<rfilter type="box"/><integer name="crop_offset_x" value="3"/>'
+                          '<integer name="crop_offset_y" value="2"/><integer name="crop_width" '
+                          'value="6"/><integer name="crop_height" value="5"/>'),
+                      sensor='<transform name="to_world"><lookat origin="0, 0, 4" '
+                             'target="0, 0, 0" up="0, 1, 0"/></transform>')
+    r = mb.MitsubaRenderer(path)
+    assert (r.height, r.width) == (5, 6)
+    s = r.render_uniform(256, seed=5, features=False)
+    scale = r.render_uniform(256, seed=6, features=False).sample_var / 256   # independent
+    _ensure_variant(r)
+    ref = np.asarray(r._mi.render(r._scene, spp=4096, seed=8), np.float64)[..., :3]
+    assert ref.shape == (5, 6, 3)
+    # chi-square of the red channel's z-scores (pixels are independent; the scale comes
+    # from an independent render, so z^2 is F(1, 255), nearly chi2(1)); one pixel of shift
+    # of the window gave chi2/k = 160, the right window 0.7-1.5 over 12 seeds
+    z = ((s.mean - ref) / np.sqrt(scale * (1 + 256 / 4096)))[..., 0]
+    chi2 = float((z ** 2).sum())
+    p = sps.chi2.sf(chi2, z.size)
+    assert p > ALPHA, f"crop window vs mi.render: chi2/k = {chi2 / z.size:.3f}, p = {p:.3g}"
+    # regression: --size on a cropped film was Mitsuba's "Invalid crop window" from "string"
+    with pytest.raises(InputError, match="crop window .*crop_offset_x.*leave `width`/`height`"):
+        mb.MitsubaRenderer(path, width=8, height=6)
