@@ -332,6 +332,34 @@ def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None
 
 
 # ---------------------------------------------------------------------------- commands
+def _define(text: str) -> tuple[str, str]:
+    """``-D NAME=VALUE``: a value for the ``$NAME`` parameter of an XML scene."""
+    name, eq, value = text.partition("=")
+    if not eq or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE (a value for $NAME in the scene "
+                                         f"file, e.g. -D spp=64); got {text!r}")
+    return name.strip(), value
+
+
+def _add_define_option(parser) -> None:
+    parser.add_argument("-D", "--define", type=_define, action="append", default=None,
+                        metavar="NAME=VALUE",
+                        help="value of the parameter $NAME of a Mitsuba XML scene (repeatable), "
+                             "as `mitsuba -D`")
+
+
+def _scene_options(args) -> dict:
+    """Keyword options of ``make_renderer`` from ``-D`` (none when not given)."""
+    if not args.define:
+        return {}
+    from .renderers import TOY_PREFIX
+    from .scenes import BUILTIN_SCENES
+    if args.scene.startswith(TOY_PREFIX) or args.scene in BUILTIN_SCENES:
+        raise InputError(f"-D sets $NAME parameters of a Mitsuba XML scene file; {args.scene} "
+                         "is a built-in scene: leave -D out.")
+    return {"params": dict(args.define)}
+
+
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
     from .metrics import all_metrics
@@ -349,7 +377,7 @@ def cmd_render(args) -> int:
     if sample_map is not None and args.sampler != "uniform":
         raise InputError(f"--sample-map fixes the counts; it cannot be combined with --sampler {args.sampler}.")
     ref = read_image(args.reference) if args.reference else None
-    renderer = make_renderer(args.scene, width=width, height=height)
+    renderer = make_renderer(args.scene, width=width, height=height, **_scene_options(args))
     if args.spp is not None:
         _check_count_range("--spp", args.spp)
     counts = None
@@ -450,7 +478,8 @@ def cmd_render(args) -> int:
     n = stats.n
     total = int(n.sum())
     report = {
-        "scene": args.scene, "renderer": type(renderer).__name__,
+        "scene": args.scene, "scene_params": dict(args.define or ()),
+        "renderer": type(renderer).__name__,
         "width": renderer.width, "height": renderer.height, "seed": args.seed,
         # a --sample-map render is not uniform: name the map and how it was read
         "sampler": "sample-map" if sample_map is not None else args.sampler,
@@ -886,7 +915,7 @@ def cmd_reference(args) -> int:
     _check_count_range("--spp", spp)
     per_pass = min(spp, _positive_int("--pass-spp", args.pass_spp))
     _check_out_file(args.out)
-    renderer = make_renderer(args.scene, width=width, height=height)
+    renderer = make_renderer(args.scene, width=width, height=height, **_scene_options(args))
     stats = render_reference(renderer, spp, pass_spp=per_pass, seed=args.seed,
                              progress=not args.quiet, features=True)
     _write_result(args.out, stats, stats.mean, inputs=(), quiet=True)
@@ -1027,6 +1056,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "whole numbers or not) is scaled to")
     r.add_argument("--out", required=True, help="output directory (created if missing)")
     r.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
+    _add_define_option(r)
     r.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     r.add_argument("--sample-map", help=".npy or .exr per-pixel counts (whole numbers) or densities")
     r.add_argument("--reference", help="reference EXR: metrics go into report.json")
@@ -1080,6 +1110,7 @@ def build_parser() -> argparse.ArgumentParser:
     ref.add_argument("--spp", type=POSITIVE_INT, required=True, help="total samples per pixel")
     ref.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     ref.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")
+    _add_define_option(ref)
     ref.add_argument("--seed", type=SEED, default=1_000_003,
                      help="random seed of the first pass; pass k uses seed + 7919 k (default "
                           "1000003, far from the renders' default 0)")
@@ -1170,6 +1201,8 @@ _CLI_WORDING = (
     ("`spp`", "--spp"),
     ("`stencil`", "--stencil"),
     ("leave `width`/`height` unset", "omit --size"),
+    ("give it a value with `params` (`-D ", "give it a value with `-D "),
+    ("=VALUE` on the command line) or add <default", "=VALUE` or add <default"),
     ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
     ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),
 )

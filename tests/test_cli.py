@@ -1634,3 +1634,59 @@ def test_python_dash_m_statmc_demo_exits_2_on_bad_input(tmp_path):
                        timeout=120)
     assert p.returncode == 2 and p.stderr.startswith("python -m statmc.demo: error: scene "), p.stderr
     assert len(p.stderr.strip().splitlines()) == 1 and not (tmp_path / "d").exists()
+
+
+# ------------------------------------------------------------------ user Mitsuba XML scenes
+def _user_xml(tmp_path, *, integrator="path", sampler_spp="$spp", rfilter="box"):
+    path = tmp_path / "user.xml"
+    path.write_text(f"""<scene version="3.0.0">
+  <integrator type="{integrator}"/>
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <sampler type="stratified"><integer name="sample_count" value="{sampler_spp}"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="12"/><integer name="height" value="8"/>
+      <rfilter type="{rfilter}"/></film></sensor>
+  <shape type="sphere"><bsdf type="diffuse"/></shape>
+  <emitter type="constant"/>
+</scene>""")
+    return path
+
+
+@pytest.mark.mitsuba
+def test_render_and_reference_define_xml_parameters(tmp_path):
+    # regression: `statmc render` had no way to give a value to a $name the file uses
+    # without a <default>, and the error showed Mitsuba's "[parser.cpp:451]"
+    scene = _user_xml(tmp_path)
+    code, _, err = run_cli("render", scene, "--spp", 4, "--out", tmp_path / "a", "-q")
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "undefined parameter: $spp; give it a value with `-D spp=VALUE` or add <default" in err
+    assert "params" not in err and ".cpp" not in err
+    code, _, err = run_cli("render", scene, "--spp", 8, "-D", "spp=16", "--sampler", "gem",
+                           "--reconstruct", "gem", "--out", tmp_path / "a", "-q")
+    assert code == 0 and err == "", err
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    # the file's sample_count (16) is not the budget: --spp is
+    assert rep["scene_params"] == {"spp": "16"} and rep["total_samples"] == 8 * 12 * 8
+    code, _, err = run_cli("reference", scene, "--spp", 8, "--define", "spp=3",
+                           "--out", tmp_path / "ref.exr", "-q")
+    assert code == 0 and err == "", err
+    for args, needle in ((("-D", "spp"), "expected NAME=VALUE"),
+                         (("-D", "=3"), "expected NAME=VALUE"),
+                         (("-D", "spp=1", "-D", "other=2"), "unused parameters")):
+        code, _, err = run_cli("render", scene, "--spp", 4, *args, "--out", tmp_path / "b", "-q")
+        assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, err
+    for name in ("cornell-box", "toy:mixed"):
+        code, _, err = run_cli("render", name, "--spp", 4, "-D", "spp=1", "--out", tmp_path / "b")
+        assert code == 2 and "is a built-in scene: leave -D out" in err, err
+
+
+@pytest.mark.mitsuba
+def test_render_user_xml_says_what_it_does_not_use(tmp_path):
+    # a Gaussian film filter: one warning line; a light tracer: one error line
+    scene = _user_xml(tmp_path, sampler_spp="4", rfilter="gaussian")
+    code, _, err = run_cli("render", scene, "--spp", 2, "--out", tmp_path / "a", "-q")
+    assert code == 0 and err.count("\n") == 1, err
+    assert err.startswith("statmc render: warning: scene ") and "GaussianFilter is not used" in err
+    scene = _user_xml(tmp_path, sampler_spp="4", integrator="ptracer")
+    code, _, err = run_cli("render", scene, "--spp", 2, "--out", tmp_path / "b", "-q")
+    assert code == 2 and err.count("\n") == 1 and "ptracer" in err and "Traceback" not in err, err
