@@ -375,7 +375,8 @@ def _mitsuba_message(path: Path, e: Exception) -> str:
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool,
               params: dict | None = None):
     """Load a Mitsuba XML scene (``params``: values of its ``$name`` parameters),
-    overriding the film size and filter when asked."""
+    overriding the film size when asked; ``force_box``: a box filter and an RGB film (what
+    the scalar fallback's one-sample ``mi.render`` images need)."""
     params = params or {}
     try:
         if width is None and height is None and not force_box:
@@ -402,9 +403,10 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
                 el = ET.SubElement(film, "integer", name=name)
             el.set("value", str(value))
         if force_box:
-            for rf in film.findall("rfilter"):
-                film.remove(rf)
+            for el in film.findall("rfilter") + film.findall("string[@name='pixel_format']"):
+                film.remove(el)
             ET.SubElement(film, "rfilter", type="box")
+            ET.SubElement(film, "string", name="pixel_format", value="rgb")
         mi.file_resolver().prepend(str(path.resolve().parent))
         return mi.load_string(ET.tostring(root, encoding="unicode"), **params)
     except InputError:
@@ -430,6 +432,12 @@ def _check_integrator(mi, integrator, name: str) -> None:
         raise InputError(f"scene {name!r} uses an 'aov' integrator without a nested integrator, "
                          "so it renders no colour (every sample is black); nest one inside it, "
                          "e.g. <integrator type=\"aov\">...<integrator type=\"path\"/></integrator>.")
+
+
+def _scalar_ready(film) -> bool:
+    """Whether one-sample ``mi.render`` images of ``film`` are the samples of its pixels
+    with R, G, B first: a box filter and an ``rgb``/``rgba`` pixel format."""
+    return film.rfilter().is_box_filter() and film.base_channels_count() in (3, 4)
 
 
 def _warn_filter(film, name: str) -> None:
@@ -534,8 +542,9 @@ class MitsubaRenderer:
                         f"({', '.join(sorted(BUILTIN_SCENES))}) nor an existing Mitsuba XML file.")
                 self._scene = _load_xml(mi, path, width, height, False, params)
                 sensors = self._scene.sensors()
-                if not self._jit and sensors and not sensors[0].film().rfilter().is_box_filter():
-                    # the scalar fallback reads one-sample mi.render images: needs a box filter
+                if not self._jit and sensors and not _scalar_ready(sensors[0].film()):
+                    # the scalar fallback reads one-sample mi.render images: needs a box
+                    # filter and R, G, B first
                     _warn_filter(sensors[0].film(), str(path))
                     self._scene = _load_xml(mi, path, width, height, True, params)
                 self.name = str(path)
@@ -552,6 +561,11 @@ class MitsubaRenderer:
         _check_integrator(mi, self._integrator, self.name)
         if self._jit:
             _warn_filter(film, self.name)
+        elif not _scalar_ready(film):
+            raise InputError(f"the {self.variant!r} fallback renders through mi.render, so the "
+                             "film of an already loaded `scene` needs a box filter and an RGB "
+                             "pixel_format; load it with <rfilter type=\"box\"/> and "
+                             "pixel_format 'rgb', or pass the XML file's path.")
         if not self._scene.emitters() and self._integrator.class_name() != "DepthIntegrator":
             warnings.warn(f"statmc: scene {self.name!r} has no emitter, so every pixel renders "
                           "black; add one (e.g. <emitter type=\"constant\"/>).",

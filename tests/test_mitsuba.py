@@ -580,6 +580,29 @@ def test_scalar_variant_renders_counts(cornell, pilot, reference):
         _ensure_variant(cornell)
 
 
+def test_scalar_variant_takes_any_film_of_a_file_and_refuses_a_loaded_one(tmp_path, cornell, mi):
+    # regression: a luminance film failed in the scalar fallback with an IndexError (its
+    # one-sample mi.render images have one channel), and a loaded scene with a Gaussian
+    # filter was rendered through it (filtered, so neighbouring pixels shared samples)
+    ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
+            '</bsdf></shape><emitter type="constant"/>')
+    path = _xml_scene(tmp_path, ball, film='<rfilter type="box"/><string name="pixel_format" '
+                      'value="luminance"/>', sensor='<transform name="to_world"><lookat '
+                      'origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>')
+    try:
+        r = mb.MitsubaRenderer(path, variant="scalar_rgb")
+        s = r.render_uniform(16, seed=2, feature_spp=1)
+        assert s.mean.shape == (8, 8, 3) and s.albedo.shape == (8, 8, 3)
+        p, msg = _ttest_zero((s.mean - 1.0).mean(-1), "scalar luminance-film furnace error")
+        assert p > ALPHA, msg
+        d = load_scene_dict("cornell-box", 8, 8)
+        d["sensor"]["film"]["rfilter"] = {"type": "gaussian"}
+        with pytest.raises(InputError, match="box filter and an RGB pixel_format"):
+            mb.MitsubaRenderer(mi.load_dict(d), variant="scalar_rgb")
+    finally:
+        _ensure_variant(cornell)
+
+
 # ------------------------------------------------------------------ common random numbers
 CRN_RENDERS = 48
 CRN_SPP = 4
