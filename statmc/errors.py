@@ -25,7 +25,8 @@ def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
     """Return ``a`` as a float ndarray (ints become ``float64``; float32 stays float32).
 
     float16 becomes float32 and extended precision float64: the compiled kernels and most
-    of SciPy have neither (float16 raised numba's ``NotImplementedError``).
+    of SciPy have neither (float16 raised numba's ``NotImplementedError``).  A non-native
+    byte order (big-endian ``'>f4'``) becomes native: numba cannot type it.
     Raises :class:`InputError` when it is not numeric (complex included) or has the wrong
     number of dims.
     """
@@ -39,6 +40,8 @@ def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
         arr = arr.astype(np.float32)
     elif not np.issubdtype(arr.dtype, np.floating) or arr.dtype.itemsize > 8:
         arr = arr.astype(np.float64)
+    if not arr.dtype.isnative:                  # '>f4' from a file: numba cannot type it
+        arr = arr.astype(arr.dtype.newbyteorder("="))
     if ndim is not None:
         dims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in dims:

@@ -274,7 +274,8 @@ def _check_inputs(mean, mean_var, n=None):
             raise InputError(f"`n` must be an (H, W) count map of shape {m.shape[:2]}; got {nn.shape}.")
         if nn.dtype == bool or not np.issubdtype(nn.dtype, np.number) or np.iscomplexobj(nn):
             raise InputError(f"`n` must hold sample counts (integers); got dtype {nn.dtype}.")
-        counts = nn if nn.dtype.kind != "f" or nn.dtype.itemsize in (4, 8) else nn.astype(np.float64)
+        counts = nn if (nn.dtype.kind != "f" or nn.dtype.itemsize in (4, 8)) \
+            and nn.dtype.isnative else nn.astype(np.float64)   # numba types neither
         nn = np.empty(nn.shape)
         bad, frac, low = _k.scan_counts(counts, nn)     # converts and counts in one pass
         if bad:

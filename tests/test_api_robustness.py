@@ -1,0 +1,108 @@
+"""The Python API under unusual but legal inputs, and bad ones (a notebook user's calls).
+
+Each test pins a finding of the session-10 API audit: the input a user will pass, and
+either the same result as the contiguous native float64 input or an :class:`InputError`
+that names the parameter.  Behaviour that already worked is only tested where it guards a
+real risk (non-contiguous or foreign-byte-order arrays handed to compiled kernels).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from statmc import analytic, combine, denoisers, filters, gem, progressive, sampling, sure
+
+H, W, C = 7, 9, 3
+
+
+def _inputs(seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.1, 1.0, (H, W, C))
+    v = rng.uniform(1e-3, 1e-2, (H, W, C))
+    n = rng.integers(2, 9, (H, W))
+    k = rng.uniform(0.0, 1.0, (H, W, 5, 5))
+    return x, v, n, k / k.sum(axis=(2, 3), keepdims=True)
+
+
+def _calls():
+    """(name, function, arguments): public functions whose arrays reach numba kernels."""
+    x, v, n, k = _inputs()
+    z = denoisers.gaussian(1.0)(x)
+    return [
+        ("filters.gaussian_filter", lambda a: filters.gaussian_filter(a, 1.5), [x]),
+        ("filters.gaussian_spread", lambda a: filters.gaussian_spread(a, 1.5), [v]),
+        ("filters.filter_bank", filters.filter_bank, [x, v]),
+        ("gem.reconstruct", lambda a, b, c: gem.reconstruct(a, b, n=c, final=False), [x, v, n]),
+        ("gem.sampling_map", lambda a, b, c: gem.sampling_map(a, b, c, 300, rng=1), [x, v, n]),
+        ("gem.difference_variance", gem.difference_variance, [v]),
+        ("sampling.counts_from_density",
+         lambda a: sampling.counts_from_density(a, 300, rng=1), [v[..., 0]]),
+        ("sure.sure", sure.sure, [k, x, v]),
+        ("analytic.apply_kernels", analytic.apply_kernels, [k, x]),
+        ("combine.combine", combine.combine, [x, z, k]),
+        ("combine.statistical_weights",
+         lambda a, b, c: combine.statistical_weights(a, b, c, 0.5 * c, 5), [x, z, v]),
+        ("progressive.mixing_weights",
+         lambda a, b, c: progressive.mixing_weights(a, b, c, (b - a) ** 2, 0.3 * c), [x, z, v]),
+        ("progressive.confidence_gate",
+         lambda a, b, c: progressive.confidence_gate(a, b, c, np.full(a.shape, 0.5)), [x, z, v]),
+    ]
+
+
+CALLS = _calls()
+
+
+def _layouts(a):
+    """Views and copies of ``a`` that hold the same numbers."""
+    strided = np.zeros((2 * a.shape[0],) + a.shape[1:], a.dtype)
+    strided[::2] = a
+    readonly = a.copy()
+    readonly.setflags(write=False)
+    return {
+        "big-endian": a.astype(a.dtype.newbyteorder(">")),
+        "strided": strided[::2],
+        "reversed": np.ascontiguousarray(a[..., ::-1])[..., ::-1],
+        "fortran": np.asfortranarray(a),
+        "readonly": readonly,
+    }
+
+
+def _assert_same(expected, got, where):
+    if isinstance(expected, dict):
+        assert expected.keys() == got.keys(), where
+        for key in expected:
+            _assert_same(expected[key], got[key], f"{where}[{key}]")
+    elif isinstance(expected, (tuple, list)):
+        assert len(expected) == len(got), where
+        for i, (e, g) in enumerate(zip(expected, got)):
+            _assert_same(e, g, f"{where}[{i}]")
+    elif isinstance(expected, np.ndarray) or np.isscalar(expected):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected), err_msg=where)
+
+
+@pytest.mark.parametrize("layout", ["big-endian", "strided", "reversed", "fortran", "readonly"])
+@pytest.mark.parametrize("name,func,args", CALLS, ids=[c[0] for c in CALLS])
+def test_array_layouts_give_the_contiguous_result(name, func, args, layout):
+    """A big-endian array (``'>f8'``, as some file readers return) raised numba's
+    TypingError in every function whose arrays reach a compiled kernel (filters, GEM,
+    counts); the other layouts guard the same kernels against strided or read-only views.
+    The caller's arrays are never written to."""
+    expected = func(*args)
+    for i, a in enumerate(args):
+        other = _layouts(np.asarray(a))[layout]
+        before = other.copy()
+        got = func(*args[:i], other, *args[i + 1:])
+        _assert_same(expected, got, f"{name} argument {i} {layout}")
+        np.testing.assert_array_equal(other, before)
+
+
+def test_big_endian_float32_counts_and_images():
+    """``'>f4'`` images (OpenEXR-like float32 in foreign byte order) and ``'>i8'`` count
+    maps into GEM: the result equals the native float32 / int64 one."""
+    x, v, n, _ = _inputs(1)
+    x32, v32 = x.astype(np.float32), v.astype(np.float32)
+    expected = gem.reconstruct(x32, v32, n=n, final=False)
+    got = gem.reconstruct(x32.astype(">f4"), v32.astype(">f4"), n=n.astype(">i8"), final=False)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, expected)
