@@ -373,10 +373,11 @@ def _mitsuba_message(path: Path, e: Exception) -> str:
 
 
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool,
-              params: dict | None = None):
+              params: dict | None = None, sensor: int = 0):
     """Load a Mitsuba XML scene (``params``: values of its ``$name`` parameters),
-    overriding the film size when asked; ``force_box``: a box filter and an RGB film (what
-    the scalar fallback's one-sample ``mi.render`` images need)."""
+    overriding the film size of sensor number ``sensor`` when asked; ``force_box``: a box
+    filter and an RGB film for it (what the scalar fallback's one-sample ``mi.render``
+    images need)."""
     params = params or {}
     try:
         if width is None and height is None and not force_box:
@@ -385,10 +386,12 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
             root = ET.parse(path).getroot()
         except ET.ParseError as e:
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
-        film = root.find(".//sensor/film")
+        sensors = root.findall(".//sensor")
+        film = sensors[sensor].find("film") if sensor < len(sensors) else None
         if film is None:
-            raise InputError(f"scene file {str(path)!r} has no <sensor><film> element, so its "
-                             "size cannot be set; add one or leave `width`/`height` unset.")
+            raise InputError(f"scene file {str(path)!r} has no <film> in <sensor> number "
+                             f"{sensor} (of {len(sensors)} written in the file), so its size "
+                             "cannot be set; add one or leave `width`/`height` unset.")
         crop = [el.get("name") for el in film if str(el.get("name", "")).startswith("crop_")]
         if (width is not None or height is not None) and crop:
             raise InputError(f"scene file {str(path)!r} has a film with a crop window "
@@ -467,6 +470,9 @@ class MitsubaRenderer:
         >= 16 is found, else ``scalar_rgb``.
     chunk_samples : int, optional
         Samples traced per wavefront (bounds memory: a few hundred bytes per sample).
+    sensor : int, optional
+        Index of the sensor to render, in the order of the scene file (default 0, as
+        ``mi.render``); ``width``/``height`` resize its film.
     params : mapping, optional
         Values of the ``$name`` parameters of an XML scene file (``{"spp": 64}``, as
         ``mitsuba -D spp=64``); they override the file's ``<default>`` values, and a
@@ -475,6 +481,7 @@ class MitsubaRenderer:
     Attributes
     ----------
     height, width : int
+    sensor : int
     channels : int
         Always 3 (RGB).
     name : str
@@ -487,7 +494,7 @@ class MitsubaRenderer:
     film's other filter, Gaussian by default, is not used: a ``RuntimeWarning`` says so).
     The scene's sampler and its ``sample_count`` are not used either: the counts passed to
     :meth:`render` are the samples, each with an independent random stream.  The image is
-    the first sensor's, in RGB whatever the film's ``pixel_format``; camera rays start in
+    ``sensor``'s, in RGB whatever the film's ``pixel_format``; camera rays start in
     the sensor's medium, as in ``mi.render``.  Only C++ sampling integrators (``path``,
     ``volpath``, ``direct``, ``aov`` with a nested integrator, ...) are supported: light
     tracing (``ptracer``) is refused.  A scene without emitters warns (it renders black).
@@ -505,9 +512,11 @@ class MitsubaRenderer:
     channels = 3
 
     def __init__(self, scene, *, width: int | None = None, height: int | None = None,
-                 variant: str | None = None, chunk_samples: int = 2 ** 21, params=None):
+                 variant: str | None = None, chunk_samples: int = 2 ** 21, params=None,
+                 sensor: int = 0):
         self.chunk_samples = _check_int("chunk_samples", chunk_samples, minimum=1)
         params = _check_params(params)
+        self.sensor = _check_int("sensor", sensor, minimum=0)
         if self.chunk_samples > 2 ** 31:
             raise InputError(f"`chunk_samples` must be <= 2**31; got {chunk_samples}.")
         if width is not None:
@@ -540,21 +549,26 @@ class MitsubaRenderer:
                     raise InputError(
                         f"`scene` {key!r} is neither a built-in scene "
                         f"({', '.join(sorted(BUILTIN_SCENES))}) nor an existing Mitsuba XML file.")
-                self._scene = _load_xml(mi, path, width, height, False, params)
+                self._scene = _load_xml(mi, path, width, height, False, params, sensor)
                 sensors = self._scene.sensors()
-                if not self._jit and sensors and not _scalar_ready(sensors[0].film()):
+                if (not self._jit and sensor < len(sensors)
+                        and not _scalar_ready(sensors[sensor].film())):
                     # the scalar fallback reads one-sample mi.render images: needs a box
                     # filter and R, G, B first
-                    _warn_filter(sensors[0].film(), str(path))
-                    self._scene = _load_xml(mi, path, width, height, True, params)
+                    _warn_filter(sensors[sensor].film(), str(path))
+                    self._scene = _load_xml(mi, path, width, height, True, params, sensor)
                 self.name = str(path)
         else:
             raise InputError(f"`scene` must be a scene name, an XML path or a mitsuba.Scene; "
                              f"got {type(scene).__name__}.")
 
-        if not self._scene.sensors():
+        n_sensors = len(self._scene.sensors())
+        if not n_sensors:
             raise InputError(f"scene {self.name!r} has no sensor.")
-        self._sensor = self._scene.sensors()[0]
+        if sensor >= n_sensors:
+            raise InputError(f"`sensor` must be the index of one of the {n_sensors} sensors of "
+                             f"scene {self.name!r} (0 to {n_sensors - 1}); got {sensor}.")
+        self._sensor = self._scene.sensors()[sensor]
         film = self._sensor.film()
         self.width, self.height = (int(v) for v in film.crop_size())
         self._integrator = self._scene.integrator()
@@ -631,7 +645,8 @@ class MitsubaRenderer:
         stats = PixelStats.from_sums(counts, s1, s2, sxy)
         total = int(counts.sum())
         stats.meta.update({
-            "renderer": "mitsuba", "scene": self.name, "variant": self.variant, "seed": seed,
+            "renderer": "mitsuba", "scene": self.name, "sensor": self.sensor,
+            "variant": self.variant, "seed": seed,
             "samples": total, "seconds": seconds,
             "samples_per_second": total / seconds if seconds > 0 else float("nan"),
             "chunks": n_chunks, "nonfinite_samples": n_bad,
@@ -739,7 +754,8 @@ class MitsubaRenderer:
         counts = np.full((H, W), spp, np.int64)
         stats = PixelStats.from_sums(counts, s1, np.einsum("hwcc->hwc", s2), s2)
         stats.meta.update({
-            "renderer": "mitsuba", "scene": self.name, "variant": self.variant, "seed": seed,
+            "renderer": "mitsuba", "scene": self.name, "sensor": self.sensor,
+            "variant": self.variant, "seed": seed,
             "samples": spp * H * W, "seconds": seconds, "crn": True,
             "samples_per_second": spp * H * W / seconds if seconds > 0 else float("nan"),
             "chunks": spp, "nonfinite_samples": n_bad,
@@ -895,7 +911,7 @@ class MitsubaRenderer:
         passes = j1 - j0
         with _progress(passes, progress, f"mitsuba {self.name} (scalar)", "pass") as bar:
             for k in range(j0, j1):
-                img = np.asarray(mi.render(self._scene, spp=1,
+                img = np.asarray(mi.render(self._scene, sensor=self._sensor, spp=1,
                                            seed=_chunk_seed(seed, _SALT_MAIN, k)), np.float64)
                 img = img[..., :3]
                 active = ((first <= k) & (k < first + counts))[..., None]
@@ -914,7 +930,8 @@ class MitsubaRenderer:
         """Albedo and shading normal, ``spp`` samples per pixel, averaged (box filter)."""
         mi, dr = self._mi, self._dr
         if not self._jit:
-            img = np.asarray(mi.render(self._scene, integrator=self._aov_integrator, spp=spp,
+            img = np.asarray(mi.render(self._scene, sensor=self._sensor,
+                                       integrator=self._aov_integrator, spp=spp,
                                        seed=_chunk_seed(seed, _SALT_FEATURES, 0)), np.float32)
             img = np.where(np.isfinite(img), img, 0.0)
             return img[..., :3].copy(), img[..., 3:6].copy()

@@ -885,3 +885,33 @@ def test_crop_window_renders_the_window_and_refuses_a_new_size(tmp_path):
     # regression: --size on a cropped film was Mitsuba's "Invalid crop window" from "string"
     with pytest.raises(InputError, match="crop window .*crop_offset_x.*leave `width`/`height`"):
         mb.MitsubaRenderer(path, width=8, height=6)
+
+
+def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
+    # the first sensor was the only one a user could render
+    checker = ('<bsdf type="diffuse"><texture type="checkerboard" name="reflectance">'
+               '<transform name="to_uv"><scale x="6" y="6"/></transform></texture></bsdf>')
+    second = ('<sensor type="orthographic"><transform name="to_world"><scale x="1.2" y="1.2"/>'
+              '<lookat origin="4, 0, 0" target="0, 0, 0" up="0, 1, 0"/></transform>'
+              '<film type="hdrfilm"><integer name="width" value="6"/><integer name="height" '
+              'value="5"/><rfilter type="box"/></film></sensor>')
+    path = _xml_scene(tmp_path, f'{second}<shape type="sphere">{checker}</shape>'
+                      '<emitter type="constant"/>', size=(8, 8))
+    r = mb.MitsubaRenderer(path, sensor=1)
+    assert (r.height, r.width, r.sensor) == (5, 6, 1)
+    s = r.render_uniform(256, seed=5, features=False)
+    assert s.meta["sensor"] == 1
+    scale = r.render_uniform(256, seed=6, features=False).sample_var / 256     # independent
+    _ensure_variant(r)
+    ref = np.asarray(r._mi.render(r._scene, sensor=1, spp=4096, seed=8), np.float64)[..., :3]
+    ok = scale[..., 0] > 0                  # the corners see only the sky (variance 0)
+    assert ok.sum() >= 20 and np.allclose(s.mean[~ok], ref[~ok], rtol=1e-5)
+    z = ((s.mean - ref)[ok] / np.sqrt(scale[ok] * (1 + 256 / 4096)))[..., 0]
+    chi2 = float((z ** 2).sum())
+    p = sps.chi2.sf(chi2, z.size)
+    assert p > ALPHA, f"sensor 1 vs mi.render(sensor=1): chi2/k = {chi2 / z.size:.3f}, p = {p:.3g}"
+    r = mb.MitsubaRenderer(path, sensor=1, width=4, height=3)        # resizes sensor 1's film
+    assert (r.height, r.width) == (3, 4) and mb.MitsubaRenderer(path).width == 8
+    for bad, word in ((2, "one of the 2 sensors"), (-1, "sensor"), (1.0, "sensor")):
+        with pytest.raises(InputError, match=word):
+            mb.MitsubaRenderer(path, sensor=bad)
