@@ -19,8 +19,24 @@ from statmc.errors import InputError  # noqa: E402
 from statmc.stats import PixelStats  # noqa: E402
 from statmc.toy import ToyRenderer  # noqa: E402
 
-torch.set_num_threads(1)
 F64 = torch.float64
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread_each():
+    """torch and numba on one thread each, for this module only (restored after).
+
+    Not torch alone: numba's parallel kernels run on torch's OpenMP runtime when torch was
+    imported first, and with different thread counts there every statmc kernel call left
+    torch's small ops 10-200x slower on this loaded 2-core machine (gradcheck after one
+    statmc.combine call: 0.7 s -> 7.7 s; docs/nn.md "Threads")."""
+    import numba
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(before[0])
+    numba.set_num_threads(before[1])
 
 
 def _nchw(a):
@@ -89,6 +105,115 @@ def test_ops_equal_statmc_on_any_shape(B, H, W, C, k, seed):
     np.testing.assert_allclose(got, cb.combine_multi(ys, zs, w), rtol=0, atol=1e-11)
     got = snn.tensor_to_image(snn.apply_kernels(snn.kernels_from_numpy(w[:, :, 0], dtype=F64), _nchw(ys[0])))
     np.testing.assert_allclose(got, analytic.apply_kernels(w[:, :, 0], ys[0]), rtol=0, atol=1e-12)
+
+
+def _eq8_eq14_written_out(ys, zs, w):
+    """Back 2020 Eq. 14 (Eq. 8 when B = 1) and §A.1 of Salehi 2022, literally, pixel by
+    pixel: ys, zs (N, B, C, H, W), w (N, B, k·k, H, W) float64 numpy.  Ω_c is the window
+    minus the centre, clipped to the image; W_c sums the weights of c and of Ω_c."""
+    N, B, C, H, W = ys.shape
+    k = int(round(w.shape[2] ** 0.5))
+    r = k // 2
+    beta = np.zeros((N, C, H, W))
+    applied = np.zeros((N, B, C, H, W))             # Σ_q K_pq X_q with K = w_b, X = y_b
+    for n in range(N):
+        for y in range(H):
+            for x in range(W):
+                num, W_c = np.zeros(C), 0.0
+                for b in range(B):
+                    for dy in range(k):
+                        for dx in range(k):
+                            qy, qx = y + dy - r, x + dx - r
+                            if not (0 <= qy < H and 0 <= qx < W):
+                                continue
+                            wi = w[n, b, dy * k + dx, y, x]
+                            applied[n, b, :, y, x] += wi * ys[n, b, :, qy, qx]
+                            W_c += wi
+                            if dy == r and dx == r:                        # w_{c,b} y_{c,b}
+                                num += wi * ys[n, b, :, y, x]
+                            else:                   # w_{i,b} (y_{i,b} + z_{c,b} − z_{i,b})
+                                num += wi * (ys[n, b, :, qy, qx] + zs[n, b, :, y, x] - zs[n, b, :, qy, qx])
+                beta[n, :, y, x] = num / W_c
+    return beta, applied
+
+
+@pytest.mark.parametrize("N, B, C, H, W, k", [(2, 1, 2, 5, 3, 5), (2, 3, 1, 4, 7, 3), (1, 2, 3, 2, 2, 7)])
+def test_ops_equal_the_papers_formulas_written_out(N, B, C, H, W, k):
+    """Independent of statmc: batches, odd non-square images, windows wider than the image."""
+    rng = np.random.default_rng(N * 100 + B * 10 + k)
+    ys, zs = rng.normal(size=(N, B, C, H, W)), rng.normal(size=(N, B, C, H, W)) + 2.0
+    w = np.exp(rng.normal(scale=2.0, size=(N, B, k * k, H, W)))
+    beta, applied = _eq8_eq14_written_out(ys, zs, w)
+    T = torch.from_numpy
+    np.testing.assert_allclose(snn.combine_multi(T(ys), T(zs), T(w)).numpy(), beta, rtol=1e-12, atol=1e-12)
+    if B == 1:
+        np.testing.assert_allclose(snn.combine(T(ys[:, 0]), T(zs[:, 0]), T(w[:, 0])).numpy(), beta,
+                                   rtol=1e-12, atol=1e-12)
+    for b in range(B):
+        np.testing.assert_allclose(snn.apply_kernels(T(w[:, b]), T(ys[:, b])).numpy(), applied[:, b],
+                                   rtol=1e-13, atol=1e-13)
+
+
+def test_batched_combination_equals_statmc_per_image():
+    rng = np.random.default_rng(12)
+    N, B, C, H, W, k = 3, 2, 3, 5, 6, 5
+    ys, zs = torch.from_numpy(rng.normal(size=(N, B, C, H, W))), torch.from_numpy(rng.normal(size=(N, B, C, H, W)))
+    w = torch.from_numpy(np.exp(rng.normal(size=(N, B, k * k, H, W))))
+    multi, single = snn.combine_multi(ys, zs, w), snn.combine(ys[:, 0], zs[:, 0], w[:, 0])
+    for n in range(N):
+        ys_np, zs_np = (np.moveaxis(t[n].numpy(), 1, -1) for t in (ys, zs))      # (B, H, W, C)
+        w_np = snn.weights_to_numpy(w[n:n + 1])
+        np.testing.assert_allclose(snn.tensor_to_image(multi[n:n + 1]), cb.combine_multi(ys_np, zs_np, w_np),
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(snn.tensor_to_image(single[n:n + 1]),
+                                   cb.combine(ys_np[0], zs_np[0], w_np[:, :, 0]), rtol=0, atol=1e-12)
+
+
+def test_gradcheck_ops_at_borders_and_in_batches():
+    """Every pixel a border pixel (k = 5 on 3 x 2 images), N = 2, odd channel counts."""
+    rng = np.random.default_rng(13)
+    t = lambda *s, pos=False: torch.tensor(rng.uniform(0.2, 1.0, s) if pos else rng.normal(size=s),  # noqa: E731
+                                           dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(snn.apply_kernels, (t(2, 25, 3, 2), t(2, 3, 3, 2)))
+    assert torch.autograd.gradcheck(snn.combine, (t(2, 1, 3, 2), t(2, 1, 3, 2), t(2, 25, 3, 2, pos=True)))
+    assert torch.autograd.gradcheck(snn.combine_multi,
+                                    (t(2, 3, 1, 3, 2), t(2, 3, 1, 3, 2), t(2, 3, 25, 3, 2, pos=True)))
+    assert torch.autograd.gradcheck(snn.relmse_loss, (t(2, 3, 3, 2), t(2, 3, 3, 2)))
+
+
+def test_gradcheck_networks_in_float64():
+    """The heads' formulas (softmax kernels, softmax weights over B·k·k, sigmoid and
+    Eq. 19 f_act, Eq. 11 sample map) differentiate correctly, inputs and weights."""
+    st = _render(size=4, spp=4)
+    y = st.mean * 0.9 + 0.05
+    x_t = snn.image_to_tensor(st.mean, dtype=F64)
+    cases = [(snn.KernelNet(width=2, k=3), snn.pixel_features(st, dtype=F64), lambda n, f: n.denoise(f, x_t)),
+             (snn.CombinerNet(width=2, k=3, buffers=2), None, lambda n, f: n(f)),
+             (snn.MixNet(width=2), snn.pixel_features(st, extra=y, dtype=F64), lambda n, f: n.mix(f, x_t, x_t * 0.5)),
+             (snn.MixNet(width=2, activation="f_act"), snn.pixel_features(st, extra=y, dtype=F64), lambda n, f: n(f)),
+             (snn.SamplingNet(width=2), snn.pixel_features(st, budget=64, dtype=F64), lambda n, f: n.sample_map(f, 64))]
+    for net, f, fn in cases:
+        net = net.double()
+        if f is None:
+            f = net.features(st, np.stack([y, y * 0.5]), np.stack([st.mean, st.mean * 0.5]))
+        f = f.clone().requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda f_: fn(net, f_), (f,)), type(net).__name__
+        w0 = net.body[-1].weight.detach().clone().requires_grad_(True)       # the head's weights
+        assert torch.autograd.gradcheck(lambda w_: _with_weight(net, w_, lambda: fn(net, f.detach())), (w0,)), \
+            type(net).__name__
+
+
+def _with_weight(net, w, call):
+    """``call()`` with the last layer's weight replaced by ``w`` (for gradcheck)."""
+    head = net.body[-1]
+    old = head.weight
+    try:
+        del head.weight
+        head.weight = w
+        return call()
+    finally:
+        del head.weight
+        head.weight = old
 
 
 def test_combine_multi_with_one_bin_is_combine():
@@ -455,12 +580,16 @@ def test_a_few_dozen_steps_reduce_held_out_error():
 def test_statmc_never_imports_torch():
     """statmc's modules import without torch; statmc.nn imports statmc, never the reverse."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    mods = sorted(f[:-3] for f in os.listdir(os.path.join(root, "statmc"))
-                  if f.endswith(".py") and f != "__init__.py")
-    code = ("import sys, importlib\n"
-            f"for m in {mods!r}: importlib.import_module('statmc.' + m)\n"
+    # every module and subpackage under statmc/ (pkgutil, so a future subpackage is
+    # covered too), statmc/__main__ included (it only runs the CLI as __main__);
+    # statmc.nn lives in nn/, not under statmc/, and is not listed
+    code = ("import sys, importlib, pkgutil, statmc\n"
+            "mods = sorted(m.name for m in pkgutil.walk_packages(statmc.__path__, 'statmc.'))\n"
+            "assert len(mods) >= 25 and 'statmc.toy' in mods and 'statmc.__main__' in mods, mods\n"
+            "assert not any(m.startswith('statmc.nn') for m in mods), mods\n"
+            "for m in mods: importlib.import_module(m)\n"
             "bad = [m for m in ('torch', 'statmc.nn') if m in sys.modules]\n"
-            "print(bad); sys.exit(1 if bad else 0)\n")
+            "print(len(mods), 'modules; imported torch/statmc.nn:', bad); sys.exit(1 if bad else 0)\n")
     env = dict(os.environ, NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR",
                                                           os.path.join(root, ".cache", "numba")))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
