@@ -346,18 +346,28 @@ def _add_define_option(parser) -> None:
                         metavar="NAME=VALUE",
                         help="value of the parameter $NAME of a Mitsuba XML scene (repeatable), "
                              "as `mitsuba -D`")
+    parser.add_argument("--sensor", type=_int_type(0, "a sensor index >= 0"), default=None,
+                        metavar="INDEX", help="render sensor INDEX of a Mitsuba scene, "
+                                              "counted from 0 in the file's order (default 0)")
 
 
 def _scene_options(args) -> dict:
-    """Keyword options of ``make_renderer`` from ``-D`` (none when not given)."""
-    if not args.define:
-        return {}
+    """Keyword options of ``make_renderer`` from ``-D`` and ``--sensor`` (none when not
+    given)."""
     from .renderers import TOY_PREFIX
     from .scenes import BUILTIN_SCENES
-    if args.scene.startswith(TOY_PREFIX) or args.scene in BUILTIN_SCENES:
-        raise InputError(f"-D sets $NAME parameters of a Mitsuba XML scene file; {args.scene} "
-                         "is a built-in scene: leave -D out.")
-    return {"params": dict(args.define)}
+    opts = {}
+    if args.define:
+        if args.scene.startswith(TOY_PREFIX) or args.scene in BUILTIN_SCENES:
+            raise InputError(f"-D sets $NAME parameters of a Mitsuba XML scene file; "
+                             f"{args.scene} is a built-in scene: leave -D out.")
+        opts["params"] = dict(args.define)
+    if args.sensor is not None:
+        if args.scene.startswith(TOY_PREFIX):
+            raise InputError(f"--sensor picks a camera of a Mitsuba scene; {args.scene} has "
+                             "none: leave --sensor out.")
+        opts["sensor"] = args.sensor
+    return opts
 
 
 def cmd_render(args) -> int:
@@ -1203,6 +1213,8 @@ _CLI_WORDING = (
     ("leave `width`/`height` unset", "omit --size"),
     ("give it a value with `params` (`-D ", "give it a value with `-D "),
     ("=VALUE` on the command line) or add <default", "=VALUE` or add <default"),
+    ("`params`", "-D"),
+    ("`sensor`", "--sensor"),
     ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
     ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),
 )

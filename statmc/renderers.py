@@ -33,7 +33,11 @@ def list_scenes() -> dict[str, str]:
 
 
 def make_renderer(scene: str, *, width: int | None = None, height: int | None = None, **options):
-    """The renderer for ``scene`` (see module docstring), at ``width`` × ``height`` if given."""
+    """The renderer for ``scene`` (see module docstring), at ``width`` × ``height`` if given.
+
+    ``options`` go to the renderer's constructor: for a Mitsuba scene, e.g. ``sensor=``
+    and, for an XML file, ``params=`` (values of its ``$name`` parameters); see
+    :class:`statmc.mitsuba_backend.MitsubaRenderer`."""
     if not isinstance(scene, str) or not scene:
         raise InputError(f"`scene` must be a scene name or a Mitsuba XML path; got {scene!r}.")
     if scene.startswith(TOY_PREFIX):

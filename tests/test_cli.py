@@ -1690,3 +1690,32 @@ def test_render_user_xml_says_what_it_does_not_use(tmp_path):
     scene = _user_xml(tmp_path, sampler_spp="4", integrator="ptracer")
     code, _, err = run_cli("render", scene, "--spp", 2, "--out", tmp_path / "b", "-q")
     assert code == 2 and err.count("\n") == 1 and "ptracer" in err and "Traceback" not in err, err
+
+
+@pytest.mark.mitsuba
+def test_render_sensor_picks_a_camera_of_the_file(tmp_path):
+    scene = tmp_path / "two.xml"
+    cam = ('<sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, {z}" '
+           'target="0, 0, 0" up="0, 1, 0"/></transform><film type="hdrfilm"><integer '
+           'name="width" value="{w}"/><integer name="height" value="4"/><rfilter type="box"/>'
+           '</film></sensor>')
+    scene.write_text('<scene version="3.0.0"><integrator type="path"/>'
+                     + cam.format(z=4, w=6) + cam.format(z=-4, w=10)
+                     + '<shape type="sphere"><bsdf type="diffuse"/></shape>'
+                       '<emitter type="constant"/></scene>')
+    code, _, err = run_cli("render", scene, "--spp", 2, "--sensor", 1, "--out", tmp_path / "a", "-q")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert (rep["width"], rep["renderer_info"]["sensor"]) == (10, 1)
+    code, _, err = run_cli("reference", scene, "--spp", 2, "--sensor", 1, "--size", "5x3",
+                           "--out", tmp_path / "ref.exr", "-q")
+    assert code == 0, err
+    from statmc.exr import read_image
+    assert read_image(tmp_path / "ref.exr").shape == (3, 5, 3)
+    for args, needle in ((("--sensor", 2), "--sensor must be the index of one of the 2 sensors"),
+                         (("--sensor", -1), "expected a sensor index >= 0"),
+                         (("-D", "1x=2"), "-D names must be XML parameter names")):
+        code, _, err = run_cli("render", scene, "--spp", 2, *args, "--out", tmp_path / "b", "-q")
+        assert code == 2 and err.count("\n") == 1 and needle in err, err
+    code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--sensor", 0, "--out", tmp_path / "b")
+    assert code == 2 and "leave --sensor out" in err, err
