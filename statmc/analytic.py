@@ -41,7 +41,7 @@ from scipy import special
 
 from . import _analytic_kernels as _ak
 from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, as_rng,
-                     as_whole, check_finite, check_nonnegative)
+                     as_whole, check_finite, check_nonempty, check_nonnegative)
 from .sampling import counts_from_density
 
 __all__ = [
@@ -65,6 +65,7 @@ _LOSSES = ("mse", "mrse", "relmse")
 # =========================================================================== validation
 def _image(name, a):
     arr = as_float_array(name, a, ndim=(2, 3), dtype=np.float64)
+    check_nonempty(name, arr)
     check_finite(name, arr)
     return arr
 
@@ -367,6 +368,7 @@ def apply_kernels(kernels, image):
         denoiser ``D(X)_p = Σ_q K_pq X_q`` of §A.1 of [1]_.
     """
     img = as_float_array("image", image, ndim=(2, 3, 4))
+    check_nonempty("image", img)
     check_finite("image", img)
     out_dtype = img.dtype if img.dtype in (np.float32, np.float64) else np.float64
     stack = {2: img[None, ..., None], 3: img[None], 4: img}[img.ndim]

@@ -48,7 +48,8 @@ import numpy as np
 
 from . import _combine_kernels as _ck
 from ._stencil_kernels import add_neighbour_products_sum, shift_slices
-from .errors import InputError, as_float_array, as_number, as_rng, check_finite, check_nonnegative
+from .errors import (InputError, as_float_array, as_number, as_rng, check_finite, check_nonempty,
+                     check_nonnegative)
 
 __all__ = [
     "combine", "combine_multi", "combine_boosting",
@@ -111,6 +112,7 @@ def _check_float32_range(name, a):
 def _buffers(name, a, *, multi):
     """``a`` as ``(B, H, W, C)`` (float32/float64 kept) and whether a channel axis was added."""
     arr = as_float_array(name, a, ndim=(3, 4) if multi else (2, 3))
+    check_nonempty(name, arr, "image (or stack of images)")
     squeeze = arr.ndim == (3 if multi else 2)
     if squeeze:
         arr = arr[..., None]
@@ -1037,6 +1039,7 @@ def filter_covariance(kernels, var, *, size=None, cross=False):
     check_finite("kernels", K)
     H, W, kf, _ = K.shape
     v = as_float_array("var", var, ndim=3, dtype=np.float64)
+    check_nonempty("var", v)
     check_finite("var", v)
     check_nonnegative("var", v)
     if v.shape[:2] != (H, W):
@@ -1278,6 +1281,7 @@ def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
     """Check the input of :func:`denoiser_moments` and run the ``K + 1`` denoiser calls
     (on the whole image: a black box cannot be banded); returns :class:`_Probes`."""
     xx = as_float_array("x", x, ndim=3, dtype=np.float64)
+    check_nonempty("x", xx)
     check_finite("x", xx)
     mv = as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64)
     check_finite("mean_var", mv)
@@ -1685,6 +1689,7 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
        https://doi.org/10.1111/cgf.14454
     """
     yy = as_float_array("y", y, ndim=3, dtype=np.float64)
+    check_nonempty("y", yy)
     _check_limit("y", yy, VALUE_LIMIT)                 # statistical weights: up front
     _check_float32_range("y", yy)                      # the denoiser's float32 copies
     _check_limit("mean_var", as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64),
@@ -1947,6 +1952,7 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     ``"gain"`` only with ``whole`` or ``sure_terms``, else None, and ``"weighted_gain"`` and
     ``"rel"`` with ``sure_terms``)."""
     yb = as_float_array("ys", ys, ndim=4, dtype=np.float64)
+    check_nonempty("ys", yb, "(B, H, W, C) stack of bin images")
     _check_limit("ys", yb, VALUE_LIMIT)                # statistical weights: up front
     _check_float32_range("ys", yb)                     # the denoiser's float32 copies
     B = yb.shape[0]

@@ -41,7 +41,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite, check_nonnegative
+from .errors import InputError, as_float_array, check_finite, check_nonempty, check_nonnegative
 from .filters import DEFAULT_TRUNCATE, border_scale, gaussian_filter, gaussian_kernel_1d
 
 __all__ = [
@@ -67,6 +67,7 @@ class Denoiser(Protocol):
 # ----------------------------------------------------------------------------- checks
 def _color(name, a, *, channels=None, shape=None):
     arr = as_float_array(name, a, ndim=3)
+    check_nonempty(name, arr)
     if channels is not None and arr.shape[2] != channels:
         raise InputError(f"`{name}` must be an (H, W, {channels}) image; got shape {arr.shape}.")
     if shape is not None and arr.shape != tuple(shape):

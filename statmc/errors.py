@@ -69,6 +69,13 @@ def check_nonnegative(name: str, a: np.ndarray) -> None:
         raise InputError(f"`{name}` must be >= 0; got {n} negative values (min {np.nanmin(a):.4g}).")
 
 
+def check_nonempty(name: str, a: np.ndarray, what: str = "(H, W, C) image") -> None:
+    """Raise :class:`InputError` when ``a`` has a zero-length axis (no pixels or no
+    channels): per-image statistics (means, sums over pixels, budgets) are undefined then."""
+    if a.size == 0:
+        raise InputError(f"`{name}` must be a non-empty {what}; got shape {a.shape}.")
+
+
 def check_same_shape(name: str, a: np.ndarray, ref_name: str, ref_shape: tuple) -> None:
     """Raise :class:`InputError` unless ``a.shape == ref_shape``."""
     if a.shape != tuple(ref_shape):

@@ -168,7 +168,7 @@ def gaussian_filter(image, sigma: float, *, truncate: float = DEFAULT_TRUNCATE) 
     """
     img = _as_image("image", image)
     s = _check_sigma(sigma)
-    if s == 0.0:
+    if s == 0.0 or img.size == 0:           # no pixels or no channels: nothing to filter
         return img.copy()
     x, c = _rows(img)
     out, _ = _run(x, c, None, 0, s, truncate)
@@ -186,7 +186,7 @@ def gaussian_spread(amount, sigma: float, *, truncate: float = DEFAULT_TRUNCATE)
     """
     a = _as_image("amount", amount)
     s = _check_sigma(sigma)
-    if s == 0.0:
+    if s == 0.0 or a.size == 0:
         return a.copy()
     x, c = _rows(a)
     w = gaussian_kernel_1d(s, truncate=truncate)

@@ -541,6 +541,8 @@ def difference_variance(mean_var, sigmas=ADAPTIVE_SIGMAS, *,
     check_finite("mean_var", v)
     check_nonnegative("mean_var", v)
     sig = _check_sigmas(sigmas)
+    if v.size == 0:                                   # no pixels or no channels
+        return np.zeros((len(sig) - 1,) + v.shape, v.dtype)
     vr, cv = _rows(v)
     bank = np.empty((len(sig),) + vr.shape, vr.dtype)
     for k, s in enumerate(sig):

@@ -30,7 +30,7 @@ import numbers
 import numpy as np
 
 from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
-                     check_nonnegative)
+                     check_nonempty, check_nonnegative)
 from .stats import PixelStats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
@@ -499,6 +499,7 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     from . import _progressive_kernels as _pk
 
     xx = as_float_array("x", x, ndim=3)
+    check_nonempty("x", xx)
     if xx.dtype != np.float32:
         xx = xx.astype(np.float64)
     dt = xx.dtype
@@ -633,6 +634,7 @@ def outlier_alpha(alpha, x, y, mean_var, *, factor: float = DEFAULT_OUTLIER,
     factor = as_number("factor", factor, lo=1.0, lo_open=True)
     sigma = as_number("sigma", sigma, lo=0.0, lo_open=True)
     xa = as_float_array("x", x, ndim=3)
+    check_nonempty("x", xa)
     check_finite("x", xa)
     ya = _like("y", y, xa.shape)
     s2 = _variance(mean_var, xa.shape)

@@ -45,6 +45,11 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     check_nonnegative("density", d)
     budget = as_whole("budget", budget, what="number of samples")
     min_count = as_whole("min_count", min_count, what="number of samples")
+    if d.size == 0:
+        if budget:
+            raise InputError(f"`density` has no pixels (shape {d.shape}); cannot place "
+                             f"`budget`={budget} samples.")
+        return np.zeros(d.shape, np.int64)
     base_total = min_count * d.size
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")

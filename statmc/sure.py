@@ -42,7 +42,7 @@ import numpy as np
 
 from .analytic import apply_kernels
 from .errors import (InputError, as_float_array, as_int, as_number, as_rng, check_finite,
-                     check_nonnegative)
+                     check_nonempty, check_nonnegative)
 from .stats import PixelStats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -66,6 +66,7 @@ METHODS = ("fd", "jvp", "exact")
 # =========================================================================== validation
 def _image(x):
     arr = as_float_array("x", x, ndim=3, dtype=np.float64)
+    check_nonempty("x", arr)
     check_finite("x", arr)
     return arr
 
@@ -75,6 +76,7 @@ class _Noise:
 
     def __init__(self, mean_var, shape):
         v = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=np.float64)
+        check_nonempty("mean_var", v)
         cov_shape = tuple(shape) + (shape[2],)
         if v.shape not in (tuple(shape), cov_shape):
             raise InputError(

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from statmc import analytic, combine, denoisers, filters, gem, progressive, sampling, sure
+from statmc.errors import InputError
 
 H, W, C = 7, 9, 3
 
@@ -106,3 +107,58 @@ def test_big_endian_float32_counts_and_images():
     got = gem.reconstruct(x32.astype(">f4"), v32.astype(">f4"), n=n.astype(">i8"), final=False)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, expected)
+
+
+# ----------------------------------------------------------------------- empty images
+EMPTY = [(0, 4, 3), (4, 0, 3), (4, 4, 0)]
+
+
+def _empty_calls(shape):
+    x = np.ones(shape)
+    v = np.full(shape, 0.01)
+    hw = shape[:2]
+    k = np.full(hw + (3, 3), 1 / 9)
+    g = denoisers.gaussian(1.0)
+    st = x[None].repeat(2, 0)
+    return {
+        "sure.sure": lambda: sure.sure(k, x, v),
+        "sure.mc_sure": lambda: sure.mc_sure(g, x, v, rng=1),
+        "sure.kernel_variance": lambda: sure.kernel_variance(k, v),
+        "analytic.apply_kernels": lambda: analytic.apply_kernels(k, x),
+        "analytic.kernel_bias_variance":
+            lambda: analytic.kernel_bias_variance(k, x, np.full(hw, 4.0), np.full(hw, 2.0), x, v),
+        "analytic.optimal_sample_map":
+            lambda: analytic.optimal_sample_map(k, x, np.full(hw, 4.0), x, v, 10),
+        "combine.combine_boosting": lambda: combine.combine_boosting(x, x, k),
+        "combine.statistical_weights": lambda: combine.statistical_weights(x, x, v, v, 3),
+        "combine.combine_denoised": lambda: combine.combine_denoised(x, v, g, size=3, rng=1),
+        "combine.combine_bin_images": lambda: combine.combine_bin_images(st, st, size=3),
+        "progressive.mixing_weights": lambda: progressive.mixing_weights(x, x, v, v, v),
+        "progressive.confidence_gate": lambda: progressive.confidence_gate(x, x, v, v),
+        "denoisers.gaussian": lambda: g(x),
+    }
+
+
+@pytest.mark.parametrize("shape", EMPTY, ids=str)
+def test_empty_images_are_refused_by_name(shape):
+    """An image without pixels or channels gave ZeroDivisionError, IndexError or "Mean of
+    empty slice" NaNs; the statistical functions now refuse it naming the argument."""
+    for name, call in _empty_calls(shape).items():
+        with pytest.raises(InputError, match="non-empty") as info:
+            call()
+        assert "`" in str(info.value), name
+
+
+@pytest.mark.parametrize("shape", EMPTY, ids=str)
+def test_empty_images_through_plain_filters(shape):
+    """Pure filters map an empty image to an empty image (C = 0 was a ZeroDivisionError),
+    and a density without pixels takes a zero budget only."""
+    a = np.ones(shape)
+    assert filters.gaussian_filter(a, 2.0).shape == shape
+    assert filters.gaussian_spread(a, 2.0).shape == shape
+    assert gem.difference_variance(a).shape == (4,) + shape
+    d = np.ones(shape[:2]) if shape[2] else np.ones((0, 3))
+    if d.size == 0:
+        assert sampling.counts_from_density(d, 0).shape == d.shape
+        with pytest.raises(InputError, match="`density` has no pixels"):
+            sampling.counts_from_density(d, 5)
