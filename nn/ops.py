@@ -22,13 +22,15 @@ image (the border renormalisation of docs/combine.md).  Weights must be finite e
 outside taps included (``0 · inf`` is NaN in torch); :mod:`statmc.nn.nets` produces
 softmax weights, which are.
 
-Input checks (:class:`~statmc.errors.InputError` naming the parameter, before any
-arithmetic): tensors of the documented rank, floating point, of **one dtype on one
-device** (torch would silently promote float32 to float64, or fail deep inside on a device
-mismatch), non-empty images, finite values, and for the combination kernels a finite,
-nonzero ``W_c`` at every pixel (statmc refuses the same; torch would return Inf/NaN).  The
-value checks read one boolean per tensor; they are skipped under :func:`torch.func.vmap`,
-which cannot branch on values (the ops still work there).
+Input checks (:class:`~statmc.errors.InputError` naming the parameter): tensors of the
+documented rank, floating point, of **one dtype on one device** (torch would silently
+promote float32 to float64, or fail deep inside on a device mismatch) and non-empty
+images, before any arithmetic; finite values, and for the combination kernels a finite,
+nonzero ``W_c`` at every pixel (statmc refuses the same; torch would return Inf/NaN),
+before the result is returned.  A NaN or Inf in any input always reaches the result, so
+the result is checked and the inputs are searched only when it is not finite.  The value
+checks read one boolean each; they are skipped under :func:`torch.func.vmap`, which
+cannot branch on values (the ops still work there).
 
 Each function has a thin :class:`torch.nn.Module` (:class:`ApplyKernels`,
 :class:`Combine`, :class:`CombineMulti`) whose ``forward`` calls it.
@@ -93,6 +95,30 @@ def check_like(name, t, ref_name, ref):
         raise InputError(f"`{name}` is on device {t.device} but `{ref_name}` is on "
                          f"{ref.device}; give tensors on one device (e.g. "
                          f"`{name}.to({ref_name}.device)`).")
+
+
+def _finite_result(out, inputs):
+    """``out``, after checking it is finite; if not, name the input that holds NaN or Inf.
+
+    A NaN or Inf anywhere in the inputs always reaches the result (an outside tap
+    multiplies its weight by zero, and ``0 · inf`` is NaN), so one pass over the result
+    replaces a pass over every input; the inputs are searched only on failure."""
+    if _readable(torch.isfinite(out).all()) is False:
+        for name, t in inputs:
+            check_finite_tensor(name, t)
+        n_bad = int((~torch.isfinite(out)).sum())
+        raise InputError(
+            f"`{inputs[0][0]}`: the result holds {n_bad} non-finite values although every "
+            f"input is finite: {out.dtype} overflowed.  Use float32 or float64, or rescale "
+            "the inputs.")
+    return out
+
+
+def _finite_weights(wsum, weights):
+    """NaN/Inf anywhere in ``weights`` (outside taps included: ``0 · inf`` is NaN) makes
+    their sums ``wsum`` non-finite: one pass over the sums, ``weights`` searched on failure."""
+    if _readable(torch.isfinite(wsum).all()) is False:
+        check_finite_tensor("weights", weights)
 
 
 def _nonempty(name, t, dims):
@@ -169,9 +195,7 @@ def apply_kernels(kernels, image):
     _nonempty("image", image, (1, 2, 3))
     _same_grid("kernels", kernels, "image", image, (0, 2, 3))
     k = kernel_size(kernels.shape[1])
-    check_finite_tensor("kernels", kernels)
-    check_finite_tensor("image", image)
-    return _apply(kernels, image, k)
+    return _finite_result(_apply(kernels, image, k), (("kernels", kernels), ("image", image)))
 
 
 def combine(y, z, weights):
@@ -213,11 +237,11 @@ def combine(y, z, weights):
     _nonempty("y", y, (1, 2, 3))
     _same_grid("weights", weights, "y", y, (0, 2, 3))
     k = kernel_size(weights.shape[1], "weights")
-    for name, t in (("y", y), ("z", z), ("weights", weights)):
-        check_finite_tensor(name, t)
     wsum = _apply(weights, torch.ones_like(y[:, :1]), k)
+    _finite_weights(wsum, weights)
     _check_weight_sums(wsum)
-    return z + _apply(weights, y - z, k) / wsum
+    return _finite_result(z + _apply(weights, y - z, k) / wsum,
+                          (("y", y), ("z", z), ("weights", weights)))
 
 
 def combine_multi(ys, zs, weights):
@@ -250,14 +274,14 @@ def combine_multi(ys, zs, weights):
     _same_grid("weights", weights, "ys", ys, (0, 1, 3, 4))
     N, B, C, H, W = ys.shape
     k = kernel_size(weights.shape[2], "weights")
-    for name, t in (("ys", ys), ("zs", zs), ("weights", weights)):
-        check_finite_tensor(name, t)
     w = weights.reshape(N * B, k * k, H, W)
-    diff = _apply(w, (ys - zs).reshape(N * B, C, H, W), k).view(N, B, C, H, W)
     wsum = _apply(w, torch.ones_like(ys[:, :, :1]).reshape(N * B, 1, H, W), k).view(N, B, 1, H, W)
+    _finite_weights(wsum, weights)
     total = wsum.sum(dim=1)
     _check_weight_sums(total)
-    return (diff + wsum * zs).sum(dim=1) / total
+    diff = _apply(w, (ys - zs).reshape(N * B, C, H, W), k).view(N, B, C, H, W)
+    return _finite_result((diff + wsum * zs).sum(dim=1) / total,
+                          (("ys", ys), ("zs", zs), ("weights", weights)))
 
 
 class ApplyKernels(torch.nn.Module):

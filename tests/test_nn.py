@@ -281,6 +281,8 @@ _NAN = _IMG.clone()
 _NAN[0, 1, 2, 3] = float("nan")
 _INF = _K.clone()
 _INF[0, 4, 0, 0] = float("inf")
+_OUTSIDE_INF = _K.clone()
+_OUTSIDE_INF[0, 0, 0, 0] = float("inf")      # tap (0, 0) of pixel (0, 0) reads (-1, -1): outside
 _META = _IMG.to("meta")                       # another device, without needing CUDA
 _ST = ToyRenderer("mixed", width=5, height=4).render_uniform(2, seed=0)
 _SIGNED = torch.cat([torch.ones(1, 4, 4, 5), torch.zeros(1, 1, 4, 5), -torch.ones(1, 4, 4, 5)], 1)
@@ -296,6 +298,10 @@ def _nan_loss(model, step):
     (lambda: snn.apply_kernels(_K, _META), "image", "device"),
     (lambda: snn.apply_kernels(_K, _NAN), "image", "1 NaN"),
     (lambda: snn.apply_kernels(_INF, _IMG), "kernels", "1 Inf"),
+    (lambda: snn.apply_kernels(torch.ones(1, 9, 4, 5, dtype=torch.float16),
+                               torch.full((1, 3, 4, 5), 6e4, dtype=torch.float16)), "kernels", "overflowed"),
+    (lambda: snn.combine(_IMG, _IMG, _OUTSIDE_INF), "weights", "0 NaN and 1 Inf"),
+    (lambda: snn.combine_multi(_IMG[:, None], _IMG[:, None], _OUTSIDE_INF[:, None]), "weights", "0 NaN and 1 Inf"),
     (lambda: snn.apply_kernels(torch.rand(1, 9, 0, 5), torch.rand(1, 3, 0, 5)), "image", "empty"),
     (lambda: snn.apply_kernels(_K, torch.rand(1, 0, 4, 5)), "image", "empty"),
     (lambda: snn.combine(_IMG, _IMG.double(), _K), "z", "dtype"),
