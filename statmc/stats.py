@@ -90,6 +90,28 @@ def _check_cross(m2_cross, m2):
     return _full_from_pairs("m2_cross", 0.5 * (upper + lower), m2)
 
 
+_INT64_MAX = int(np.iinfo(np.int64).max)
+
+
+def _as_counts(n: np.ndarray) -> np.ndarray:
+    """A 2-D count map as int64: integers exactly (not through float64, which rounds
+    counts above 2**53), whole-valued floats and bools converted; negative, fractional,
+    non-finite and int64-overflowing counts are an :class:`InputError`."""
+    if n.dtype.kind in "iu":
+        check_nonnegative("n", n)
+        if n.size and int(n.max()) > _INT64_MAX:
+            raise InputError(f"`n` must fit in int64 (< 2**63); got max {int(n.max())}.")
+        return n.astype(np.int64)
+    n_f = as_float_array("n", n)
+    check_finite("n", n_f)
+    check_nonnegative("n", n_f)
+    if np.any(n_f != np.round(n_f)):
+        raise InputError("`n` must hold whole sample counts; got fractional values.")
+    if n_f.size and n_f.max() >= 2.0 ** 63:
+        raise InputError(f"`n` must fit in int64 (< 2**63); got max {n_f.max():.4g}.")
+    return n_f.astype(np.int64)
+
+
 def _check_feature(name, a, hw):
     if a is None:
         return None
@@ -150,12 +172,7 @@ class PixelStats:
         n = np.asarray(self.n)
         if n.ndim != 2:
             raise InputError(f"`n` must be an (H, W) count map; got shape {n.shape}.")
-        n_f = as_float_array("n", n)
-        check_finite("n", n_f)
-        check_nonnegative("n", n_f)
-        if np.any(n_f != np.round(n_f)):
-            raise InputError("`n` must hold whole sample counts; got fractional values.")
-        self.n = n_f.astype(np.int64)
+        self.n = _as_counts(n)
         self.mean = as_float_array("mean", self.mean, ndim=3, dtype=np.float64)
         if self.mean.shape[:2] != self.n.shape:
             raise InputError(f"`mean` must be (H, W, C) with (H, W) = {self.n.shape}; got {self.mean.shape}.")
@@ -277,7 +294,7 @@ class PixelStats:
             sxy = _as_pairs("sum_xy", sum_xy, s1.shape)
             pairs = np.where((n_a > 0)[..., None], sxy - s1[..., ia] * mean[..., ib], 0.0)
             cross = _full_from_pairs("sum_xy", pairs, m2)
-        return cls(n_a, mean, m2, m2_cross=cross)
+        return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross)
 
     @classmethod
     def from_mean_var(cls, mean, sample_var, n, *, sample_cov=None, **features) -> "PixelStats":
@@ -299,7 +316,8 @@ class PixelStats:
         if sample_cov is not None:
             pairs = _as_pairs("sample_cov", sample_cov, mean.shape)
             cross = _full_from_pairs("sample_cov", pairs * np.maximum(n_a - 1, 0)[..., None], m2)
-        return cls(n_a, mean, m2, m2_cross=cross, **features)
+        return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross,
+                   **features)
 
     # ------------------------------------------------------------------ shape
     @property
@@ -309,7 +327,9 @@ class PixelStats:
 
     @property
     def total_samples(self) -> int:
-        return int(self.n.sum())
+        """``n.sum()`` as an exact Python int (int64 sums overflow past 2**63)."""
+        hi, lo = self.n >> 32, self.n & 0xFFFFFFFF        # each sum fits while H·W < 2**31
+        return (int(hi.sum()) << 32) + int(lo.sum())
 
     # ------------------------------------------------------------------ variances
     @property
@@ -375,6 +395,9 @@ class PixelStats:
             raise InputError(f"can only merge PixelStats with PixelStats; got {type(other).__name__}.")
         if other.shape != self.shape:
             raise InputError(f"cannot merge statistics of shape {other.shape} into {self.shape}.")
+        if np.any(other.n > _INT64_MAX - self.n):
+            raise InputError("cannot merge: the summed sample counts overflow int64 (>= 2**63) "
+                             f"in {int(np.sum(other.n > _INT64_MAX - self.n))} pixels.")
         na = self.n.astype(np.float64)[..., None]
         nb = other.n.astype(np.float64)[..., None]
         n = na + nb

@@ -13,6 +13,7 @@ import pytest
 
 from statmc import analytic, combine, denoisers, filters, gem, progressive, sampling, sure
 from statmc.errors import InputError
+from statmc.stats import PixelStats
 
 H, W, C = 7, 9, 3
 
@@ -162,3 +163,33 @@ def test_empty_images_through_plain_filters(shape):
         assert sampling.counts_from_density(d, 0).shape == d.shape
         with pytest.raises(InputError, match="`density` has no pixels"):
             sampling.counts_from_density(d, 5)
+
+
+# ----------------------------------------------------------------------- huge counts
+def test_huge_integer_counts_stay_exact():
+    """Counts went through float64: 2**62 + 1 became 2**62, ``total_samples`` wrapped to a
+    negative int64 sum, and 2**63 - 1 (or 1e300 as float) cast to a negative count."""
+    x, v, _, _ = _inputs(2)
+    n = np.full((H, W), 2 ** 62 + 1, np.int64)
+    for st in (PixelStats(n, x, v), PixelStats.from_mean_var(x, v, n),
+               PixelStats.from_sums(n, x, v + x * x)):
+        np.testing.assert_array_equal(st.n, n)
+        assert st.total_samples == H * W * (2 ** 62 + 1)
+    top = PixelStats(np.full((H, W), 2 ** 63 - 1, np.int64), x, v)
+    assert top.n.min() == 2 ** 63 - 1 and top.total_samples == H * W * (2 ** 63 - 1)
+
+
+@pytest.mark.parametrize("n", [np.full((H, W), 2 ** 64 - 1, np.uint64), np.full((H, W), 1e300),
+                               np.full((H, W), 2.0 ** 63)], ids=["uint64", "1e300", "2**63"])
+def test_counts_beyond_int64_are_refused(n):
+    x, v, _, _ = _inputs(2)
+    with pytest.raises(InputError, match=r"`n` must fit in int64"):
+        PixelStats(n, x, v)
+
+
+def test_merge_refuses_overflowing_counts():
+    """The merged count overflowed to a negative int64, reported as "`n` must be >= 0"."""
+    x, v, _, _ = _inputs(2)
+    big = PixelStats(np.full((H, W), 2 ** 62, np.int64), x, v)
+    with pytest.raises(InputError, match="overflow int64"):
+        big.merge(big)
