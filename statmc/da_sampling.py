@@ -83,6 +83,10 @@ _NAMES = ("oidn", "gem", "gaussian", "none", "identity")
 
 # ACES fit of Narkowicz [2]: T(x) = x(a x + b) / (x(c x + d) + e), clamped to [0, 1].
 _ACES = (2.51, 0.03, 2.43, 0.59, 0.14)
+#: The ACES fit reaches 1 at x ≈ 7.24 and is clamped there, so capping ``x`` at 8 changes
+#: neither the curve nor its derivative (0) and keeps ``x²`` finite for huge radiance
+#: (float32 1e20 gave inf/inf = NaN).
+_ACES_CAP = 8.0
 
 
 # =========================================================================== tone mapping
@@ -119,9 +123,13 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     """
     xr = as_float_array("image", image)
     check_finite("image", xr)
-    x = np.maximum(xr, 0.0) * _exposure(exposure)
+    ex = _exposure(exposure)
     if _tm_name(name) == "reinhard":
-        return x / (1.0 + x)
+        with np.errstate(over="ignore"):
+            x = np.maximum(xr, 0.0) * ex
+        inf = np.isinf(x)                            # x·e beyond the dtype: T = 1
+        return np.where(inf, 1.0, x / (1.0 + np.where(inf, 0.0, x)))
+    x = np.minimum(np.maximum(xr, 0.0), _ACES_CAP / ex) * ex
     a, b, c, d, e = _ACES
     return np.clip(x * (a * x + b) / (x * (c * x + d) + e), 0.0, 1.0)
 
@@ -131,10 +139,11 @@ def tonemap_derivative(image, name: str = "aces", *, exposure: float = 1.0) -> n
     xr = as_float_array("image", image)
     check_finite("image", xr)
     ex = _exposure(exposure)
-    x = np.maximum(xr, 0.0) * ex
     if _tm_name(name) == "reinhard":
-        out = ex / (1.0 + x) ** 2
+        with np.errstate(over="ignore"):            # (1 + x)² = inf: the derivative is 0
+            out = ex / (1.0 + np.maximum(xr, 0.0) * ex) ** 2
     else:
+        x = np.minimum(np.maximum(xr, 0.0), _ACES_CAP / ex) * ex
         a, b, c, d, e = _ACES
         num = x * (a * x + b)
         den = x * (c * x + d) + e

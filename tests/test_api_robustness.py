@@ -193,3 +193,24 @@ def test_merge_refuses_overflowing_counts():
     big = PixelStats(np.full((H, W), 2 ** 62, np.int64), x, v)
     with pytest.raises(InputError, match="overflow int64"):
         big.merge(big)
+
+
+# ----------------------------------------------------------------------- tone mapping
+@pytest.mark.parametrize("name", ["aces", "reinhard"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_tonemap_saturates_for_huge_radiance(name, dtype):
+    """ACES of float32 radiance above ~1.8e19 was inf/inf = NaN (x² overflowed), and so
+    was Reinhard where ``exposure · x`` overflowed; the curve is 1 and its slope 0 there."""
+    from statmc.da_sampling import tonemap, tonemap_derivative
+
+    big = np.finfo(dtype).max
+    x = np.array([big, big / 1e10, 1e19, 0.5], dtype)
+    for exposure in (1.0, 1e10):
+        t = tonemap(x, name, exposure=exposure)
+        d = tonemap_derivative(x, name, exposure=exposure)
+        assert t.dtype == dtype and np.isfinite(t).all() and np.isfinite(d).all()
+        np.testing.assert_array_equal(t[:2], 1.0)
+        np.testing.assert_array_less(d[:3], 1e-18)
+    e = 0.5 * 1.0
+    want = e / (1 + e) if name == "reinhard" else e * (2.51 * e + 0.03) / (e * (2.43 * e + 0.59) + 0.14)
+    assert tonemap(x, name)[3] == pytest.approx(want, rel=1e-6)
