@@ -388,6 +388,10 @@ def cmd_render(args) -> int:
         raise InputError(f"--sample-map fixes the counts; it cannot be combined with --sampler {args.sampler}.")
     ref = read_image(args.reference) if args.reference else None
     renderer = make_renderer(args.scene, width=width, height=height, **_scene_options(args))
+    if args.spp is None and sample_map is None and os.path.isfile(args.scene):
+        raise InputError(f"give --spp (samples per pixel) or --sample-map; the sample_count "
+                         f"({getattr(renderer, 'scene_sample_count', '?')}) of {args.scene}'s "
+                         "sampler is not used: statmc draws the counts it is given.")
     if args.spp is not None:
         _check_count_range("--spp", args.spp)
     counts = None

@@ -482,6 +482,8 @@ class MitsubaRenderer:
     ----------
     height, width : int
     sensor : int
+    scene_sample_count : int
+        The ``sample_count`` of the sensor's sampler in the scene, which is not used.
     channels : int
         Always 3 (RGB).
     name : str
@@ -569,6 +571,8 @@ class MitsubaRenderer:
             raise InputError(f"`sensor` must be the index of one of the {n_sensors} sensors of "
                              f"scene {self.name!r} (0 to {n_sensors - 1}); got {sensor}.")
         self._sensor = self._scene.sensors()[sensor]
+        # not used (the counts passed to render are), kept to tell users so
+        self.scene_sample_count = int(self._sensor.sampler().sample_count())
         film = self._sensor.film()
         self.width, self.height = (int(v) for v in film.crop_size())
         self._integrator = self._scene.integrator()

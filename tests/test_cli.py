@@ -1660,6 +1660,9 @@ def test_render_and_reference_define_xml_parameters(tmp_path):
     code, _, err = run_cli("render", scene, "--spp", 4, "--out", tmp_path / "a", "-q")
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "undefined parameter: $spp; give it a value with `-D spp=VALUE` or add <default" in err
+    # without --spp: the file's sample_count is not the budget, and the error says so
+    code, _, err = run_cli("render", scene, "-D", "spp=16", "--out", tmp_path / "a", "-q")
+    assert code == 2 and "the sample_count (16) of" in err and "is not used" in err, err
     assert "params" not in err and ".cpp" not in err
     code, _, err = run_cli("render", scene, "--spp", 8, "-D", "spp=16", "--sampler", "gem",
                            "--reconstruct", "gem", "--out", tmp_path / "a", "-q")
