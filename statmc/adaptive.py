@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import InputError, as_rng
+from .errors import InputError, as_int, as_number, as_rng, as_whole
 from .stats import PixelStats
 
 __all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler", "pass_budgets"]
@@ -54,8 +54,39 @@ SAMPLERS: dict[str, Callable] = {
 }
 
 
+def _sampler_options(name: str) -> set[str]:
+    """The keyword options the named sampler takes (those of the functions it forwards to)."""
+    import inspect
+
+    if name == "gem":
+        fns = [_gem_sampler]
+    elif name == "expected-error":
+        from .analytic import expected_error_sampler
+        fns = [expected_error_sampler]
+    elif name == "denoising-aware":
+        from .da_sampling import denoising_aware_density, sampler
+        fns = [sampler, denoising_aware_density]
+    else:
+        fns = [_uniform_sampler]
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    names = {p.name for f in fns for p in inspect.signature(f).parameters.values()
+             if p.kind in kinds}
+    extra = {"gem_options"} if name == "expected-error" else set()   # PilotKernelSampler
+    return (names | extra) - {"stats", "budget", "rng", "extra_output"}
+
+
 def get_sampler(name_or_callable, **options) -> Callable:
-    """A sampler by name (:data:`SAMPLERS`) or a callable, with ``options`` bound."""
+    """A sampler by name (:data:`SAMPLERS`) or a callable, with ``options`` bound.
+
+    A named sampler's options are checked here: an unknown one is an
+    :class:`~statmc.errors.InputError` (not a ``TypeError`` after the first render pass).
+    """
+    if not callable(name_or_callable) and name_or_callable in SAMPLERS and options:
+        allowed = _sampler_options(name_or_callable)
+        unknown = sorted(set(options) - allowed)
+        if unknown:
+            raise InputError(f"unknown option(s) {unknown} for sampler {name_or_callable!r}; "
+                             f"expected some of {sorted(allowed) or 'none'}.")
     if callable(name_or_callable):
         fn = name_or_callable
     elif name_or_callable == "expected-error" and isinstance(options.get("kernels"), str) \
@@ -106,6 +137,13 @@ def pass_budgets(total: int, first: int, *, schedule: str = "even",
     """
     if schedule not in SCHEDULES:
         raise InputError(f"`schedule` must be one of {SCHEDULES}; got {schedule!r}.")
+    total = as_whole("total", total, what="number of samples")
+    first = as_whole("first", first, what="number of samples")
+    if iterations is not None:
+        iterations = as_whole("iterations", iterations, what="number of passes")
+    if first > total:
+        raise InputError(f"`first`={first} samples exceed `total`={total}; the passes after "
+                         "the initial one cannot take a negative budget.")
     rest = total - first
     if schedule == "even":
         it = 8 if iterations is None else iterations
@@ -171,9 +209,11 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     AdaptiveResult
     """
     h, w = renderer.height, renderer.width
-    total = int(round(spp * h * w))
-    if initial_spp < 0 or (iterations is not None and iterations < 0):
-        raise InputError(f"`initial_spp` and `iterations` must be >= 0; got {initial_spp}, {iterations}.")
+    total = int(round(as_number("spp", spp, lo=0.0) * h * w))
+    initial_spp = as_whole("initial_spp", initial_spp, what="number of samples per pixel")
+    if iterations is not None:
+        iterations = as_whole("iterations", iterations, what="number of passes")
+    seed = as_int("seed", seed, lo=0)            # also a renderer seed: an int, not a Generator
     if schedule not in SCHEDULES:
         raise InputError(f"`schedule` must be one of {SCHEDULES}; got {schedule!r}.")
     given = iterations

@@ -214,3 +214,58 @@ def test_tonemap_saturates_for_huge_radiance(name, dtype):
     e = 0.5 * 1.0
     want = e / (1 + e) if name == "reinhard" else e * (2.51 * e + 0.03) / (e * (2.43 * e + 0.59) + 0.14)
     assert tonemap(x, name)[3] == pytest.approx(want, rel=1e-6)
+
+
+# ----------------------------------------------------------------------- adaptive loop
+@pytest.fixture(scope="module")
+def toy():
+    from statmc.toy import ToyRenderer
+    return ToyRenderer("edges", width=10, height=8)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(spp=float("nan")), "`spp` must be a finite number"),       # was int(round(nan))'s ValueError
+    (dict(spp="8"), "`spp` must be a finite number"),                # was str.__round__ TypeError
+    (dict(spp=8, initial_spp=2.5), "`initial_spp` must be a whole"),  # silently rendered 2 spp
+    (dict(spp=8, iterations=2.5), "`iterations` must be a whole"),   # was range(2.5) TypeError
+    (dict(spp=8, seed=None), "`seed` must be a non-negative integer"),  # was None * int TypeError
+    (dict(spp=8, seed=np.random.default_rng(1)), "`seed` must be a non-negative integer"),
+    (dict(spp=8, sampler="gem", gama=0.3), r"unknown option\(s\) \['gama'\] for sampler 'gem'"),
+])
+def test_adaptive_render_refuses_bad_arguments_before_rendering(toy, kwargs, match):
+    """Each of these was a TypeError/ValueError from deep inside (the misspelt sampler
+    option only after the first pass had been rendered), or silently wrong."""
+    from statmc.adaptive import adaptive_render
+    with pytest.raises(InputError, match=match):
+        adaptive_render(toy, **kwargs)
+
+
+def test_initial_spp_given_as_whole_float_renders_it(toy):
+    """``initial_spp=4.0`` (whole-valued float) is accepted and renders 4 spp first."""
+    from statmc.adaptive import adaptive_render
+    res = adaptive_render(toy, 6, initial_spp=4.0, iterations=1, sampler="uniform")
+    assert res.counts[0].dtype.kind == "i" and np.all(res.counts[0] == 4)
+    assert res.stats.total_samples == 6 * toy.height * toy.width
+
+
+def test_sampler_options_are_checked_by_name():
+    from statmc.adaptive import get_sampler
+    get_sampler("gem", gamma=0.3)
+    get_sampler("expected-error", kernels="gem", gem_options={"gamma": 0.3}, sigma=1.0)
+    get_sampler("denoising-aware", denoiser="gaussian", k=2, variant="variance")
+    get_sampler(lambda stats, budget, rng, **kw: None, anything=1)      # a callable: its own
+    for name in ("uniform", "expected-error", "denoising-aware"):
+        with pytest.raises(InputError, match=rf"unknown option\(s\) \['nope'\] for sampler '{name}'"):
+            get_sampler(name, nope=1)
+
+
+@pytest.mark.parametrize("args,kwargs,match", [
+    ((4, 10), {}, "`first`=10 samples exceed `total`=4"),     # gave [0, 0, -1, -1, ...]
+    ((-1, 2), {}, "`total` must be a whole number"),
+    ((10.5, 4), {}, "`total` must be a whole number"),         # gave float budgets
+    ((10, 4), {"iterations": -1}, "`iterations` must be a whole"),
+])
+def test_pass_budgets_refuses_negative_and_fractional_budgets(args, kwargs, match):
+    from statmc.adaptive import pass_budgets
+    with pytest.raises(InputError, match=match):
+        pass_budgets(*args, **kwargs)
