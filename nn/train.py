@@ -76,6 +76,18 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     dict
         ``losses`` (list of floats, one per step), and the run's configuration ``steps``,
         ``lr``, ``seed``, ``optimizer`` and ``seconds`` (wall clock).
+
+    Raises
+    ------
+    InputError
+        For bad arguments, and when ``loss_fn`` returns something other than a one-element
+        tensor with a gradient, or a NaN/Inf loss.  The run then stops before that step's
+        optimiser update: the model keeps the weights of the last finite step.
+
+    Notes
+    -----
+    The model is in training mode (``model.train()``) during the run and is left in
+    evaluation mode (``model.eval()``).
     """
     if not isinstance(model, torch.nn.Module):
         raise InputError(f"`model` must be a torch.nn.Module; got {type(model).__name__}.")
