@@ -437,6 +437,14 @@ def _check_integrator(mi, integrator, name: str) -> None:
                          "e.g. <integrator type=\"aov\">...<integrator type=\"path\"/></integrator>.")
 
 
+def _warn_nonfinite(n_bad: int, total: int, name: str) -> None:
+    """Warn when a render met NaN/Inf samples (they are counted as zeros)."""
+    if n_bad:
+        warnings.warn(f"statmc: {n_bad} of {total} samples of scene {name!r} were NaN or Inf "
+                      "and were counted as zeros, which biases their pixels; check the scene "
+                      "(an infinite radiance, a degenerate shape).", RuntimeWarning, stacklevel=3)
+
+
 def _scalar_ready(film) -> bool:
     """Whether one-sample ``mi.render`` images of ``film`` are the samples of its pixels
     with R, G, B first: a box filter and an ``rgb``/``rgba`` pixel format."""
@@ -633,7 +641,8 @@ class MitsubaRenderer:
             of the RGB samples; ``meta``
             holds ``seconds``, ``samples``, ``samples_per_second`` (main pass),
             ``feature_seconds``, ``variant``, ``scene``, ``seed``, ``chunks`` and
-            ``nonfinite_samples`` (NaN/Inf samples, counted as zeros).
+            ``nonfinite_samples`` (NaN/Inf samples, counted as zeros, with a
+            ``RuntimeWarning``).
         """
         counts = self._check_counts(counts)
         first = self._check_first(first_sample, counts)
@@ -648,6 +657,7 @@ class MitsubaRenderer:
         seconds = time.perf_counter() - t0
         stats = PixelStats.from_sums(counts, s1, s2, sxy)
         total = int(counts.sum())
+        _warn_nonfinite(n_bad, total, self.name)
         stats.meta.update({
             "renderer": "mitsuba", "scene": self.name, "sensor": self.sensor,
             "variant": self.variant, "seed": seed,
@@ -755,6 +765,7 @@ class MitsubaRenderer:
                 add_neighbour_products(prod, x, x, R)
                 bar.update(H * W)
         seconds = time.perf_counter() - t0
+        _warn_nonfinite(n_bad, spp * H * W, self.name)
         counts = np.full((H, W), spp, np.int64)
         stats = PixelStats.from_sums(counts, s1, np.einsum("hwcc->hwc", s2), s2)
         stats.meta.update({

@@ -915,3 +915,18 @@ def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
     for bad, word in ((2, "one of the 2 sensors"), (-1, "sensor"), (1.0, "sensor")):
         with pytest.raises(InputError, match=word):
             mb.MitsubaRenderer(path, sensor=bad)
+
+
+def test_nonfinite_samples_warn(tmp_path):
+    # regression: NaN/Inf samples were counted as zeros without a word (meta only)
+    path = _xml_scene(tmp_path, '<shape type="sphere"><bsdf type="diffuse"/><emitter type="area">'
+                      '<rgb name="radiance" value="inf"/></emitter></shape>'
+                      '<emitter type="constant"/>', sensor='<transform name="to_world"><lookat '
+                      'origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>')
+    r = mb.MitsubaRenderer(path)
+    with pytest.warns(RuntimeWarning, match=r"\d+ of 256 samples .* were NaN or Inf"):
+        s = r.render_uniform(4, features=False)
+    assert s.meta["nonfinite_samples"] > 0 and np.isfinite(s.mean).all()
+    if r._jit:
+        with pytest.warns(RuntimeWarning, match="NaN or Inf"):
+            r.render_crn(2, stencil=1, features=False)
