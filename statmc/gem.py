@@ -32,6 +32,7 @@ References
 from __future__ import annotations
 
 import math
+import numbers
 
 import numba
 import numpy as np
@@ -87,7 +88,7 @@ def error_rate_weight(gamma: float) -> float:
     >>> round(error_rate_weight(0.2), 4)
     0.7022
     """
-    g = float(gamma)
+    g = float(gamma) if isinstance(gamma, numbers.Real) else math.nan   # None, "0.2": refused
     if not (0.0 < g < _GAMMA_MAX) or not math.isfinite(g):
         raise InputError(f"`gamma` must be in (0, {_GAMMA_MAX:.4f}) (error rate of the scale "
                          f"selector; the paper uses 0.1-0.3); got {gamma!r}.")

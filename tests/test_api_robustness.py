@@ -269,3 +269,12 @@ def test_pass_budgets_refuses_negative_and_fractional_budgets(args, kwargs, matc
     from statmc.adaptive import pass_budgets
     with pytest.raises(InputError, match=match):
         pass_budgets(*args, **kwargs)
+
+
+# ----------------------------------------------------------------------- keyword edges
+@pytest.mark.parametrize("gamma", [None, "0.2"])
+def test_gem_gamma_must_be_a_number(gamma):
+    """``gamma=None`` was float(None)'s TypeError; the string "0.2" was silently parsed."""
+    x, v, _, _ = _inputs(3)
+    with pytest.raises(InputError, match="`gamma` must be in"):
+        gem.reconstruct(x, v, gamma=gamma)
