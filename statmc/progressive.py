@@ -66,11 +66,17 @@ DEFAULT_EPS_T = 1e-6
 #: of the per-pixel variance of the mean and floors σ_s at 1e-3).
 _SIGMA_S_SCALE = 100.0
 _SIGMA_S_FLOOR = 1e-3
+#: Smallest ``sigma_s`` accepted: below ~1e-38 pixels ``σ_s`` and the centre weight
+#: ``κ = 1/(σ_s √(2π))`` leave float32's range (single-precision work gave an all-NaN
+#: gate), and ``κ²`` of Eq. 13 overflows float64 below ~1e-150.  1e-6 keeps ``κ² ≈ 1.6e11``
+#: with room for variances up to ~1e27 in float32.
+_SIGMA_S_MIN = 1e-6
 
 
 # =========================================================================== checks
 def _image(name, a, dtype=np.float64):
     arr = as_float_array(name, a, ndim=3, dtype=dtype)
+    check_nonempty(name, arr)
     check_finite(name, arr)
     return arr
 
@@ -415,7 +421,8 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     window : int
         Side of the square neighbourhood ``N_p`` (odd; 11 in [1]_).
     sigma_s : float or "auto"
-        ``σ_s`` of the weights ``κ`` (Eq. 15), in pixels; ``"auto"``: :func:`auto_sigma_s`.
+        ``σ_s`` of the weights ``κ`` (Eq. 15), in pixels, ``>= 1e-6``; ``"auto"``:
+        :func:`auto_sigma_s`.
     c, a : float
         Shift and strength of Eq. 18 (4.2 and 2 in [1]_).
     eps : float
@@ -531,7 +538,7 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
             raise InputError(f"`sigma_s` must be a number > 0 or 'auto'; got {sigma_s!r}.")
         ss = _auto_sigma_s_from_mean(v_sum / v.size if v.size else 0.0)
     else:
-        ss = as_number("sigma_s", sigma_s, lo=0.0, lo_open=True)
+        ss = as_number("sigma_s", sigma_s, lo=_SIGMA_S_MIN)
     cc = as_number("c", c)
     aa = as_number("a", a, lo=0.0, lo_open=True)
     ee = as_number("eps", eps, lo=0.0)

@@ -278,3 +278,14 @@ def test_gem_gamma_must_be_a_number(gamma):
     x, v, _, _ = _inputs(3)
     with pytest.raises(InputError, match="`gamma` must be in"):
         gem.reconstruct(x, v, gamma=gamma)
+
+
+def test_confidence_gate_refuses_a_vanishing_sigma_s():
+    """``sigma_s=1e-40`` passed the ``> 0`` check and gave an all-NaN gate (σ_s is below
+    float32's range in the default single-precision work).  1e-6 still works."""
+    x, v, _, _ = _inputs(3)
+    y = denoisers.gaussian(1.0)(x)
+    alpha = np.full(x.shape, 0.5)
+    assert np.isfinite(progressive.confidence_gate(x, y, v, alpha, sigma_s=1e-6)).all()
+    with pytest.raises(InputError, match=r"`sigma_s` must be >= 1e-06; got 1e-40"):
+        progressive.confidence_gate(x, y, v, alpha, sigma_s=1e-40)
