@@ -343,9 +343,11 @@ def test_bad_tensors_are_refused_before_torch_sees_them(call, name, what):
     assert what in str(e.value), str(e.value)
 
 
-def test_ops_still_work_under_vmap_and_on_the_meta_device():
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # torch.func.jvp's own
+def test_ops_still_work_under_vmap_jvp_and_on_the_meta_device():
     """The value checks (finite inputs, W_c != 0) branch on tensor values, which
-    torch.func.vmap and meta tensors refuse: they are skipped there, and only there."""
+    torch.func.vmap and meta tensors refuse: they are skipped there, and only there;
+    torch.func.jvp and grad run them."""
     rng = np.random.default_rng(11)
     K = torch.from_numpy(rng.uniform(0.1, 1, size=(3, 1, 9, 4, 5)))
     x = torch.from_numpy(rng.normal(size=(3, 1, 2, 4, 5)))
@@ -356,6 +358,13 @@ def test_ops_still_work_under_vmap_and_on_the_meta_device():
     g = torch.func.vmap(torch.func.grad(lambda k, im: snn.apply_kernels(k, im).sum()))(K, x)
     assert g.shape == K.shape
     assert snn.combine(*(t.to("meta") for t in (x[0], x[0], K[0]))).shape == (1, 2, 4, 5)
+    # forward-mode JVP (Firmino 2023's output-variance estimate, statmc.denoisers'
+    # TorchDenoiser.jvp): the twins are linear in the image, so J v = apply_kernels(K, v)
+    v = torch.from_numpy(rng.normal(size=x[0].shape))
+    out, jv = torch.func.jvp(lambda im: snn.apply_kernels(K[0], im), (x[0],), (v,))
+    torch.testing.assert_close(jv, snn.apply_kernels(K[0], v), rtol=0, atol=1e-15)
+    _, jv = torch.func.jvp(lambda im: snn.combine(im, x[0] + 1, K[0]), (x[0],), (v,))
+    torch.testing.assert_close(jv, snn.combine(v, torch.zeros_like(v), K[0]), rtol=1e-14, atol=1e-14)
     with pytest.raises(InputError, match="NaN"):           # outside vmap the checks run
         snn.apply_kernels(K[0], x[0] * float("nan"))
 
