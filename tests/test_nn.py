@@ -457,6 +457,24 @@ def test_mix_net_alpha_goes_through_progressive_denoise():
     assert (info["alpha_gated"] <= a[..., None] + 1e-12).all()   # the gate only shrinks α (Eq. 18)
 
 
+@pytest.mark.parametrize("C", [1, 2])
+def test_networks_take_any_channel_count_on_odd_non_square_images(C):
+    """Every network's NumPy method on a C-channel 5 x 7 render feeds its statmc kernel."""
+    from statmc import denoisers
+    st = ToyRenderer("mixed", width=7, height=5, channels=C).render_uniform(4, seed=0)
+    K = snn.KernelNet(channels=C).kernels(st)
+    assert analytic.apply_kernels(K, st.mean).shape == (5, 7, C)
+    z = st.mean * 0.9
+    assert cb.combine(st.mean, z, snn.CombinerNet(channels=C).weights(st, z)).shape == (5, 7, C)
+    ys = np.stack([st.mean, st.mean + 0.1])
+    w = snn.CombinerNet(channels=C, buffers=2, k=3).weights(st, ys * 0.9, ys)
+    assert w.shape == (5, 7, 2, 3, 3) and cb.combine_multi(ys, ys * 0.9, w).shape == (5, 7, C)
+    f = denoisers.gaussian(1.0)
+    a = snn.MixNet(channels=C).alpha(st, f(st.mean))
+    assert a.shape == (5, 7) and progressive.progressive_denoise(st, f, alpha=a, rng=0).shape == (5, 7, C)
+    assert snn.SamplingNet(channels=C).counts(st, 101, rng=0).sum() == 101
+
+
 def test_mix_net_f_act_is_eq19_clamped():
     net = snn.MixNet(activation="f_act", width=4)
     feats = torch.randn(1, net.in_channels, 6, 7, generator=torch.Generator().manual_seed(0))
