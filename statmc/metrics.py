@@ -145,11 +145,20 @@ def relmse(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
     """
     xa, ra = _pair(x, ref)
     e = _eps(eps)
-    den = ra * ra + e
+    with np.errstate(over="ignore"):
+        den = ra * ra + e
     if e == 0 and np.any(den == 0):
         raise InputError("`eps` = 0 needs a reference without zeros; got "
                          f"{int((den == 0).sum())} zero values in `ref`. Use eps > 0.")
-    return _reduce((xa - ra) ** 2 / den, per_pixel)
+    with np.errstate(over="ignore", invalid="ignore"):
+        err = (xa - ra) ** 2 / den
+    bad = ~np.isfinite(err)
+    if bad.any():    # |x|, |r| beyond ~1e154: the squares overflow (inf/inf), not the ratio
+        xb, rb = xa[bad], ra[bad]
+        s = np.maximum(np.abs(xb), np.abs(rb))
+        with np.errstate(divide="ignore", under="ignore", over="ignore"):   # inf if it is
+            err[bad] = ((xb / s - rb / s) / np.hypot(rb / s, np.sqrt(e) / s)) ** 2
+    return _reduce(err, per_pixel)
 
 
 def mse(x, ref, *, per_pixel: bool = False):
@@ -261,16 +270,27 @@ def ssim_map(x, ref, *, data_range: float = 1.0, sigma: float = 1.5, k1: float =
         raise InputError(f"`data_range` must be a positive number; got {data_range!r}.")
     if not np.isfinite(sigma) or sigma <= 0:
         raise InputError(f"`sigma` must be a positive number of pixels; got {sigma!r}.")
-    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    # SSIM is unchanged when x, ref and L are scaled together: work in units of L, so that
+    # HDR values and ranges beyond ~1e154 do not overflow the squares (exact for L = 1)
+    if data_range != 1.0:
+        xa, ra = xa / data_range, ra / data_range
+    c1, c2 = k1 ** 2, k2 ** 2
 
     def blur(a):
         return ndimage.gaussian_filter(a, sigma=(sigma, sigma, 0), mode="reflect", truncate=3.5)
 
-    mx, my = blur(xa), blur(ra)
-    vx = blur(xa * xa) - mx * mx
-    vy = blur(ra * ra) - my * my
-    cxy = blur(xa * ra) - mx * my
-    return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    with np.errstate(over="ignore", invalid="ignore"):
+        mx, my = blur(xa), blur(ra)
+        vx = blur(xa * xa) - mx * mx
+        vy = blur(ra * ra) - my * my
+        cxy = blur(xa * ra) - mx * my
+        s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    if not np.isfinite(s).all():
+        big = max(float(np.abs(xa).max()), float(np.abs(ra).max())) * data_range
+        raise InputError(f"`x` and `ref` are too large for SSIM at `data_range`={data_range!r} "
+                         f"(max |value| {big:.3g}, whose square overflows); pass the range "
+                         "they span as `data_range`, or tone-map them first.")
+    return s
 
 
 def one_minus_ssim(x, ref, *, data_range: float = 1.0, sigma: float = 1.5,

@@ -289,3 +289,29 @@ def test_confidence_gate_refuses_a_vanishing_sigma_s():
     assert np.isfinite(progressive.confidence_gate(x, y, v, alpha, sigma_s=1e-6)).all()
     with pytest.raises(InputError, match=r"`sigma_s` must be >= 1e-06; got 1e-40"):
         progressive.confidence_gate(x, y, v, alpha, sigma_s=1e-40)
+
+
+# ----------------------------------------------------------------------- metrics
+def test_relmse_of_huge_values_is_not_nan():
+    """relMSE of float64 values beyond ~1e154 was inf/inf = NaN (both squares overflow);
+    it is scale-free there, so 1e200·x against 1e200·r gives the eps-free relMSE."""
+    from statmc.metrics import relmse
+    x, _, _, _ = _inputs(4)
+    r = 1.01 * x
+    want = relmse(x, r, eps=0.0)
+    assert relmse(1e200 * x, 1e200 * r) == pytest.approx(want, rel=1e-12)
+    assert relmse(1e300 * x, -1e300 * r) == pytest.approx(relmse(x, -r, eps=0.0), rel=1e-12)
+    assert relmse(1e250 * x, np.zeros_like(x)) == np.inf     # the true value overflows
+
+
+def test_ssim_works_in_units_of_data_range():
+    """SSIM of HDR values with a matching ``data_range`` beyond ~1e154 was NaN (the squares
+    and C1 = (k1 L)² overflowed); it is invariant to scaling x, ref and L together.  Values
+    too large for the given range are refused instead of returning NaN."""
+    from statmc.metrics import one_minus_ssim
+    x, _, _, _ = _inputs(4)
+    r = 1.01 * x
+    want = one_minus_ssim(x, r)
+    assert one_minus_ssim(1e200 * x, 1e200 * r, data_range=1e200) == pytest.approx(want, rel=1e-9)
+    with pytest.raises(InputError, match="too large for SSIM at `data_range`=1.0"):
+        one_minus_ssim(1e200 * x, 1e200 * r)
