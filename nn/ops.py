@@ -140,8 +140,6 @@ def _check_weight_sums(wsum):
             "(e.g. a softmax or exp of network outputs).")
 
 
-
-
 def kernel_size(taps: int, name: str = "kernels") -> int:
     """Odd window side ``k`` of a tap axis of length ``k·k`` (``InputError`` otherwise)."""
     k = int(round(taps ** 0.5))
