@@ -437,14 +437,6 @@ def _check_integrator(mi, integrator, name: str) -> None:
                          "e.g. <integrator type=\"aov\">...<integrator type=\"path\"/></integrator>.")
 
 
-def _warn_nonfinite(n_bad: int, total: int, name: str) -> None:
-    """Warn when a render met NaN/Inf samples (they are counted as zeros)."""
-    if n_bad:
-        warnings.warn(f"statmc: {n_bad} of {total} samples of scene {name!r} were NaN or Inf "
-                      "and were counted as zeros, which biases their pixels; check the scene "
-                      "(an infinite radiance, a degenerate shape).", RuntimeWarning, stacklevel=3)
-
-
 def _scalar_ready(film) -> bool:
     """Whether one-sample ``mi.render`` images of ``film`` are the samples of its pixels
     with R, G, B first: a box filter and an ``rgb``/``rgba`` pixel format."""
@@ -598,6 +590,7 @@ class MitsubaRenderer:
                           RuntimeWarning, stacklevel=2)
         self._aov_integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal"})
         self._sampler = mi.load_dict({"type": "independent"})
+        self._warned_nonfinite = False
 
     def __repr__(self) -> str:
         return (f"MitsubaRenderer({self.name!r}, width={self.width}, height={self.height}, "
@@ -641,8 +634,8 @@ class MitsubaRenderer:
             of the RGB samples; ``meta``
             holds ``seconds``, ``samples``, ``samples_per_second`` (main pass),
             ``feature_seconds``, ``variant``, ``scene``, ``seed``, ``chunks`` and
-            ``nonfinite_samples`` (NaN/Inf samples, counted as zeros, with a
-            ``RuntimeWarning``).
+            ``nonfinite_samples`` (NaN/Inf samples, counted as zeros; the first render
+            that meets any warns).
         """
         counts = self._check_counts(counts)
         first = self._check_first(first_sample, counts)
@@ -657,7 +650,7 @@ class MitsubaRenderer:
         seconds = time.perf_counter() - t0
         stats = PixelStats.from_sums(counts, s1, s2, sxy)
         total = int(counts.sum())
-        _warn_nonfinite(n_bad, total, self.name)
+        self._warn_nonfinite(n_bad, total)
         stats.meta.update({
             "renderer": "mitsuba", "scene": self.name, "sensor": self.sensor,
             "variant": self.variant, "seed": seed,
@@ -765,7 +758,7 @@ class MitsubaRenderer:
                 add_neighbour_products(prod, x, x, R)
                 bar.update(H * W)
         seconds = time.perf_counter() - t0
-        _warn_nonfinite(n_bad, spp * H * W, self.name)
+        self._warn_nonfinite(n_bad, spp * H * W)
         counts = np.full((H, W), spp, np.int64)
         stats = PixelStats.from_sums(counts, s1, np.einsum("hwcc->hwc", s2), s2)
         stats.meta.update({
@@ -795,6 +788,16 @@ class MitsubaRenderer:
         return stats, cov
 
     # ------------------------------------------------------------------ internals
+    def _warn_nonfinite(self, n_bad: int, total: int) -> None:
+        """Warn, once per renderer, when a render met NaN/Inf samples (counted as zeros)."""
+        if n_bad and not self._warned_nonfinite:
+            self._warned_nonfinite = True
+            warnings.warn(f"statmc: {n_bad} of {total} samples of scene {self.name!r} were NaN "
+                          "or Inf and were counted as zeros, which biases their pixels; check "
+                          "the scene (an infinite radiance, a degenerate shape).  Later renders "
+                          "count them in meta['nonfinite_samples'] without warning again.",
+                          RuntimeWarning, stacklevel=3)
+
     def _whole_map(self, name: str, value, whole: str) -> np.ndarray:
         """An (H, W) float map of whole numbers >= 0 (``whole`` names what they count)."""
         a = as_float_array(name, value, ndim=2)

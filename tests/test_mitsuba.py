@@ -927,6 +927,9 @@ def test_nonfinite_samples_warn(tmp_path):
     with pytest.warns(RuntimeWarning, match=r"\d+ of 256 samples .* were NaN or Inf"):
         s = r.render_uniform(4, features=False)
     assert s.meta["nonfinite_samples"] > 0 and np.isfinite(s.mean).all()
+    with warnings.catch_warnings():         # once per renderer: an adaptive loop's passes
+        warnings.simplefilter("error")      # would repeat it
+        assert r.render_uniform(2, features=False).meta["nonfinite_samples"] > 0
     if r._jit:
         with pytest.warns(RuntimeWarning, match="NaN or Inf"):
-            r.render_crn(2, stencil=1, features=False)
+            mb.MitsubaRenderer(path).render_crn(2, stencil=1, features=False)
