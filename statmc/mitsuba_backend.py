@@ -386,7 +386,7 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
             root = ET.parse(path).getroot()
         except ET.ParseError as e:
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
-        sensors = root.findall(".//sensor")
+        sensors = root.findall("sensor")        # the scene's own, not a batch's parts
         film = sensors[sensor].find("film") if sensor < len(sensors) else None
         if film is None:
             raise InputError(f"scene file {str(path)!r} has no <film> in <sensor> number "

@@ -933,3 +933,20 @@ def test_nonfinite_samples_warn(tmp_path):
     if r._jit:
         with pytest.warns(RuntimeWarning, match="NaN or Inf"):
             mb.MitsubaRenderer(path).render_crn(2, stencil=1, features=False)
+
+
+def test_size_of_a_sensor_after_a_batch_sensor(tmp_path):
+    # regression: the film to resize was looked up among all <sensor> elements, so the
+    # parts of a batch sensor shifted the count (sensor=1 found a part without a film)
+    cam = ('<sensor type="perspective"><transform name="to_world"><lookat origin="{o}" '
+           'target="0, 0, 0" up="0, 1, 0"/></transform>{film}</sensor>')
+    film = ('<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" '
+            'value="4"/><rfilter type="box"/></film>')
+    batch = ('<sensor type="batch">' + cam.format(o="0, 0, 4", film="")
+             + cam.format(o="4, 0, 0", film="") + film + '</sensor>')
+    path = _xml_scene(tmp_path, batch + cam.format(o="0, 4, 0.1", film=film)
+                      + '<shape type="sphere"><bsdf type="diffuse"/></shape>'
+                        '<emitter type="constant"/>')
+    r = mb.MitsubaRenderer(path, sensor=2, width=5, height=3)     # the file's third sensor
+    assert (r.height, r.width) == (3, 5) and len(r._scene.sensors()) == 3
+    assert mb.MitsubaRenderer(path, sensor=1, width=6, height=2).width == 6   # the batch
