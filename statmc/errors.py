@@ -27,10 +27,19 @@ def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
     float16 becomes float32 and extended precision float64: the compiled kernels and most
     of SciPy have neither (float16 raised numba's ``NotImplementedError``).  A non-native
     byte order (big-endian ``'>f4'``) becomes native: numba cannot type it.
-    Raises :class:`InputError` when it is not numeric (complex included) or has the wrong
-    number of dims.
+    Raises :class:`InputError` when it is not numeric (complex included), cannot be
+    converted (a ragged list, a torch tensor that requires grad), is a masked array with
+    masked entries, or has the wrong number of dims.
     """
-    arr = np.asarray(a)
+    if isinstance(a, np.ma.MaskedArray) and np.ma.getmaskarray(a).any():
+        raise InputError(f"`{name}` is a masked array with {int(np.ma.getmaskarray(a).sum())} "
+                         "masked entries, whose values would be used as they are; fill them "
+                         "first (`a.filled(value)`).")
+    try:
+        arr = np.asarray(a)
+    except (ValueError, TypeError, RuntimeError) as exc:   # ragged lists; torch grad tensors
+        raise InputError(f"`{name}` must be an array of real numbers; could not convert the "
+                         f"{type(a).__name__} given ({str(exc).splitlines()[0]}).") from None
     if arr.dtype == object or np.iscomplexobj(arr) \
             or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
         raise InputError(f"`{name}` must be a real numeric array; got dtype {arr.dtype}.")
@@ -46,7 +55,9 @@ def as_float_array(name: str, a, *, ndim: int | tuple[int, ...] | None = None,
         dims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in dims:
             want = " or ".join(str(d) for d in dims)
-            raise InputError(f"`{name}` must have {want} dimensions; got shape {arr.shape}.")
+            hint = (f" For a grey image add a channel axis: `{name}[..., None]`."
+                    if arr.ndim == 2 and 3 in dims and 2 not in dims else "")
+            raise InputError(f"`{name}` must have {want} dimensions; got shape {arr.shape}.{hint}")
     return arr
 
 

@@ -315,3 +315,32 @@ def test_ssim_works_in_units_of_data_range():
     assert one_minus_ssim(1e200 * x, 1e200 * r, data_range=1e200) == pytest.approx(want, rel=1e-9)
     with pytest.raises(InputError, match="too large for SSIM at `data_range`=1.0"):
         one_minus_ssim(1e200 * x, 1e200 * r)
+
+
+# ----------------------------------------------------------------------- array-likes
+def test_unconvertible_array_likes_are_input_errors():
+    """A ragged list was NumPy's bare ValueError, and a torch tensor that requires grad
+    torch's RuntimeError; both now name the argument."""
+    torch = pytest.importorskip("torch")
+    with pytest.raises(InputError, match="`image` must be an array of real numbers.*list"):
+        filters.gaussian_filter([[1.0, 2.0], [3.0]], 1.0)
+    x, v, _, _ = _inputs(5)
+    with pytest.raises(InputError, match="`mean` must be an array of real numbers.*detach"):
+        gem.reconstruct(torch.tensor(x, requires_grad=True), v)
+
+
+def test_masked_arrays_with_masked_entries_are_refused():
+    """The mask was dropped silently: relMSE used the values under it."""
+    from statmc.metrics import relmse
+    x, _, _, _ = _inputs(5)
+    masked = np.ma.masked_array(x, mask=x > 0.5)
+    with pytest.raises(InputError, match="`x` is a masked array with .* masked entries"):
+        relmse(masked, x)
+    assert relmse(np.ma.masked_array(x), x) == 0.0          # nothing masked: fine
+
+
+def test_grey_image_refusal_says_how_to_add_the_channel_axis():
+    x, v, _, _ = _inputs(5)
+    with pytest.raises(InputError, match=r"got shape \(7, 9\)\. For a grey image add a "
+                                         r"channel axis: `x\[\.\.\., None\]`"):
+        sure.mc_sure(denoisers.gaussian(1.0), x[..., 0], v[..., 0])
