@@ -91,7 +91,8 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
     ----------
     stats : PixelStats
         The render: mean, variance of the mean, albedo and normal (zeros when absent),
-        and ``n`` when ``budget`` is given.
+        and ``n`` when ``budget`` is given.  Every pixel needs ``n >= 2`` (a variance
+        estimate; ``InputError`` otherwise, as :meth:`PixelStats.require_variance`).
     extra : (H, W, C) or (E, H, W, C) ndarray, optional
         Further images of the same picture: the denoised image for :class:`MixNet`, the
         correlated image(s) and bins for :class:`CombinerNet`.
@@ -109,6 +110,10 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
         raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
+    # mean_var is 0 where n < 2: such a pixel would look noise-free (the floor of plane 2)
+    stats.require_variance(why="for the relative-variance planes of pixel_features: mean_var "
+                               "is 0 where n < 2, which the networks would read as noise-free",
+                           hint=" Render a uniform pass of >= 2 spp first.")
     x = np.asarray(stats.mean, np.float64)
     H, W, C = x.shape
     xp = np.maximum(x, 0.0)

@@ -402,6 +402,22 @@ def test_pixel_features_planes():
     assert not snn.pixel_features(bare)[0, 6:12].any()
 
 
+@pytest.mark.parametrize("n_low", [0, 1])
+def test_pixel_features_refuse_pixels_without_a_variance(n_low):
+    """Regression (session 10): a pixel with n < 2 has mean_var = 0 (PixelStats' convention),
+    so its relative-variance plane sat at its floor, log(1e-4)/10, exactly like a converged
+    pixel: a 1-spp pilot looked noise-free to every network.  statmc's own users of
+    mean_var refuse such pixels (PixelStats.require_variance); so does pixel_features."""
+    st = _render(size=6, spp=4)
+    n = st.n.copy()
+    n[2, 3] = n_low
+    low = ToyRenderer("mixed", width=6, height=6).render(n, seed=1)
+    with pytest.raises(InputError, match="`stats` must have >= 2 samples in every pixel"):
+        snn.pixel_features(low)
+    with pytest.raises(InputError, match="1 pixels with fewer than 2"):
+        snn.KernelNet().kernels(low)
+
+
 # ============================================================================ networks
 def test_kernel_net_gives_normalised_kernels_for_statmc():
     st = _render()
