@@ -163,7 +163,8 @@ class KernelNet(_Net):
         return torch.softmax(self._body(features), dim=1)
 
     def denoise(self, features, image):
-        """``apply_kernels(self(features), image)`` on ``(N, C, H, W)`` images (differentiable)."""
+        """``apply_kernels(self(features), image)`` on ``(N, C, H, W)`` images (differentiable):
+        the kernel denoiser ``D(X)_p = Σ_q K_pq X_q`` of Salehi 2022 §A.1."""
         return apply_kernels(self(features), self._image("image", image))
 
     def kernels(self, stats) -> np.ndarray:
@@ -297,7 +298,8 @@ class MixNet(_Net):
         return torch.clamp((x1 - x2) / torch.clamp(x3, min=F_ACT_EPS), 0.0, 1.0)
 
     def mix(self, features, x, y):
-        """``x + α (y − x)`` on ``(N, C, H, W)`` tensors (differentiable; ungated)."""
+        """``z = x + α (y − x)`` on ``(N, C, H, W)`` tensors (Firmino 2022 §4, Eq. 11;
+        differentiable; ungated)."""
         x = self._image("x", x)
         y = self._image("y", y, like=x)
         a = self(features)
@@ -343,7 +345,8 @@ class SamplingNet(_Net):
         return self._body(features)
 
     def density(self, features):
-        """``softmax(Φ)`` over each image's pixels: ``(N, 1, H, W)``, each image sums to 1."""
+        """``softmax(Φ)`` over each image's pixels (Salehi 2022 Eq. 11 without the budget):
+        ``(N, 1, H, W)``, each image sums to 1."""
         logits = self(features)
         N, _, H, W = logits.shape
         return torch.softmax(logits.reshape(N, H * W), dim=1).view(N, 1, H, W)
