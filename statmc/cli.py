@@ -953,88 +953,9 @@ def cmd_metrics(args) -> int:
     return 0
 
 
-# Channel families that `statmc info` summarises instead of listing one group per member:
-# the family's group name -> the family's channel pattern.
-_INFO_FAMILIES = {
-    "SpatialCovariance.<dy><dx>": "SpatialCovariance.<dy><dx>.<R|G|B>",
-    "Bin<b>": "Bin<b>.<R|G|B>",
-    "Bin<b>.Denoised": "Bin<b>.Denoised.<R|G|B>",
-}
-
-
-def _info_family(name: str):
-    """``(group, match)`` of a channel in one of :data:`_INFO_FAMILIES` (``match.group(1)``
-    the bin number, or with ``group(2)`` the stencil offset dy, dx), else None.  The
-    patterns are statmc.exr's."""
-    from .exr import _BIN_CHANNEL, _SPATIAL_CHANNEL
-    mt = _SPATIAL_CHANNEL.match(name)
-    if mt:
-        return "SpatialCovariance.<dy><dx>", mt
-    mt = _BIN_CHANNEL.match(name)
-    if mt:
-        return ("Bin<b>.Denoised" if mt.group(2) else "Bin<b>"), mt
-    return None
-
-
-def _summarise_info(info: dict) -> dict:
-    """``exr_info``'s summary with the channel families of statmc's extensions — the
-    covariance stencil of ``render --crn`` (3·m² channels) and sample bins — collapsed to
-    one entry each, and named in ``layout``: ``covariance`` (``Covariance.RG/RB/GB``),
-    ``spatial_covariance`` (``"stencil MxM"``), ``bins`` (their number) and
-    ``bins_denoised``."""
-    from .exr import _COV
-    members = {group: [] for group in _INFO_FAMILIES}   # family -> [match]
-    channels, family_of = {}, {}
-    for name, ptype in info["channels"].items():
-        fam = _info_family(name)
-        if fam:
-            group, mt = fam
-            members[group].append(mt)
-            family_of[name] = group
-            types = channels.setdefault(_INFO_FAMILIES[group], [])
-            if ptype not in types:
-                types.append(ptype)
-        else:
-            channels[name] = ptype
-    channels = {k: ", ".join(v) if isinstance(v, list) else v for k, v in channels.items()}
-    groups, nonfinite = {}, {}
-    for g, names in info["groups"].items():
-        rest = [n for n in names if n not in family_of]
-        for fam in dict.fromkeys(family_of[n] for n in names if n in family_of):
-            groups.setdefault(fam, None)                # filled in below, in this position
-        if rest:
-            groups[g] = rest
-        if g in info["nonfinite"]:
-            key = g if rest else family_of[names[0]]
-            c = nonfinite.setdefault(key, {"nan": 0, "inf": 0})
-            for k in ("nan", "inf"):
-                c[k] += info["nonfinite"][g][k]
-    stencil = None
-    if members["SpatialCovariance.<dy><dx>"]:
-        offs = {(int(m.group(1)), int(m.group(2))) for m in members["SpatialCovariance.<dy><dx>"]}
-        width = 2 * max(max(abs(dy), abs(dx)) for dy, dx in offs) + 1
-        k = len(members["SpatialCovariance.<dy><dx>"])
-        stencil = f"stencil {width}x{width}" + ("" if k == 3 * width * width else
-                                                 f" (partial: {k} of {3 * width * width} channels)")
-        groups["SpatialCovariance.<dy><dx>"] = (f"{stencil}: {len(offs)} offsets (dy, dx) x "
-                                                f"R,G,B = {k} channels")
-    nbins = {}
-    for fam in ("Bin<b>", "Bin<b>.Denoised"):
-        if members[fam]:
-            nbins[fam] = len({int(m.group(1)) for m in members[fam]})
-            groups[fam] = f"{nbins[fam]} bins x R,G,B = {len(members[fam])} channels"
-    layout = dict(info["layout"])
-    layout["covariance"] = all(c in info["channels"] for c in _COV)
-    layout["spatial_covariance"] = stencil
-    layout["bins"] = nbins.get("Bin<b>")
-    layout["bins_denoised"] = "Bin<b>.Denoised" in nbins
-    return dict(info, channels=channels, channel_count=len(info["channels"]), groups=groups,
-                layout=layout, nonfinite=nonfinite)
-
-
 def cmd_info(args) -> int:
     from .exr import exr_info
-    print(json.dumps(_summarise_info(exr_info(args.file)), indent=2, default=_json_default))
+    print(json.dumps(exr_info(args.file, families=True), indent=2, default=_json_default))
     return 0
 
 

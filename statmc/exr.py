@@ -466,7 +466,83 @@ def _group_of(name: str) -> str:
     return name.rsplit(".", 1)[0] if "." in name else name
 
 
-def exr_info(path) -> dict:
+# Channel families that `statmc info` summarises instead of listing one group per member:
+# the family's group name -> the family's channel pattern.
+_INFO_FAMILIES = {
+    "SpatialCovariance.<dy><dx>": "SpatialCovariance.<dy><dx>.<R|G|B>",
+    "Bin<b>": "Bin<b>.<R|G|B>",
+    "Bin<b>.Denoised": "Bin<b>.Denoised.<R|G|B>",
+}
+
+
+def _info_family(name: str):
+    """``(group, match)`` of a channel in one of :data:`_INFO_FAMILIES` (``match.group(1)``
+    the bin number, or with ``group(2)`` the stencil offset dy, dx), else None."""
+    mt = _SPATIAL_CHANNEL.match(name)
+    if mt:
+        return "SpatialCovariance.<dy><dx>", mt
+    mt = _BIN_CHANNEL.match(name)
+    if mt:
+        return ("Bin<b>.Denoised" if mt.group(2) else "Bin<b>"), mt
+    return None
+
+
+def _summarise_families(info: dict) -> dict:
+    """:func:`exr_info`'s summary with the channel families of statmc's extensions — the
+    covariance stencil of ``render --crn`` (3·m² channels) and sample bins — collapsed to
+    one entry each, and named in ``layout``: ``covariance`` (``Covariance.RG/RB/GB``),
+    ``spatial_covariance`` (``"stencil MxM"``), ``bins`` (their number) and
+    ``bins_denoised``."""
+    members = {group: [] for group in _INFO_FAMILIES}   # family -> [match]
+    channels, family_of = {}, {}
+    for name, ptype in info["channels"].items():
+        fam = _info_family(name)
+        if fam:
+            group, mt = fam
+            members[group].append(mt)
+            family_of[name] = group
+            types = channels.setdefault(_INFO_FAMILIES[group], [])
+            if ptype not in types:
+                types.append(ptype)
+        else:
+            channels[name] = ptype
+    channels = {k: ", ".join(v) if isinstance(v, list) else v for k, v in channels.items()}
+    groups, nonfinite = {}, {}
+    for g, names in info["groups"].items():
+        rest = [n for n in names if n not in family_of]
+        for fam in dict.fromkeys(family_of[n] for n in names if n in family_of):
+            groups.setdefault(fam, None)                # filled in below, in this position
+        if rest:
+            groups[g] = rest
+        if g in info["nonfinite"]:
+            key = g if rest else family_of[names[0]]
+            c = nonfinite.setdefault(key, {"nan": 0, "inf": 0})
+            for k in ("nan", "inf"):
+                c[k] += info["nonfinite"][g][k]
+    stencil = None
+    if members["SpatialCovariance.<dy><dx>"]:
+        offs = {(int(m.group(1)), int(m.group(2))) for m in members["SpatialCovariance.<dy><dx>"]}
+        width = 2 * max(max(abs(dy), abs(dx)) for dy, dx in offs) + 1
+        k = len(members["SpatialCovariance.<dy><dx>"])
+        stencil = f"stencil {width}x{width}" + ("" if k == 3 * width * width else
+                                                 f" (partial: {k} of {3 * width * width} channels)")
+        groups["SpatialCovariance.<dy><dx>"] = (f"{stencil}: {len(offs)} offsets (dy, dx) x "
+                                                f"R,G,B = {k} channels")
+    nbins = {}
+    for fam in ("Bin<b>", "Bin<b>.Denoised"):
+        if members[fam]:
+            nbins[fam] = len({int(m.group(1)) for m in members[fam]})
+            groups[fam] = f"{nbins[fam]} bins x R,G,B = {len(members[fam])} channels"
+    layout = dict(info["layout"])
+    layout["covariance"] = all(c in info["channels"] for c in _COV)
+    layout["spatial_covariance"] = stencil
+    layout["bins"] = nbins.get("Bin<b>")
+    layout["bins_denoised"] = "Bin<b>.Denoised" in nbins
+    return dict(info, channels=channels, channel_count=len(info["channels"]), groups=groups,
+                layout=layout, nonfinite=nonfinite)
+
+
+def exr_info(path, *, families: bool = False) -> dict:
     """A JSON-ready summary of an EXR file (for ``statmc info``).
 
     Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
@@ -474,6 +550,14 @@ def exr_info(path) -> dict:
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
     (group → NaN and Inf counts, only groups that have any).
+
+    With ``families=True`` (what ``statmc info`` prints) the channel families of statmc's
+    extensions are collapsed to one entry each — the covariance stencil of ``render --crn``
+    (``SpatialCovariance.<dy><dx>.<R|G|B>``, 3·m² channels) and sample bins
+    (``Bin<b>.<R|G|B>``, ``Bin<b>.Denoised.<R|G|B>``) — in ``channels``, ``groups`` and
+    ``nonfinite``; ``channel_count`` gives the number of channels, and ``layout`` also
+    says ``covariance`` (``Covariance.RG/RB/GB`` present), ``spatial_covariance``
+    (``"stencil MxM"`` or None), ``bins`` (their number or None) and ``bins_denoised``.
     """
     p = _name(path)
     header, arrays, types = _open(p)
@@ -493,7 +577,7 @@ def exr_info(path) -> dict:
         sc = {"min": float(fin.min()), "mean": float(fin.mean()), "max": float(fin.max()),
               "total": float(fin.sum())} if fin.size else None
     disp = header.get("displayWindow", header["dataWindow"])
-    return {
+    info = {
         "path": p, "width": int(x1 - x0 + 1), "height": int(y1 - y0 + 1),
         "data_window": [int(x0), int(y0), int(x1), int(y1)],
         "display_window": [int(v) for v in np.concatenate([np.asarray(d) for d in disp])],
@@ -512,6 +596,7 @@ def exr_info(path) -> dict:
         "sample_count": sc,
         "nonfinite": nonfinite,
     }
+    return _summarise_families(info) if families else info
 
 
 # ---------------------------------------------------------------------------- writing

@@ -320,6 +320,29 @@ def test_exr_info(tmp_path):
     json.dumps(info)                                       # JSON-ready as is
 
 
+def test_exr_info_families(tmp_path):
+    """``families=True`` (what ``statmc info`` prints) collapses a stencil and sample bins
+    to one entry each and names them in ``layout``; the default lists every channel."""
+    s = _stats(np.random.default_rng(9), h=4, w=6)
+    rng = np.random.default_rng(1)
+    extra = {**exr.spatial_covariance_channels(rng.uniform(0, 1, (4, 6, 3, 3, 3)), s.n),
+             **exr.bin_channels(rng.uniform(0, 1, (2, 4, 6, 3)))}
+    p = tmp_path / "f.exr"
+    write_exr(p, s, extra=extra)
+    full, fam = exr_info(p), exr_info(p, families=True)
+    assert all(k in full["channels"] for k in extra) and "Bin<b>" not in full["groups"]
+    assert fam["channel_count"] == len(full["channels"])
+    assert fam["layout"] == {**full["layout"], "covariance": False,
+                             "spatial_covariance": "stencil 3x3", "bins": 2,
+                             "bins_denoised": False}
+    assert fam["groups"]["Bin<b>"] == "2 bins x R,G,B = 6 channels"
+    assert fam["groups"]["SpatialCovariance.<dy><dx>"].startswith("stencil 3x3: 9 offsets")
+    assert not any(k in fam["channels"] for k in extra)
+    assert {k: v for k, v in fam.items() if k not in ("channels", "groups", "layout",
+                                                      "channel_count")} == {
+        k: v for k, v in full.items() if k not in ("channels", "groups", "layout")}
+
+
 # ---------------------------------------------------------------------------- atomic writes
 def test_failed_write_leaves_existing_file_and_no_temp(tmp_path, monkeypatch):
     p = tmp_path / "out.exr"
