@@ -554,7 +554,15 @@ def combine_bias_variance(weights, var_y, cov_z, *, z_bias=None, y_bias=None, co
     bias = np.zeros((H, W, C))
     var = np.zeros((H, W, C))
     for b in range(B):
-        wb = {o: w[:, :, b, o[0] + r, o[1] + r].astype(np.float64) * _valid(H, W, *o) for o in offs}
+        # taps outside the image are never read (a NaN there stays out of the sums)
+        wb = {o: np.where(_valid(H, W, *o) > 0, w[:, :, b, o[0] + r, o[1] + r], 0.0)
+              .astype(np.float64) for o in offs}
+        bad = ~np.isfinite(sum(np.abs(x) for x in wb.values()))
+        if bad.any():
+            py, px = (int(i[0]) for i in np.nonzero(bad))
+            raise InputError(f"`weights` must be finite at the taps inside the image; "
+                             f"{int(bad.sum())} pixel(s) of buffer {b} fail, the first at "
+                             f"(row {py}, column {px}).")
         Wb = sum(wb.values())
         S = Wb - wb[(0, 0)]
         Wtot += Wb

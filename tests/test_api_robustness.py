@@ -344,3 +344,21 @@ def test_grey_image_refusal_says_how_to_add_the_channel_axis():
     with pytest.raises(InputError, match=r"got shape \(7, 9\)\. For a grey image add a "
                                          r"channel axis: `x\[\.\.\., None\]`"):
         sure.mc_sure(denoisers.gaussian(1.0), x[..., 0], v[..., 0])
+
+
+def test_combine_bias_variance_ignores_outside_taps_and_refuses_nan_inside():
+    """A NaN weight on a tap outside the image (documented as never read, and ignored by
+    ``combine``) made that pixel's bias and variance NaN; a NaN inside the image gave NaN
+    silently where ``combine`` raises."""
+    x, v, _, k = _inputs(6)
+    outside = k.copy()
+    outside[0, 0, 0, 0] = np.nan                    # tap (-2, -2) of the corner pixel
+    clean = k.copy()
+    clean[0, 0, 0, 0] = 0.0
+    for got, want in zip(combine.combine_bias_variance(outside, v, v, z_bias=x),
+                         combine.combine_bias_variance(clean, v, v, z_bias=x)):
+        np.testing.assert_array_equal(got, want)
+    inside = k.copy()
+    inside[3, 4, 2, 2] = np.nan
+    with pytest.raises(InputError, match=r"`weights` must be finite .* \(row 3, column 4\)"):
+        combine.combine_bias_variance(inside, v, v)
