@@ -311,7 +311,10 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
             f"`x_g` must be >= 0 for dist={dist!r} (a law on [0, ∞)); got "
             f"{int((xg < 0).sum())} negative values (min {xg.min():.4g}). Use "
             "dist='clipped_normal' for signed features such as normals.")
-    lo, hi = (float(b) for b in bounds)
+    try:
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError):             # None, a scalar, three numbers, strings
+        raise InputError(f"`bounds` must be (low, high), two numbers; got {bounds!r}.") from None
     if not lo <= hi:
         raise InputError(f"`bounds` must be (low, high) with low <= high; got {bounds!r}.")
     gen = _rng(rng)
@@ -713,6 +716,8 @@ def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss=
             "Render at least one sample per pixel first.")
     upper = None if max_count is None else _count_map("max_count", max_count, hw)
     b = _check_budget(budget, sb.size, upper)
+    max_iter = as_whole("max_iter", max_iter, lo=1, what="number of iterations")
+    rtol = as_number("rtol", rtol, lo=0.0)
     _check_rel_denominator(loss, eps, xg)
 
     def f(sv, grad=False):

@@ -362,3 +362,25 @@ def test_combine_bias_variance_ignores_outside_taps_and_refuses_nan_inside():
     inside[3, 4, 2, 2] = np.nan
     with pytest.raises(InputError, match=r"`weights` must be finite .* \(row 3, column 4\)"):
         combine.combine_bias_variance(inside, v, v)
+
+
+@pytest.mark.parametrize("bounds", [None, 1.0, (0.0, 1.0, 2.0)])
+def test_sample_future_bounds_must_be_a_pair(bounds):
+    """``bounds=None`` was "'NoneType' object is not iterable" (TypeError)."""
+    x, v, n, _ = _inputs(7)
+    with pytest.raises(InputError, match="`bounds` must be \\(low, high\\)"):
+        analytic.sample_future(x, n, n, x, v, dist="clipped_normal", bounds=bounds, rng=1)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(max_iter=0), "`max_iter` must be a whole number of iterations >= 1"),
+    (dict(max_iter=-1), "`max_iter` must be a whole"),
+    (dict(rtol=-1.0), "`rtol` must be >= 0"),
+    (dict(rtol=float("nan")), "`rtol` must be a finite number"),
+])
+def test_optimal_sample_map_checks_its_solver_options(kwargs, match):
+    """``max_iter <= 0`` returned the starting map as if solved, and a negative or NaN
+    ``rtol`` silently ran to ``max_iter``."""
+    x, v, n, k = _inputs(7)
+    with pytest.raises(InputError, match=match):
+        analytic.optimal_sample_map(k, x, n, x, v, 100, **kwargs)
