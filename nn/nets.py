@@ -35,8 +35,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import InputError, as_number
+from statmc.errors import InputError, as_float_array, as_number, check_finite
 from statmc.sampling import counts_from_density
+from statmc.stats import PixelStats
 
 from .features import feature_channels, pixel_features
 from .layout import kernels_to_numpy, weights_to_numpy
@@ -62,6 +63,23 @@ def _int(name, v, lo, odd=False):
         want = f"an odd int >= {lo}" if odd else f"an int >= {lo}"
         raise InputError(f"`{name}` must be {want}; got {v!r}.")
     return int(v)
+
+
+def _images(name, a, stats, count=None):
+    """``a`` as a float64 ``(E, H, W, C)`` stack of images shaped like ``stats.mean``:
+    ``count=None`` takes one ``(H, W, C)`` image (or a stack of one), else exactly ``count``."""
+    if not isinstance(stats, PixelStats):
+        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    shape = stats.mean.shape
+    arr = as_float_array(name, a, ndim=(3, 4) if count is None else 4, dtype=np.float64)
+    stack = arr if arr.ndim == 4 else arr[None]
+    want = (1 if count is None else count,) + shape
+    if stack.shape != want:
+        what = "an (H, W, C) image" if count is None else f"a ({count}, H, W, C) stack"
+        raise InputError(f"`{name}` must be {what} with (H, W, C) = {tuple(shape)} of "
+                         f"`stats.mean`; got shape {np.shape(a)}.")
+    check_finite(name, stack)
+    return stack
 
 
 class _Net(torch.nn.Module):
@@ -224,12 +242,15 @@ class CombinerNet(_Net):
             if ys is not None:
                 raise InputError("`ys` is for B > 1 bins; with buffers=1 the independent "
                                  "image is `stats.mean` and only `zs` (z) is given.")
-            return self._features(stats, extra=zs)
-        if ys is None or np.ndim(ys) != 4 or np.ndim(zs) != 4 \
-                or np.shape(ys)[0] != self.buffers or np.shape(zs) != np.shape(ys):
-            raise InputError(f"`ys` and `zs` must both be ({self.buffers}, H, W, C) bin stacks "
-                             f"for buffers={self.buffers}; got {np.shape(ys) if ys is not None else None} "
-                             f"and {np.shape(zs)}.")
+            if np.ndim(zs) == 4 and np.shape(zs)[0] != 1:
+                raise InputError(f"`zs` must be one (H, W, C) image z for buffers=1; got shape "
+                                 f"{np.shape(zs)}.  For bins use CombinerNet(buffers=B) with "
+                                 "`ys` and `zs` of shape (B, H, W, C).")
+            return self._features(stats, extra=_images("zs", zs, stats))
+        if ys is None:
+            raise InputError(f"`ys` must be given for buffers={self.buffers}: the "
+                             f"({self.buffers}, H, W, C) bins whose correlated estimates are `zs`.")
+        ys, zs = (_images(n, a, stats, self.buffers) for n, a in (("ys", ys), ("zs", zs)))
         return self._features(stats, extra=np.concatenate([ys, zs]))
 
     def weights(self, stats, zs, ys=None) -> np.ndarray:
@@ -311,7 +332,7 @@ class MixNet(_Net):
     def alpha(self, stats, y) -> np.ndarray:
         """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map."""
         with torch.no_grad():
-            a = self(self._features(stats, extra=y))
+            a = self(self._features(stats, extra=_images("y", y, stats)))
         return a[0, 0].cpu().numpy().astype(np.float64)
 
 

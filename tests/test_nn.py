@@ -328,6 +328,16 @@ def _nan_loss(model, step):
     (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), float("nan")), "budget", "finite"),
     (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), -1), "budget", ">="),
     (lambda: snn.feature_channels(3, budget=5), "budget", "bool"),
+    # the networks' NumPy methods name their own arguments (not pixel_features' `extra`)
+    (lambda: snn.MixNet().alpha(_ST, np.ones((4, 5, 1))), "y", "(4, 5, 3)"),
+    (lambda: snn.MixNet().alpha(_ST, np.full((4, 5, 3), np.nan)), "y", "NaN"),
+    (lambda: snn.MixNet().alpha(_ST.mean, _ST.mean), "stats", "PixelStats"),
+    (lambda: snn.CombinerNet(buffers=2).weights(_ST.mean, _ST.mean[None], _ST.mean[None]), "stats", "PixelStats"),
+    (lambda: snn.CombinerNet().weights(_ST, np.ones((4, 4, 3))), "zs", "(4, 5, 3)"),
+    (lambda: snn.CombinerNet().features(_ST, np.ones((2, 4, 5, 3))), "zs", "buffers=1"),
+    (lambda: snn.CombinerNet(buffers=2).weights(_ST, np.ones((2, 4, 5, 3)), np.full((2, 4, 5, 3), np.inf)),
+     "ys", "Inf"),
+    (lambda: snn.CombinerNet(buffers=2).weights(_ST, np.ones((2, 4, 5, 2)), np.ones((2, 4, 5, 2))), "ys", "(4, 5, 3)"),
     # training helpers
     (lambda: snn.relmse_loss(_IMG, _IMG.double()), "ref", "dtype"),
     (lambda: snn.relmse_loss(_IMG, _META), "ref", "device"),
