@@ -48,7 +48,7 @@ __all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS",
 
 #: ε of f_act (Eq. 19 of Firmino 2022): 1e-6, "to avoid the singularity" (§4.3).
 F_ACT_EPS = 1e-6
-#: Initial biases of f_act's outputs ``(x1, x2, x3)``: α starts at (1 − 0) / 1 = 0.5 with
+#: Initial biases of f_act's outputs ``(x1, x2, x3)``: α starts at (1 − 0) / 2 = 0.5 with
 #: ``x3`` far above ε.  Not from the paper (which gives no initialisation): with torch's
 #: default one, ``x3 < ε`` at nearly every pixel for 7 of 10 seeds (seed 0 among them), so
 #: ``(x1 − x2)/ε`` was clamped to 0 or 1 everywhere and no gradient flowed (session 10).

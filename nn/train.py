@@ -54,6 +54,20 @@ def relmse_loss(x, ref, eps: float = RELMSE_EPS):
     return torch.mean((x - ref) ** 2 / (ref * ref + eps))
 
 
+def _check_loss(loss, step):
+    """``InputError`` unless ``loss`` is a finite one-element tensor with a gradient."""
+    if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
+        raise InputError(f"`loss_fn` must return a scalar tensor; got {loss!r} at step {step}.")
+    if not loss.requires_grad:
+        raise InputError(f"`loss_fn` returned a loss without a gradient at step {step} "
+                         "(requires_grad is False): it must be computed from the "
+                         "model's output, outside torch.no_grad().")
+    if not bool(torch.isfinite(loss.detach()).all()):
+        raise InputError(f"`loss_fn` returned a non-finite loss ({float(loss.detach())}) "
+                         f"at step {step}; stopped before the optimiser step, so the "
+                         f"model keeps the weights it had after {step} steps.")
+
+
 def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dict:
     """Fit ``model`` with Adam: ``steps`` times ``loss = loss_fn(model, step)``, backward, step.
 
@@ -87,7 +101,7 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     Notes
     -----
     The model is in training mode (``model.train()``) during the run and is left in
-    evaluation mode (``model.eval()``).
+    evaluation mode (``model.eval()``), also when the run stops with an error.
     """
     if not isinstance(model, torch.nn.Module):
         raise InputError(f"`model` must be a torch.nn.Module; got {type(model).__name__}.")
@@ -102,24 +116,17 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     losses = []
     t0 = time.perf_counter()
     model.train()
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(int(seed))
-        for step in range(int(steps)):
-            loss = loss_fn(model, step)
-            if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
-                raise InputError(f"`loss_fn` must return a scalar tensor; got {loss!r} at step {step}.")
-            if not loss.requires_grad:
-                raise InputError(f"`loss_fn` returned a loss without a gradient at step {step} "
-                                 "(requires_grad is False): it must be computed from the "
-                                 "model's output, outside torch.no_grad().")
-            if not bool(torch.isfinite(loss.detach()).all()):
-                raise InputError(f"`loss_fn` returned a non-finite loss ({float(loss.detach())}) "
-                                 f"at step {step}; stopped before the optimiser step, so the "
-                                 f"model keeps the weights it had after {step} steps.")
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-    model.eval()
+    try:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(seed))
+            for step in range(int(steps)):
+                loss = loss_fn(model, step)
+                _check_loss(loss, step)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(float(loss.detach()))
+    finally:
+        model.eval()
     return {"losses": losses, "steps": int(steps), "lr": lr, "seed": int(seed),
             "optimizer": "Adam", "seconds": time.perf_counter() - t0}

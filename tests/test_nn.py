@@ -388,6 +388,7 @@ def test_nan_loss_stops_before_the_optimiser_step():
     with pytest.raises(InputError, match="step 0"):
         snn.train(net, _nan_loss, 3)
     assert all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
+    assert not net.training                      # left in eval mode, as after a full run
 
 
 # ============================================================================ features
