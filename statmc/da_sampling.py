@@ -329,6 +329,16 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         raise InputError("`progressive_options` must not set 'mean_var': the map takes σ² from "
                          "`stats.mean_var` everywhere. Pass stats with the variance you want "
                          "(PixelStats.from_mean_var).")
+    if progressive_options:
+        import inspect
+
+        from .progressive import progressive_denoise
+        known = set(inspect.signature(progressive_denoise).parameters) - {
+            "stats", "denoiser", "rng", "extra_output"}
+        unknown = sorted(set(progressive_options) - known)
+        if unknown:          # a TypeError from progressive_denoise, or silently unused
+            raise InputError(f"unknown `progressive_options` {unknown}; expected options of "
+                             f"progressive_denoise: {sorted(known)}.")
     gen = as_rng(rng)
     f = bind_denoiser(denoiser, stats) if isinstance(denoiser, str) else denoiser
     x = stats.mean

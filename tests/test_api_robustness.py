@@ -384,3 +384,15 @@ def test_optimal_sample_map_checks_its_solver_options(kwargs, match):
     x, v, n, k = _inputs(7)
     with pytest.raises(InputError, match=match):
         analytic.optimal_sample_map(k, x, n, x, v, 100, **kwargs)
+
+
+def test_unknown_progressive_options_are_refused():
+    """``progressive_options={'nope': 1}`` was a TypeError from progressive_denoise with
+    ``output='progressive'`` and silently unused otherwise."""
+    from statmc.da_sampling import denoising_aware_density
+    x, v, _, _ = _inputs(8)
+    st = PixelStats.from_mean_var(x, 8 * v, np.full((H, W), 8))
+    for output in ("progressive", "denoised"):
+        with pytest.raises(InputError, match=r"unknown `progressive_options` \['nope'\]"):
+            denoising_aware_density(st, denoisers.gaussian(1.0), output=output,
+                                    progressive_options={"nope": 1}, rng=1)
