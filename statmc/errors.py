@@ -121,16 +121,24 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
     return int(value)
 
 
-def as_whole(name: str, value, *, lo: int = 0, what: str = "number") -> int:
-    """``value`` as a Python int ``>= lo``: integers and whole-valued finite floats
-    (``12.0``, e.g. a budget computed in floating point).  A fraction, a bool, a string or
-    a non-finite number is an :class:`InputError`: "`name` must be a whole ``what`` >=
-    ``lo``"."""
+#: Largest sample budget accepted: counts are placed through float64 targets, exact up to
+#: 2**53 (a budget of 2**56 came back 6 samples off, 2**63 overflowed the kernels).
+MAX_BUDGET = 2 ** 53
+
+
+def as_whole(name: str, value, *, lo: int = 0, what: str = "number",
+             hi: int | None = None) -> int:
+    """``value`` as a Python int ``>= lo`` (and ``<= hi`` if given): integers and
+    whole-valued finite floats (``12.0``, e.g. a budget computed in floating point).  A
+    fraction, a bool, a string or a non-finite number is an :class:`InputError`:
+    "`name` must be a whole ``what`` >= ``lo``"."""
     ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
     if ok and not isinstance(value, numbers.Integral):
         ok = bool(np.isfinite(value)) and float(value) == np.floor(value)
     if not ok or value < lo:
         raise InputError(f"`{name}` must be a whole {what} >= {lo}; got {value!r}.")
+    if hi is not None and value > hi:
+        raise InputError(f"`{name}` must be a whole {what} <= {hi}; got {value!r}.")
     return int(value)
 
 

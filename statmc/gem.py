@@ -38,8 +38,8 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import (InputError, as_float_array, as_number, as_rng, as_whole, check_finite,
-                     check_nonnegative)
+from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
+                     check_finite, check_nonnegative)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
@@ -1128,7 +1128,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     if n is None:
         raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
-    budget = as_whole("budget", budget)
+    budget = as_whole("budget", budget, hi=MAX_BUDGET)
     eps = float(eps)
     if not eps > 0 or not math.isfinite(eps):
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")

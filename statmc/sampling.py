@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import (InputError, as_float_array, as_rng, as_whole, check_finite,
+from .errors import (MAX_BUDGET, InputError, as_float_array, as_rng, as_whole, check_finite,
                      check_nonnegative)
 
 __all__ = ["counts_from_density"]
@@ -43,7 +43,7 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     d = as_float_array("density", density, ndim=2, dtype=np.float64)
     check_finite("density", d)
     check_nonnegative("density", d)
-    budget = as_whole("budget", budget, what="number of samples")
+    budget = as_whole("budget", budget, what="number of samples", hi=MAX_BUDGET)
     min_count = as_whole("min_count", min_count, what="number of samples")
     if d.size == 0:
         if budget:

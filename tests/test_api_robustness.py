@@ -396,3 +396,17 @@ def test_unknown_progressive_options_are_refused():
         with pytest.raises(InputError, match=r"unknown `progressive_options` \['nope'\]"):
             denoising_aware_density(st, denoisers.gaussian(1.0), output=output,
                                     progressive_options={"nope": 1}, rng=1)
+
+
+def test_budgets_beyond_float64_integers_are_refused():
+    """Counts are placed through float64 targets: a budget of 2**56 + 12345 came back 6
+    samples off (the sum must equal the budget) and 2**63 overflowed (OverflowError in
+    counts_from_density, numba's SystemError in gem.sampling_map).  2**53 is exact."""
+    x, v, n, _ = _inputs(8)
+    d = v[..., 0]
+    assert int(sampling.counts_from_density(d, 2 ** 53, rng=1).sum(dtype=object)) == 2 ** 53
+    for budget in (2 ** 53 + 1, 2 ** 56 + 12345, 2 ** 63):
+        with pytest.raises(InputError, match=r"`budget` must be a whole .*<= 9007199254740992"):
+            sampling.counts_from_density(d, budget, rng=1)
+        with pytest.raises(InputError, match=r"`budget` must be a whole .*<= 9007199254740992"):
+            gem.sampling_map(x, v, n, budget, rng=1)
