@@ -31,7 +31,8 @@ import math
 import numpy as np
 
 from . import _filter_kernels as _k
-from .errors import InputError, as_float_array, check_finite, check_nonnegative, check_same_shape
+from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
+                     check_same_shape)
 
 __all__ = [
     "ADAPTIVE_SIGMAS", "FINAL_SIGMAS", "DEFAULT_TRUNCATE",
@@ -89,7 +90,8 @@ def gaussian_kernel_1d(sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> n
         return np.ones(1)
     r = max(1, int(math.ceil(t * s - 1e-9)))  # 3·2.0 -> 6, not 7 after rounding noise
     k = np.arange(-r, r + 1, dtype=np.float64)
-    w = np.exp(-0.5 * (k / s) ** 2)
+    with np.errstate(over="ignore"):             # σ ~ 1e-300: (k/σ)² = inf, weight 0
+        w = np.exp(-0.5 * (k / s) ** 2)
     return w / w.sum()
 
 
@@ -110,8 +112,13 @@ def kernel_moment2(sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> float
 def border_scale(n: int, w: np.ndarray) -> np.ndarray:
     """Renormalisation factors ``1 / Σ_{k in image} w_k`` for each of ``n`` positions.
 
-    Equal to 1 away from the border, where the taps sum to one.
+    Equal to 1 away from the border, where the taps sum to one.  ``w`` is a centred 1-D
+    kernel of odd length (:func:`gaussian_kernel_1d`).
     """
+    n = as_int("n", n, lo=0)
+    w = as_float_array("w", w, ndim=1)
+    if len(w) % 2 == 0:
+        raise InputError(f"`w` must be a centred kernel of odd length; got length {len(w)}.")
     r = len(w) // 2
     c = np.concatenate([[0.0], np.cumsum(w)])
     pos = np.arange(n)

@@ -442,8 +442,8 @@ def estimate_mse(values, variances, r2, scales) -> np.ndarray:
     -------
     (H, W, C) ndarray, >= 0
     """
-    v = np.asarray(values)
-    var = np.asarray(variances, dtype=v.dtype)
+    v = as_float_array("values", values)          # float16, big-endian: numba types neither
+    var = as_float_array("variances", variances, dtype=v.dtype)
     s = np.asarray(scales)
     if v.ndim != 4 or var.shape != v.shape or s.shape != v.shape[1:3]:
         raise InputError(f"`values`, `variances` must be (K, H, W, C) and `scales` (H, W); "

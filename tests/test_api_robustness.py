@@ -410,3 +410,31 @@ def test_budgets_beyond_float64_integers_are_refused():
             sampling.counts_from_density(d, budget, rng=1)
         with pytest.raises(InputError, match=r"`budget` must be a whole .*<= 9007199254740992"):
             gem.sampling_map(x, v, n, budget, rng=1)
+
+
+def test_estimate_mse_takes_float16_and_big_endian_banks():
+    """gem.estimate_mse handed its arrays to the kernel as given: float16 raised numba's
+    NotImplementedError and '>f8'/'>f4' its TypingError."""
+    x, v, _, _ = _inputs(9)
+    sig = [0.0, 1.0, 2.0]
+    vals, vars_ = filters.filter_bank(x, v, sig)
+    r2 = np.array([filters.kernel_moment2(s) for s in sig])
+    scales = np.random.default_rng(9).integers(0, 3, (H, W))
+    want = gem.estimate_mse(vals, vars_, r2, scales)
+    got = gem.estimate_mse(vals.astype(">f8"), vars_.astype(">f8"), r2, scales.astype(">i8"))
+    np.testing.assert_array_equal(got, want)
+    half = gem.estimate_mse(vals.astype(np.float16), vars_.astype(np.float16), r2, scales)
+    want32 = gem.estimate_mse(vals.astype(np.float16).astype(np.float32),
+                              vars_.astype(np.float16).astype(np.float32), r2, scales)
+    assert half.dtype == np.float32
+    np.testing.assert_array_equal(half, want32)
+
+
+@pytest.mark.parametrize("n,w,match", [
+    (2.5, [0.25, 0.5, 0.25], "`n` must be a non-negative integer"),    # was IndexError
+    (-1, [0.25, 0.5, 0.25], "`n` must be a non-negative integer"),     # was an empty array
+    (5, [0.5, 0.5], "`w` must be a centred kernel of odd length"),    # was IndexError
+])
+def test_border_scale_checks_its_arguments(n, w, match):
+    with pytest.raises(InputError, match=match):
+        filters.border_scale(n, w)
