@@ -56,8 +56,8 @@ import numbers
 
 import numpy as np
 
-from .errors import (InputError, as_broadcast_arrays, as_float_array, as_int, as_rng,
-                     check_finite)
+from .errors import (MAX_BUDGET, InputError, as_broadcast_arrays, as_float_array, as_rng,
+                     as_whole, check_finite)
 from .stats import PixelStats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -406,7 +406,8 @@ def denoising_aware_map(stats: PixelStats, denoiser, budget: int, *, rng=None, *
     """
     from .sampling import counts_from_density
 
-    budget = as_int("budget", budget, lo=0)
+    # a whole float (spp·H·W computed in floating point) is a budget, as in the other samplers
+    budget = as_whole("budget", budget, what="number of samples", hi=MAX_BUDGET)
     gen = as_rng(rng)
     density = denoising_aware_density(stats, denoiser, rng=gen, **options)
     return counts_from_density(density, budget, rng=gen)

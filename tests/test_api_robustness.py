@@ -438,3 +438,17 @@ def test_estimate_mse_takes_float16_and_big_endian_banks():
 def test_border_scale_checks_its_arguments(n, w, match):
     with pytest.raises(InputError, match=match):
         filters.border_scale(n, w)
+
+
+def test_denoising_aware_map_takes_a_whole_float_budget():
+    """``budget=100.0`` (spp·H·W computed in floating point) was refused by
+    denoising_aware_map ("must be a non-negative integer") while counts_from_density,
+    gem.sampling_map and the other samplers accept whole floats."""
+    from statmc.da_sampling import denoising_aware_map
+    x, v, _, _ = _inputs(10)
+    st = PixelStats.from_mean_var(x, 8 * v, np.full((H, W), 8))
+    g = denoisers.gaussian(1.0)
+    np.testing.assert_array_equal(denoising_aware_map(st, g, 100.0, rng=1),
+                                  denoising_aware_map(st, g, 100, rng=1))
+    with pytest.raises(InputError, match="`budget` must be a whole number of samples >= 0"):
+        denoising_aware_map(st, g, 100.5, rng=1)
