@@ -53,6 +53,10 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     base_total = min_count * d.size
     if base_total > budget:
         raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
+    with np.errstate(over="ignore"):
+        total = d.sum()
+    if not np.isfinite(total):      # values near float64's maximum: only the sum overflows
+        d = d / d.max()             # (it was a ZeroDivisionError); any scale is the same map
     return _systematic_round(d, budget - base_total, min_count, as_rng(rng))
 
 

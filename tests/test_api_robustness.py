@@ -452,3 +452,11 @@ def test_denoising_aware_map_takes_a_whole_float_budget():
                                   denoising_aware_map(st, g, 100, rng=1))
     with pytest.raises(InputError, match="`budget` must be a whole number of samples >= 0"):
         denoising_aware_map(st, g, 100.5, rng=1)
+
+
+def test_counts_from_density_near_the_float64_maximum():
+    """A density whose sum overflows (entries near 1.8e308, each finite) raised the
+    kernel's ZeroDivisionError; the map is scale-free, so it equals the rescaled one."""
+    d = np.array([[1e308, 1e308], [1e300, 0.0]])
+    np.testing.assert_array_equal(sampling.counts_from_density(d, 101, rng=3),
+                                  sampling.counts_from_density(d / 1e308, 101, rng=3))
