@@ -387,17 +387,29 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
         except ET.ParseError as e:
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
         sensors = root.findall("sensor")        # the scene's own, not a batch's parts
-        film = sensors[sensor].find("film") if sensor < len(sensors) else None
+        if sensor >= len(sensors):
+            raise InputError(f"`sensor` must be the index of one of the {len(sensors)} "
+                             f"sensors written in scene file {str(path)!r} (0 to "
+                             f"{len(sensors) - 1}); got {sensor}.")
+        film = sensors[sensor].find("film")
         if film is None:
             raise InputError(f"scene file {str(path)!r} has no <film> in <sensor> number "
                              f"{sensor} (of {len(sensors)} written in the file), so its size "
                              "cannot be set; add one or leave `width`/`height` unset.")
         crop = [el.get("name") for el in film if str(el.get("name", "")).startswith("crop_")]
         if (width is not None or height is not None) and crop:
-            raise InputError(f"scene file {str(path)!r} has a film with a crop window "
-                             f"({', '.join(crop)}), which a new film size would not resize; "
-                             "remove the crop window from the film or leave `width`/`height` "
-                             "unset.")
+            # a new size is refused, the crop window's own size is no change
+            scene = mi.load_file(str(path), **params)
+            cw, ch = (int(v) for v in scene.sensors()[sensor].film().crop_size())
+            if (width or cw, height or ch) != (cw, ch):
+                raise InputError(f"scene file {str(path)!r} has a film with a crop window "
+                                 f"({', '.join(crop)}) of {cw}x{ch}, which a new film size "
+                                 f"{width or cw}x{height or ch} would not resize; make the "
+                                 f"size the crop window's, {cw}x{ch}, or leave `width`/`height` "
+                                 "unset, or remove the crop window from the film.")
+            if not force_box:
+                return scene
+            width = height = None
         for name, value in (("width", width), ("height", height)):
             if value is None:
                 continue
@@ -464,7 +476,8 @@ class MitsubaRenderer:
         A built-in scene name (:data:`statmc.scenes.BUILTIN_SCENES`), a path to a
         Mitsuba XML file, or an already loaded scene.
     width, height : int, optional
-        Image size; default: the scene's own.
+        Image size; default: the scene's own (for an XML file whose film has a crop
+        window, only the window's size: a new one would not resize the window).
     variant : str, optional
         Mitsuba variant (see :func:`setup_mitsuba`); default ``llvm_ad_rgb`` when LLVM
         >= 16 is found, else ``scalar_rgb``.

@@ -1722,3 +1722,23 @@ def test_render_sensor_picks_a_camera_of_the_file(tmp_path):
         assert code == 2 and err.count("\n") == 1 and needle in err, err
     code, _, err = run_cli("render", "toy:mixed", "--spp", 2, "--sensor", 0, "--out", tmp_path / "b")
     assert code == 2 and "leave --sensor out" in err, err
+
+
+@pytest.mark.mitsuba
+def test_render_cropped_film_with_a_sample_map_of_its_size(tmp_path):
+    # regression: a sample map sets the render's size, and the crop window's own size was
+    # refused as a resize, telling the user to omit a --size they had not given
+    scene = _user_xml(tmp_path, sampler_spp="4")
+    text = scene.read_text().replace(
+        '<rfilter type="box"/>', '<rfilter type="box"/><integer name="crop_offset_x" value="2"/>'
+        '<integer name="crop_width" value="5"/><integer name="crop_height" value="3"/>')
+    scene.write_text(text)
+    np.save(tmp_path / "map.npy", np.full((3, 5), 2.0))
+    code, _, err = run_cli("render", scene, "--sample-map", tmp_path / "map.npy",
+                           "--out", tmp_path / "a", "-q")
+    assert code == 0 and err == "", err
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert (rep["width"], rep["height"], rep["total_samples"]) == (5, 3, 30)
+    code, _, err = run_cli("render", scene, "--spp", 2, "--size", "6x3", "--out", tmp_path / "b")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "new film size 6x3 would not resize; make the size the crop window's, 5x3, or omit --size" in err

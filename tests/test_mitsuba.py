@@ -883,8 +883,15 @@ def test_crop_window_renders_the_window_and_refuses_a_new_size(tmp_path):
     p = sps.chi2.sf(chi2, z.size)
     assert p > ALPHA, f"crop window vs mi.render: chi2/k = {chi2 / z.size:.3f}, p = {p:.3g}"
     # regression: --size on a cropped film was Mitsuba's "Invalid crop window" from "string"
-    with pytest.raises(InputError, match="crop window .*crop_offset_x.*leave `width`/`height`"):
+    with pytest.raises(InputError, match="crop window .*crop_offset_x.* of 6x5, .*new film size "
+                                         "8x6.*make the size the crop window's.*leave `width`"):
         mb.MitsubaRenderer(path, width=8, height=6)
+    # regression: the crop window's own size was refused too (a sample map of the render's
+    # shape sets it), saying to leave the size unset; it is no change of size
+    same = mb.MitsubaRenderer(path, width=6, height=5)
+    assert (same.height, same.width) == (5, 6)
+    np.testing.assert_array_equal(same.render_uniform(4, seed=5, features=False).mean,
+                                  r.render_uniform(4, seed=5, features=False).mean)
 
 
 def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
@@ -915,6 +922,9 @@ def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
     for bad, word in ((2, "one of the 2 sensors"), (-1, "sensor"), (1.0, "sensor")):
         with pytest.raises(InputError, match=word):
             mb.MitsubaRenderer(path, sensor=bad)
+    # regression: with a size, a sensor past the last said to add a <film> to it
+    with pytest.raises(InputError, match=r"`sensor` must be .* one of the 2 sensors .*got 2"):
+        mb.MitsubaRenderer(path, sensor=2, width=4, height=3)
 
 
 def test_nonfinite_samples_warn(tmp_path):
