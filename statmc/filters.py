@@ -127,6 +127,29 @@ def border_scale(n: int, w: np.ndarray) -> np.ndarray:
     return 1.0 / (c[hi] - c[lo])
 
 
+#: Kernels with more taps on a side than this are cut to the taps that can reach the image.
+_MAX_FULL_RADIUS = 4096
+
+
+def _taps(sigma, truncate, n):
+    """:func:`gaussian_kernel_1d` for an image whose longer side has ``n`` pixels.
+
+    A tap farther than ``n − 1`` pixels from the centre only ever meets the zero padding,
+    so when the kernel is much longer than the image (``σ`` of 1e6 took 41 s on 64×64 and
+    1e9 a 45 GiB kernel) it is cut to the ``2(n − 1) + 1`` central taps and renormalised.
+    Every use renormalises over the in-image taps (border scale), so the result is the
+    same up to rounding; kernels up to :data:`_MAX_FULL_RADIUS` taps a side are unchanged.
+    """
+    s = _check_sigma(sigma)
+    t = _check_truncate(truncate)
+    r = max(1, int(math.ceil(t * s - 1e-9))) if s > 0 else 0
+    if r <= max(n - 1, _MAX_FULL_RADIUS):
+        return gaussian_kernel_1d(s, truncate=t)
+    k = np.arange(-(n - 1), n, dtype=np.float64)
+    w = np.exp(-0.5 * (k / s) ** 2)
+    return w / w.sum()
+
+
 def _as_image(name, a, dtype=None):
     arr = as_float_array(name, a, ndim=(2, 3), dtype=dtype)
     check_finite(name, arr)
@@ -143,7 +166,7 @@ def _run(x, c, v, cv, sigma, truncate, *, normalize=True, out_x=None, out_v=None
     """One scale through the kernel on (H, W*C) rows; returns (value, variance-or-None)."""
     h, L = x.shape
     wd = L // c
-    w = gaussian_kernel_1d(sigma, truncate=truncate)
+    w = _taps(sigma, truncate, max(h, wd))
     if normalize:
         sy, sx = border_scale(h, w), border_scale(wd, w)
     else:
@@ -196,8 +219,8 @@ def gaussian_spread(amount, sigma: float, *, truncate: float = DEFAULT_TRUNCATE)
     if s == 0.0 or a.size == 0:
         return a.copy()
     x, c = _rows(a)
-    w = gaussian_kernel_1d(s, truncate=truncate)
     h, wd = a.shape[:2]
+    w = _taps(s, truncate, max(h, wd))          # the kernel _run uses below
     pre = (border_scale(h, w)[:, None] * border_scale(wd, w)[None, :]).astype(x.dtype)
     x = (x.reshape(h, wd, c) * pre[:, :, None]).reshape(h, wd * c)
     out, _ = _run(x, c, None, 0, s, truncate, normalize=False)

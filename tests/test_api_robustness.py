@@ -460,3 +460,18 @@ def test_counts_from_density_near_the_float64_maximum():
     d = np.array([[1e308, 1e308], [1e300, 0.0]])
     np.testing.assert_array_equal(sampling.counts_from_density(d, 101, rng=3),
                                   sampling.counts_from_density(d / 1e308, 101, rng=3))
+
+
+def test_gaussian_wider_than_the_image():
+    """The kernel was built and run at full length whatever the image: σ = 1e6 took 41 s
+    on a 64×64 image and σ = 1e9 asked for a 45 GiB kernel (MemoryError).  Taps beyond the
+    image only meet zero padding, so the result must equal the dense reference, the
+    per-channel image mean in the limit, and the spread must keep the total."""
+    x, v, _, _ = _inputs(11)
+    got = filters.filter_bank(x, v, [2000.0])                 # 6000 taps a side > 4096
+    want = filters.filter_bank_reference(x, v, [2000.0])
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-12)
+    np.testing.assert_allclose(got[1], want[1], rtol=1e-12)
+    flat = filters.gaussian_filter(x, 1e9)
+    np.testing.assert_allclose(flat, np.broadcast_to(x.mean(axis=(0, 1)), x.shape), rtol=1e-12)
+    assert filters.gaussian_spread(v, 1e9).sum() == pytest.approx(v.sum(), rel=1e-12)
