@@ -424,8 +424,9 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
     x, ref : (H, W, C) or (H, W) ndarray
     per_pixel : bool
         Maps ``(H, W)`` instead of floats.
-    include : iterable of str, optional
-        Names from :data:`METRICS` to compute (all by default).  FLIP needs 1- or
+    include : str or iterable of str, optional
+        Names from :data:`METRICS` to compute (all by default; one name may be given
+        alone).  FLIP needs 1- or
         3-channel images (and clips negative values to 0); leave it out otherwise.
 
     Returns
@@ -437,6 +438,8 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
         a test image <= −1), so that it does not stop the other metrics; call
         :func:`logloss` directly to get the error instead.
     """
+    if isinstance(include, str):               # one name: not its letters
+        include = [include]
     names = list(METRICS) if include is None else list(include)
     unknown = [n for n in names if n not in METRICS]
     if unknown:

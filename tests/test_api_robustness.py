@@ -475,3 +475,11 @@ def test_gaussian_wider_than_the_image():
     flat = filters.gaussian_filter(x, 1e9)
     np.testing.assert_allclose(flat, np.broadcast_to(x.mean(axis=(0, 1)), x.shape), rtol=1e-12)
     assert filters.gaussian_spread(v, 1e9).sum() == pytest.approx(v.sum(), rel=1e-12)
+
+
+def test_all_metrics_takes_one_name_as_a_string():
+    """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
+    'l', 'm', 's', 'e']"."""
+    from statmc.metrics import all_metrics, relmse
+    x, _, _, _ = _inputs(12)
+    assert all_metrics(x, 1.1 * x, include="relmse") == {"relmse": relmse(x, 1.1 * x)}
