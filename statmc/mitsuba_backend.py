@@ -451,8 +451,11 @@ def _check_integrator(mi, integrator, name: str) -> None:
 
 def _scalar_ready(film) -> bool:
     """Whether one-sample ``mi.render`` images of ``film`` are the samples of its pixels
-    with R, G, B first: a box filter and an ``rgb``/``rgba`` pixel format."""
-    return film.rfilter().is_box_filter() and film.base_channels_count() in (3, 4)
+    with R, G, B first: a box filter and an ``rgb``/``rgba`` pixel format (not ``xyz``,
+    which has three channels too; the film's description is the one place that says)."""
+    fmt = re.search(r"pixel_format = (\w+)", str(film))
+    return (film.rfilter().is_box_filter() and fmt is not None
+            and fmt.group(1).lower() in ("rgb", "rgba"))
 
 
 def _warn_filter(film, name: str) -> None:

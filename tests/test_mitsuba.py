@@ -603,6 +603,30 @@ def test_scalar_variant_takes_any_film_of_a_file_and_refuses_a_loaded_one(tmp_pa
         _ensure_variant(cornell)
 
 
+def test_scalar_variant_renders_an_xyz_film_in_rgb(tmp_path, cornell, mi):
+    # regression: an xyz film passed the scalar fallback's check (three channels), so its
+    # one-sample mi.render images, X, Y, Z, were taken for R, G, B: a furnace of radiance
+    # (1, 0.2, 0.1) rendered (0.52, 0.38, 0.14); a loaded scene with one was accepted too
+    ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
+            '</bsdf></shape><emitter type="constant"><rgb name="radiance" value="1, 0.2, 0.1"/>'
+            '</emitter>')
+    path = _xml_scene(tmp_path, ball, film='<rfilter type="box"/><string name="pixel_format" '
+                      'value="xyz"/>', sensor='<transform name="to_world"><lookat '
+                      'origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>')
+    try:
+        s = mb.MitsubaRenderer(path, variant="scalar_rgb").render_uniform(16, seed=2,
+                                                                         features=False)
+        for c, value in enumerate((1.0, 0.2, 0.1)):
+            p, msg = _ttest_zero(s.mean[..., c] - value, f"scalar xyz-film furnace, channel {c}")
+            assert p > ALPHA, msg
+        d = load_scene_dict("cornell-box", 8, 8)
+        d["sensor"]["film"]["pixel_format"] = "xyz"
+        with pytest.raises(InputError, match="box filter and an RGB pixel_format"):
+            mb.MitsubaRenderer(mi.load_dict(d), variant="scalar_rgb")
+    finally:
+        _ensure_variant(cornell)
+
+
 # ------------------------------------------------------------------ common random numbers
 CRN_RENDERS = 48
 CRN_SPP = 4
