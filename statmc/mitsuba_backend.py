@@ -372,6 +372,11 @@ def _mitsuba_message(path: Path, e: Exception) -> str:
     return f"Mitsuba could not load scene file {str(path)!r}: {msg}."
 
 
+def _attribute_text(root) -> str:
+    """All attribute values of an XML tree, where Mitsuba substitutes ``$name``."""
+    return "\n".join(v for el in root.iter() for v in el.attrib.values())
+
+
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool,
               params: dict | None = None, sensor: int = 0):
     """Load a Mitsuba XML scene (``params``: values of its ``$name`` parameters),
@@ -386,6 +391,7 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
             root = ET.parse(path).getroot()
         except ET.ParseError as e:
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
+        before = _attribute_text(root)
         sensors = root.findall("sensor")        # the scene's own, not a batch's parts
         if sensor >= len(sensors):
             raise InputError(f"`sensor` must be the index of one of the {len(sensors)} "
@@ -422,6 +428,10 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
                 film.remove(el)
             ET.SubElement(film, "rfilter", type="box")
             ET.SubElement(film, "string", name="pixel_format", value="rgb")
+        # a $name used only in a setting replaced above has no use left (the size given
+        # wins): leave it out, as Mitsuba refuses unused parameters
+        after = _attribute_text(root)
+        params = {k: v for k, v in params.items() if f"${k}" in after or f"${k}" not in before}
         mi.file_resolver().prepend(str(path.resolve().parent))
         return mi.load_string(ET.tostring(root, encoding="unicode"), **params)
     except InputError:
@@ -492,7 +502,8 @@ class MitsubaRenderer:
     params : mapping, optional
         Values of the ``$name`` parameters of an XML scene file (``{"spp": 64}``, as
         ``mitsuba -D spp=64``); they override the file's ``<default>`` values, and a
-        parameter the file does not use is an error (Mitsuba's).
+        parameter the file does not use is an error (Mitsuba's); one used only for the
+        film's size gives way to ``width``/``height``.
 
     Attributes
     ----------

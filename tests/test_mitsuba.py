@@ -627,6 +627,35 @@ def test_scalar_variant_renders_an_xyz_film_in_rgb(tmp_path, cornell, mi):
         _ensure_variant(cornell)
 
 
+def test_parameters_of_replaced_film_settings_are_not_unused(tmp_path, cornell):
+    # regression: the scalar fallback replaces the film's filter and pixel format, and a
+    # size replaces its width: a $name used only there was then Mitsuba's "Found unused
+    # parameters" error (the file loaded in llvm_ad_rgb without a size)
+    ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
+            '</bsdf></shape><emitter type="constant"/>')
+    path = _xml_scene(tmp_path, ball, film='<rfilter type="gaussian"><float name="stddev" '
+                      'value="$sd"/></rfilter><string name="pixel_format" value="$pf"/>',
+                      sensor='<transform name="to_world"><lookat origin="0, 0, 4" '
+                      'target="0, 0, 0" up="0, 1, 0"/></transform>')
+    path.write_text(path.read_text().replace('name="width" value="8"', 'name="width" value="$w"'))
+    params = {"sd": 0.4, "pf": "rgb", "w": 8}
+    try:
+        with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+            r = mb.MitsubaRenderer(path, variant="scalar_rgb", params=params)
+        s = r.render_uniform(4, seed=2, feature_spp=1)
+        assert s.mean.shape == (8, 8, 3)
+        with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+            r = mb.MitsubaRenderer(path, variant="scalar_rgb", params=params, width=5, height=3)
+        assert (r.height, r.width) == (3, 5)
+    finally:
+        _ensure_variant(cornell)
+    with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+        r = mb.MitsubaRenderer(path, params=params, width=6, height=4)   # --size wins over $w
+    assert (r.height, r.width) == (4, 6)
+    with pytest.raises(InputError, match="unused parameters"):          # one it never used
+        mb.MitsubaRenderer(path, params={**params, "other": 1}, width=6, height=4)
+
+
 # ------------------------------------------------------------------ common random numbers
 CRN_RENDERS = 48
 CRN_SPP = 4
