@@ -656,6 +656,33 @@ def test_parameters_of_replaced_film_settings_are_not_unused(tmp_path, cornell):
         mb.MitsubaRenderer(path, params={**params, "other": 1}, width=6, height=4)
 
 
+def test_scalar_variant_renders_the_chosen_sensor(tmp_path, cornell):
+    # sensor=1 in the scalar fallback: its film (not the first sensor's) is reloaded with a
+    # box filter (a warning says its Gaussian is not used), and mi.render renders it for
+    # the samples and for the features (no test rendered a sensor other than 0 there)
+    ball = ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1"/>'
+            '</bsdf></shape><emitter type="constant"/>')
+    second = ('<sensor type="orthographic"><transform name="to_world"><lookat origin="4, 0, 0" '
+              'target="0, 0, 0" up="0, 1, 0"/></transform><film type="hdrfilm"><integer '
+              'name="width" value="6"/><integer name="height" value="5"/><rfilter '
+              'type="gaussian"/></film></sensor>')
+    path = _xml_scene(tmp_path, second + ball, sensor='<transform name="to_world"><lookat '
+                      'origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>')
+    try:
+        with pytest.warns(RuntimeWarning, match="GaussianFilter is not used"):
+            r = mb.MitsubaRenderer(path, variant="scalar_rgb", sensor=1)
+        s = r.render_uniform(16, seed=3, feature_spp=2)
+        assert s.mean.shape == s.albedo.shape == s.normal.shape == (5, 6, 3)
+        assert s.meta["sensor"] == 1
+        # the white furnace: every sample's expectation is 1
+        p, msg = _ttest_zero((s.mean - 1.0).mean(-1), "scalar sensor-1 furnace error")
+        assert p > ALPHA, msg
+        # the sphere's normals, seen from +x, point to +x
+        assert s.normal[2, 3, 0] > 0.9
+    finally:
+        _ensure_variant(cornell)
+
+
 # ------------------------------------------------------------------ common random numbers
 CRN_RENDERS = 48
 CRN_SPP = 4
@@ -907,6 +934,10 @@ def test_a_film_filter_that_is_not_used_and_a_scene_without_light_warn(tmp_path)
     path = _xml_scene(tmp_path, ball)
     with pytest.warns(RuntimeWarning, match="no emitter, so every pixel renders black"):
         r = mb.MitsubaRenderer(path)
+    with warnings.catch_warnings():         # a depth integrator needs no light
+        warnings.simplefilter("error")
+        mb.MitsubaRenderer(_xml_scene(tmp_path, ball, name="depth.xml",
+                                      integrator='<integrator type="depth"/>'))
     assert not r.render_uniform(2, features=False).mean.any()
 
 
