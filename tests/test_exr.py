@@ -341,6 +341,14 @@ def test_exr_info_families(tmp_path):
     assert {k: v for k, v in fam.items() if k not in ("channels", "groups", "layout",
                                                       "channel_count")} == {
         k: v for k, v in full.items() if k not in ("channels", "groups", "layout")}
+    # a family stands where its first member's group stood (EXR's sorted channel order)
+    assert list(fam["groups"]) == ["Albedo", "R+G+B", "Bin<b>", "N", "SampleCount",
+                                   "SpatialCovariance.<dy><dx>", "Variance", "Z"]
+    # a stencil missing channels says so (an offset's three channels dropped here)
+    part = {k: v for k, v in extra.items() if not k.startswith("SpatialCovariance.+1+1.")}
+    write_exr(p, s, extra=part)
+    assert (exr_info(p, families=True)["layout"]["spatial_covariance"]
+            == "stencil 3x3 (partial: 24 of 27 channels)")
 
 
 # ---------------------------------------------------------------------------- atomic writes
