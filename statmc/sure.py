@@ -71,6 +71,19 @@ def _image(x):
     return arr
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _check_float32(name, x):
+    """The denoiser protocol passes float32 images: larger values became Inf on the way
+    (reported as a non-finite `color`), so say what the caller can do."""
+    m = float(np.abs(x).max())
+    if m > _F32_MAX:
+        raise InputError(f"`{name}` holds values up to {m:.3g} in magnitude, beyond float32's "
+                         f"range ({_F32_MAX:.3g}); denoisers are called on float32 images. "
+                         f"Rescale `{name}` (and its variance by the square of the factor).")
+
+
 class _Noise:
     """The covariance of ``x``: diagonal ``(H, W, C)`` or per-pixel ``(H, W, C, C)``."""
 
@@ -294,6 +307,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     k = as_int("k", k)
     f = _check_denoiser(denoiser)
     gen = as_rng(rng)
+    _check_float32("x", xx)
     fx = _call(f, xx.astype(np.float32))
     calls = 1
     h = _step(eps, relative, xx, noise)
@@ -412,6 +426,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
         raise InputError("`method`='jvp' needs a torch module or statmc.denoisers.torch_module(...) "
                          f"(a denoiser with a `jvp(color, tangent)` method); got {f!r}.")
     gen = as_rng(rng)
+    _check_float32("x", xx)
     x32 = xx.astype(np.float32)
     acc = np.zeros_like(xx)
     acc2 = np.zeros_like(xx)
@@ -529,6 +544,8 @@ def double_buffer_estimates(stats_a, stats_b, denoiser) -> DoubleBufferEstimates
     na = stats_a.n[..., None].astype(np.float64)
     nb = stats_b.n[..., None].astype(np.float64)
     n = na + nb
+    _check_float32("stats_a.mean", xa)
+    _check_float32("stats_b.mean", xb)
     fa = _call(f_a, xa.astype(np.float32))
     fb = _call(f_b, xb.astype(np.float32))
     mse_a = (fa - xb) ** 2 - vb

@@ -483,3 +483,15 @@ def test_all_metrics_takes_one_name_as_a_string():
     from statmc.metrics import all_metrics, relmse
     x, _, _, _ = _inputs(12)
     assert all_metrics(x, 1.1 * x, include="relmse") == {"relmse": relmse(x, 1.1 * x)}
+
+
+def test_images_beyond_float32_are_refused_before_the_denoiser():
+    """Denoisers are called on float32 images: an x of 1e150 became Inf on the way and was
+    reported (after a RuntimeWarning) as "`color` holds 240 Inf values; replace them",
+    about an array the caller never passed."""
+    x, v, _, _ = _inputs(13)
+    g = denoisers.gaussian(1.0)
+    for call in (lambda: sure.mc_sure(g, 1e150 * x, 1e300 * v, rng=1),
+                 lambda: sure.output_variance(g, 1e150 * x, 1e300 * v, rng=1)):
+        with pytest.raises(InputError, match=r"`x` holds values up to .* beyond float32's range"):
+            call()
