@@ -393,6 +393,11 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
         before = _attribute_text(root)
         sensors = root.findall("sensor")        # the scene's own, not a batch's parts
+        if not sensors:
+            raise InputError(f"scene file {str(path)!r} has no <sensor> element of its own (one "
+                             "in an <include>d file cannot be resized), so its film size "
+                             "cannot be set; leave `width`/`height` unset and set the size in "
+                             "the file.")
         if sensor >= len(sensors):
             raise InputError(f"`sensor` must be the index of one of the {len(sensors)} "
                              f"sensors written in scene file {str(path)!r} (0 to "

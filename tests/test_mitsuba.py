@@ -1009,6 +1009,12 @@ def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
     # regression: with a size, a sensor past the last said to add a <film> to it
     with pytest.raises(InputError, match=r"`sensor` must be .* one of the 2 sensors .*got 2"):
         mb.MitsubaRenderer(path, sensor=2, width=4, height=3)
+    # a sensor of an included file renders, but its film cannot be resized
+    (tmp_path / "main.xml").write_text(
+        '<scene version="3.0.0"><include filename="scene.xml"/></scene>')
+    assert mb.MitsubaRenderer(tmp_path / "main.xml", sensor=1).width == 6
+    with pytest.raises(InputError, match="no <sensor> element of its own .*<include>d file"):
+        mb.MitsubaRenderer(tmp_path / "main.xml", width=4, height=3)
 
 
 def test_nonfinite_samples_warn(tmp_path):
