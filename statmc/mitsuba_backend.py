@@ -377,6 +377,40 @@ def _attribute_text(root) -> str:
     return "\n".join(v for el in root.iter() for v in el.attrib.values())
 
 
+def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
+    """The ``<sensor>`` element of the XML tree ``root`` (of file ``path``) that becomes
+    the scene's sensor number ``sensor``."""
+    sensors = root.findall("sensor")        # the file's own, not a batch's parts
+    if root.find("include") is None and root.find(".//shape/sensor") is None:
+        if sensor < len(sensors):           # the scene's sensors are these, in this order
+            return sensors[sensor]
+        if not sensors:
+            raise InputError(f"scene file {str(path)!r} has no <sensor> element, so its film "
+                             "size cannot be set; add a <sensor> with a <film> to it or leave "
+                             "`width`/`height` unset.")
+        raise InputError(f"`sensor` must be the index of one of the {len(sensors)} sensors of "
+                         f"scene file {str(path)!r} (0 to {len(sensors) - 1}); got {sensor}.")
+    # <include>d files and shapes add sensors where they stand: tag the file's own and
+    # see which one the scene's sensor is
+    tags = {}
+    for k, el in enumerate(sensors):
+        if not el.get("id"):
+            el.set("id", f"__statmc_sensor_{k}")
+        tags[el.get("id")] = el
+    mi.file_resolver().prepend(str(path.resolve().parent))
+    found = mi.load_string(ET.tostring(root, encoding="unicode"), **params).sensors()
+    if sensor >= len(found):
+        raise InputError(f"`sensor` must be the index of one of the {len(found)} sensors of "
+                         f"scene file {str(path)!r} (0 to {len(found) - 1}); got {sensor}.")
+    element = tags.get(found[sensor].id())
+    if element is None:
+        raise InputError(f"sensor {sensor} of scene file {str(path)!r} is not a <sensor> "
+                         "written in the file itself (it comes from an <include>d file or a "
+                         "shape), so its film cannot be resized; leave `width`/`height` unset "
+                         "and set the size where that sensor is written.")
+    return element
+
+
 def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: bool,
               params: dict | None = None, sensor: int = 0):
     """Load a Mitsuba XML scene (``params``: values of its ``$name`` parameters),
@@ -392,21 +426,12 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
         except ET.ParseError as e:
             raise FileFormatError(f"scene file {str(path)!r} is not valid XML: {e}.") from None
         before = _attribute_text(root)
-        sensors = root.findall("sensor")        # the scene's own, not a batch's parts
-        if not sensors:
-            raise InputError(f"scene file {str(path)!r} has no <sensor> element of its own (one "
-                             "in an <include>d file cannot be resized), so its film size "
-                             "cannot be set; leave `width`/`height` unset and set the size in "
-                             "the file.")
-        if sensor >= len(sensors):
-            raise InputError(f"`sensor` must be the index of one of the {len(sensors)} "
-                             f"sensors written in scene file {str(path)!r} (0 to "
-                             f"{len(sensors) - 1}); got {sensor}.")
-        film = sensors[sensor].find("film")
+        element = _file_sensor(mi, root, path, params, sensor)
+        film = element.find("film")
         if film is None:
-            raise InputError(f"scene file {str(path)!r} has no <film> in <sensor> number "
-                             f"{sensor} (of {len(sensors)} written in the file), so its size "
-                             "cannot be set; add one or leave `width`/`height` unset.")
+            raise InputError(f"scene file {str(path)!r} has no <film> in the <sensor> of sensor "
+                             f"{sensor}, so its size cannot be set; add one or leave "
+                             "`width`/`height` unset.")
         crop = [el.get("name") for el in film if str(el.get("name", "")).startswith("crop_")]
         if (width is not None or height is not None) and crop:
             # a new size is refused, the crop window's own size is no change

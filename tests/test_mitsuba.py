@@ -1009,12 +1009,23 @@ def test_sensor_chooses_which_camera_of_the_file_renders(tmp_path):
     # regression: with a size, a sensor past the last said to add a <film> to it
     with pytest.raises(InputError, match=r"`sensor` must be .* one of the 2 sensors .*got 2"):
         mb.MitsubaRenderer(path, sensor=2, width=4, height=3)
-    # a sensor of an included file renders, but its film cannot be resized
-    (tmp_path / "main.xml").write_text(
-        '<scene version="3.0.0"><include filename="scene.xml"/></scene>')
+    # a sensor of an included file renders, but its film cannot be resized (regression:
+    # with the file's own sensor after the include, sensor 0 rendered at its own size, as
+    # the size went to the file's <sensor> 0, the scene's sensor 2)
+    inc = '<include filename="scene.xml"/>'
+    (tmp_path / "main.xml").write_text(f'<scene version="3.0.0">{inc}</scene>')
+    own = second.replace('value="6"', 'value="7"').replace('<scale x="1.2" y="1.2"/>', '')
+    (tmp_path / "both.xml").write_text(f'<scene version="3.0.0">{inc}{own}</scene>')
     assert mb.MitsubaRenderer(tmp_path / "main.xml", sensor=1).width == 6
-    with pytest.raises(InputError, match="no <sensor> element of its own .*<include>d file"):
-        mb.MitsubaRenderer(tmp_path / "main.xml", width=4, height=3)
+    assert mb.MitsubaRenderer(tmp_path / "both.xml", sensor=2).width == 7
+    r = mb.MitsubaRenderer(tmp_path / "both.xml", sensor=2, width=4, height=3)
+    assert (r.width, r.height, r._sensor.film().size()[0]) == (4, 3, 4)
+    for name, index in (("main.xml", 0), ("main.xml", 1), ("both.xml", 0), ("both.xml", 1)):
+        with pytest.raises(InputError, match=f"sensor {index} of .* not a <sensor> written in "
+                                             "the file itself .*<include>d file"):
+            mb.MitsubaRenderer(tmp_path / name, sensor=index, width=4, height=3)
+    with pytest.raises(InputError, match="one of the 3 sensors .* got 3"):
+        mb.MitsubaRenderer(tmp_path / "both.xml", sensor=3, width=4, height=3)
 
 
 def test_nonfinite_samples_warn(tmp_path):
