@@ -115,7 +115,10 @@ def _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t=None, *, names=("x_t", "s_bar
 def _check_kernels(kernels, hw):
     K = np.asarray(kernels)
     if K.dtype == object or not np.issubdtype(K.dtype, np.number):
-        raise InputError(f"`kernels` must be a numeric array; got dtype {K.dtype}.")
+        hint = (" (for a kernel denoiser pass its `kernels(shape)`)"
+                if callable(getattr(kernels, "kernels", None)) else "")
+        raise InputError(f"`kernels` must be a numeric (H, W, k, k) array; got "
+                         f"{type(kernels).__name__ if K.ndim == 0 else K.dtype}{hint}.")
     if K.dtype not in (np.float32, np.float64):
         K = K.astype(np.float64)
     if K.ndim != 4 or K.shape[2] != K.shape[3]:

@@ -168,6 +168,12 @@ def _step(eps, relative, x, noise):
 def _kernels_of(kernels, shape):
     if hasattr(kernels, "kernels") and callable(kernels.kernels):
         return kernels.kernels(shape)
+    if callable(kernels) and not isinstance(kernels, np.ndarray):
+        # a GEM, OIDN or user denoiser: not a fixed linear filter (was "dtype object")
+        raise InputError(f"`kernels` must be an (H, W, k, k) array or a kernel denoiser with a "
+                         f"`kernels(shape)` method (e.g. statmc.denoisers.gaussian); got "
+                         f"{type(kernels).__name__}. For any other denoiser use mc_sure / "
+                         "output_variance.")
     return kernels
 
 

@@ -495,3 +495,17 @@ def test_images_beyond_float32_are_refused_before_the_denoiser():
                  lambda: sure.output_variance(g, 1e150 * x, 1e300 * v, rng=1)):
         with pytest.raises(InputError, match=r"`x` holds values up to .* beyond float32's range"):
             call()
+
+
+def test_denoiser_objects_where_kernels_are_needed_are_named():
+    """sure.sure(gem_denoiser, ...) and apply_kernels(gaussian_denoiser, ...) said
+    "`kernels` must be a numeric array; got dtype object"; now they name what was given
+    and what to pass instead."""
+    x, v, _, _ = _inputs(14)
+    with pytest.raises(InputError, match="got GEMDenoiser. For any other denoiser use mc_sure"):
+        sure.sure(denoisers.gem(v), x, v)
+    with pytest.raises(InputError, match=r"got GaussianDenoiser \(for a kernel denoiser pass "
+                                         r"its `kernels\(shape\)`\)"):
+        analytic.apply_kernels(denoisers.gaussian(1.0), x)
+    with pytest.raises(InputError, match=r"got GaussianDenoiser \(for a kernel denoiser"):
+        combine.filter_covariance(denoisers.gaussian(1.0), v, size=5)
