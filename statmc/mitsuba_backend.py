@@ -377,6 +377,21 @@ def _attribute_text(root) -> str:
     return "\n".join(v for el in root.iter() for v in el.attrib.values())
 
 
+def _load_string(mi, root, path: Path, params: dict):
+    """Load the XML tree ``root`` of file ``path``, finding relative file names beside
+    ``path`` (as ``mi.load_file`` does), without leaving that folder in Mitsuba's global
+    file resolver for later scenes."""
+    resolver = mi.file_resolver()
+    saved = [str(resolver[i]) for i in range(len(resolver))]
+    resolver.prepend(str(path.resolve().parent))
+    try:
+        return mi.load_string(ET.tostring(root, encoding="unicode"), **params)
+    finally:
+        resolver.clear()
+        for folder in saved:
+            resolver.append(folder)
+
+
 def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
     """The ``<sensor>`` element of the XML tree ``root`` (of file ``path``) that becomes
     the scene's sensor number ``sensor``."""
@@ -397,8 +412,7 @@ def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
         if not el.get("id"):
             el.set("id", f"__statmc_sensor_{k}")
         tags[el.get("id")] = el
-    mi.file_resolver().prepend(str(path.resolve().parent))
-    found = mi.load_string(ET.tostring(root, encoding="unicode"), **params).sensors()
+    found = _load_string(mi, root, path, params).sensors()
     if sensor >= len(found):
         raise InputError(f"`sensor` must be the index of one of the {len(found)} sensors of "
                          f"scene file {str(path)!r} (0 to {len(found) - 1}); got {sensor}.")
@@ -462,8 +476,7 @@ def _load_xml(mi, path: Path, width: int | None, height: int | None, force_box: 
         # wins): leave it out, as Mitsuba refuses unused parameters
         after = _attribute_text(root)
         params = {k: v for k, v in params.items() if f"${k}" in after or f"${k}" not in before}
-        mi.file_resolver().prepend(str(path.resolve().parent))
-        return mi.load_string(ET.tostring(root, encoding="unicode"), **params)
+        return _load_string(mi, root, path, params)
     except InputError:
         raise
     except Exception as e:  # noqa: BLE001 - Mitsuba's parser raises plain exceptions

@@ -18,6 +18,7 @@ import pytest
 from scipy import stats as sps
 
 from statmc import InputError
+from statmc.errors import FileFormatError
 from statmc import mitsuba_backend as mb
 from statmc.scenes import BUILTIN_SCENES, load_scene_dict
 
@@ -1044,6 +1045,27 @@ def test_nonfinite_samples_warn(tmp_path):
     if r._jit:
         with pytest.warns(RuntimeWarning, match="NaN or Inf"):
             mb.MitsubaRenderer(path).render_crn(2, stencil=1, features=False)
+
+
+def test_a_resized_scene_does_not_lend_its_folder_to_later_scenes(tmp_path, mi):
+    # regression: loading a file with a new size prepended its folder to Mitsuba's global
+    # file resolver for good, so a later scene (statmc's or the user's own mi.load_file)
+    # naming a file it lacks silently loaded the first scene's file of that name
+    texture = ('<shape type="sphere"><bsdf type="diffuse"><texture type="bitmap" '
+               'name="reflectance"><string name="filename" value="tex.exr"/></texture></bsdf>'
+               '</shape><emitter type="constant"/>')
+    paths = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        paths.append(_xml_scene(tmp_path / name, texture))
+    mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32)).write(str(tmp_path / "a" / "tex.exr"))
+    n = len(mi.file_resolver())
+    assert mb.MitsubaRenderer(paths[0], width=4, height=3).width == 4
+    assert len(mi.file_resolver()) == n
+    with pytest.raises(FileFormatError, match="tex.exr"):
+        mb.MitsubaRenderer(paths[1], width=4, height=3)
+    with pytest.raises(FileFormatError, match="tex.exr"):
+        mb.MitsubaRenderer(paths[1])
 
 
 def test_size_of_a_sensor_after_a_batch_sensor(tmp_path):
