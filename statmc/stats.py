@@ -285,6 +285,10 @@ class PixelStats:
         check_nonnegative("sum_x2", s2)                  # a sum of squares
         if s1.shape[:2] != n_a.shape:
             raise InputError(f"`sum_x` must be (H, W, C) with (H, W) = {n_a.shape}; got {s1.shape}.")
+        empty = (n_a == 0)[..., None] & ((s1 != 0) | (s2 != 0))
+        if empty.any():       # the mean was taken as sum_x / 1: contradictory input
+            raise InputError(f"`sum_x` and `sum_x2` must be 0 where `n` = 0 (no samples); got "
+                             f"nonzero sums in {int(empty.any(axis=2).sum())} pixels.")
         safe = np.maximum(n_a, 1)[..., None]
         mean = s1 / safe
         m2 = np.maximum(s2 - s1 * mean, 0.0)

@@ -509,3 +509,16 @@ def test_denoiser_objects_where_kernels_are_needed_are_named():
         analytic.apply_kernels(denoisers.gaussian(1.0), x)
     with pytest.raises(InputError, match=r"got GaussianDenoiser \(for a kernel denoiser"):
         combine.filter_covariance(denoisers.gaussian(1.0), v, size=5)
+
+
+def test_from_sums_refuses_sums_without_samples():
+    """Nonzero sums where ``n = 0`` were taken as a mean of ``sum_x / 1`` and an M2 > 0: an
+    empty pixel with a value and a variance."""
+    x, v, _, _ = _inputs(15)
+    n = np.full((H, W), 4)
+    n[2, 3] = 0
+    with pytest.raises(InputError, match=r"must be 0 where `n` = 0 .* in 1 pixels"):
+        PixelStats.from_sums(n, 4 * x, 4 * (v + x * x))
+    s1, s2 = 4 * x, 4 * (v + x * x)
+    s1[2, 3] = s2[2, 3] = 0.0
+    assert PixelStats.from_sums(n, s1, s2).n[2, 3] == 0
