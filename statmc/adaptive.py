@@ -208,6 +208,13 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
     -------
     AdaptiveResult
     """
+    if not callable(getattr(renderer, "render", None)) or not all(
+            isinstance(getattr(renderer, a, None), (int, np.integer)) for a in ("height", "width")):
+        hint = (" (a scene name: build a renderer first, e.g. statmc.renderers.make_renderer)"
+                if isinstance(renderer, str) else "")
+        raise InputError(f"`renderer` must have integer `height`, `width` and a method "
+                         f"render(counts, *, seed, features) -> PixelStats; got "
+                         f"{type(renderer).__name__}{hint}.")
     h, w = renderer.height, renderer.width
     total = int(round(as_number("spp", spp, lo=0.0) * h * w))
     initial_spp = as_whole("initial_spp", initial_spp, what="number of samples per pixel")
@@ -260,6 +267,11 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
         else:
             part = renderer.render(counts, seed=seed * 1_000_003 + 7919 * k, features=(k == 0))
         t_render += time.perf_counter() - t0
+        if not isinstance(part, PixelStats) or part.shape[:2] != (h, w):
+            what = (f"PixelStats of shape {part.shape}" if isinstance(part, PixelStats)
+                    else type(part).__name__)
+            raise InputError(f"`renderer.render` must return PixelStats of {h}x{w} pixels; "
+                             f"got {what}.")
         res.stats = part if res.stats is None else res.stats.merge(part)
         res.counts.append(counts)
         if bar is not None:

@@ -522,3 +522,22 @@ def test_from_sums_refuses_sums_without_samples():
     s1, s2 = 4 * x, 4 * (v + x * x)
     s1[2, 3] = s2[2, 3] = 0.0
     assert PixelStats.from_sums(n, s1, s2).n[2, 3] == 0
+
+
+def test_adaptive_render_names_a_wrong_renderer():
+    """A scene name instead of a renderer, or a render() that returns an array, were
+    AttributeErrors from deep inside ('str' object has no attribute 'height'; 'ndarray'
+    object has no attribute 'mean_var' after the first pass)."""
+    from statmc.adaptive import adaptive_render
+
+    class ArrayRenderer:
+        height, width = 4, 5
+
+        def render(self, counts, *, seed=0, features=True):
+            return np.zeros((4, 5, 3))
+
+    with pytest.raises(InputError, match="got str .*make_renderer"):
+        adaptive_render("cornell-box", 8)
+    with pytest.raises(InputError, match="`renderer.render` must return PixelStats of 4x5 "
+                                         "pixels; got ndarray"):
+        adaptive_render(ArrayRenderer(), 8)
