@@ -552,6 +552,8 @@ class MitsubaRenderer:
     ----------
     height, width : int
     sensor : int
+    params : dict
+        The ``params`` given, as strings (what the file's ``$name`` parameters were set to).
     scene_sample_count : int
         The ``sample_count`` of the sensor's sampler in the scene, which is not used.
     channels : int
@@ -588,6 +590,7 @@ class MitsubaRenderer:
                  sensor: int = 0):
         self.chunk_samples = _check_int("chunk_samples", chunk_samples, minimum=1)
         params = _check_params(params)
+        self.params = dict(params)
         self.sensor = _check_int("sensor", sensor, minimum=0)
         if self.chunk_samples > 2 ** 31:
             raise InputError(f"`chunk_samples` must be <= 2**31; got {chunk_samples}.")

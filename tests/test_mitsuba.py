@@ -910,6 +910,7 @@ def test_xml_parameters_take_values_and_a_missing_one_says_how(tmp_path):
     for size in ({}, {"width": 6, "height": 4}):         # load_file and load_string paths
         r = mb.MitsubaRenderer(path, params={"spp": 16, "r": 0.25}, **size)
         assert r._sensor.sampler().sample_count() == 16
+        assert r.params == {"spp": "16", "r": "0.25"}         # as the file received them
         assert r._scene.shapes()[0].bbox().extents()[0] == pytest.approx(0.5)
     with pytest.raises(InputError, match="unused parameters"):
         mb.MitsubaRenderer(path, params={"spp": 16, "r": 0.25, "other": 1})
