@@ -136,6 +136,14 @@ def _check_kernels(kernels, hw):
     return K
 
 
+def _check_stats(stats):
+    """A sampler's ``stats`` must be PixelStats: an ndarray has a ``mean`` *method*, which
+    failed as "'builtin_function_or_method' object has no attribute 'shape'"."""
+    from .stats import PixelStats
+    if not isinstance(stats, PixelStats):
+        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+
+
 def _check_loss(loss, eps):
     if not isinstance(loss, str) or loss.lower() not in _LOSSES:
         raise InputError(f"`loss` must be one of 'mse', 'mrse' (alias 'relmse'); got {loss!r}.")
@@ -1014,6 +1022,7 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     against uniform sampling on toy and Mitsuba scenes, with the Gaussian and with fixed
     pilot-GEM kernels, in ``bench/bench_quality_expected_error.py``.
     """
+    _check_stats(stats)
     if not isinstance(objective, str) or objective not in _OBJECTIVES:
         raise InputError(f"`objective` must be one of {_OBJECTIVES}; got {objective!r}.")
     lam = _check_mix(mix)
@@ -1139,6 +1148,7 @@ class PilotKernelSampler:
 
     def select(self, stats):
         """Fix the kernels from ``stats`` (done automatically on the first call)."""
+        _check_stats(stats)
         if isinstance(self.source, str):
             K = gem_kernels(stats.mean, stats.mean_var, n=stats.n, **self.gem_options)
         elif callable(self.source):

@@ -541,3 +541,14 @@ def test_adaptive_render_names_a_wrong_renderer():
     with pytest.raises(InputError, match="`renderer.render` must return PixelStats of 4x5 "
                                          "pixels; got ndarray"):
         adaptive_render(ArrayRenderer(), 8)
+
+
+@pytest.mark.parametrize("name", ["uniform", "gem", "expected-error"])
+def test_samplers_name_an_array_passed_as_stats(name):
+    """An image passed where PixelStats are expected failed as "'ndarray' object has no
+    attribute 'n'" or, for the expected-error sampler, "'builtin_function_or_method' object
+    has no attribute 'shape'" (an ndarray's ``mean`` is a method)."""
+    from statmc.adaptive import get_sampler
+    x, _, _, _ = _inputs(16)
+    with pytest.raises(InputError, match="`stats` must be a statmc.PixelStats; got ndarray"):
+        get_sampler(name)(x, 100, np.random.default_rng(1))
