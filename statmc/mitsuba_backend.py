@@ -487,8 +487,13 @@ def _check_integrator(mi, integrator, name: str) -> None:
     """Refuse an integrator whose ``sample`` is not one sample of the pixel it was drawn in."""
     supported = ("MitsubaRenderer supports Mitsuba's C++ sampling integrators (e.g. 'path', "
                  "'volpath', 'direct')")
-    if integrator is None or hasattr(integrator, "sample_rays"):
-        raise InputError(f"scene {name!r} uses integrator {integrator!r}; {supported}.")
+    if integrator is None:
+        raise InputError(f"scene {name!r} has no integrator; {supported}: add one.")
+    if hasattr(integrator, "sample_rays"):
+        # Python (differentiable) integrators have no C++ `sample` taking one ray
+        raise InputError(f"scene {name!r} uses {type(integrator).__name__}, a Python "
+                         f"integrator (such as 'prb'); {supported}: change the scene's "
+                         "<integrator>.")
     kind = integrator.class_name()
     if not isinstance(integrator, mi.SamplingIntegrator):
         # ptracer: a light path lands in whatever pixel it reaches, not the one drawn for

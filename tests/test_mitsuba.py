@@ -313,7 +313,8 @@ def test_bad_scene_raises(tmp_path):
 def test_python_integrator_rejected(cornell, mi):
     d = load_scene_dict("cornell-box", 8, 8)
     d["integrator"] = {"type": "prb"}
-    with pytest.raises(InputError, match="C\\+\\+ sampling integrators"):
+    with pytest.raises(InputError, match="PRBIntegrator, a Python integrator .*C\\+\\+ sampling "
+                                         "integrators .*change the scene's <integrator>"):
         mb.MitsubaRenderer(mi.load_dict(d))
 
 
