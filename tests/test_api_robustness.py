@@ -552,3 +552,14 @@ def test_samplers_name_an_array_passed_as_stats(name):
     x, _, _, _ = _inputs(16)
     with pytest.raises(InputError, match="`stats` must be a statmc.PixelStats; got ndarray"):
         get_sampler(name)(x, 100, np.random.default_rng(1))
+
+
+@pytest.mark.parametrize("sigma", ["1", None, True])
+def test_filter_sigma_must_be_a_number(sigma):
+    """sigma="1" was parsed silently (denoisers.get("gaussian", sigma="1") worked), True
+    read as 1 and None was float()'s TypeError; a 0-d array still works."""
+    x, _, _, _ = _inputs(17)
+    with pytest.raises(InputError, match="`sigma` must be a finite number >= 0"):
+        filters.gaussian_filter(x, sigma)
+    np.testing.assert_array_equal(filters.gaussian_filter(x, np.array(2.0)),
+                                  filters.gaussian_filter(x, 2.0))
