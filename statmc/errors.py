@@ -95,11 +95,21 @@ def check_same_shape(name: str, a: np.ndarray, ref_name: str, ref_shape: tuple) 
         )
 
 
+def _scalar(value):
+    """A 0-d array (``np.array(2.0)``, ``a.sum(keepdims=False)[()]``...) as its NumPy
+    scalar, so the number checks below see a number; anything else unchanged."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        return value[()]
+    return value
+
+
 def as_number(name: str, value, *, lo: float | None = None, lo_open: bool = False) -> float:
     """``value`` as a finite float, optionally ``>= lo`` (``> lo`` with ``lo_open``).
 
-    Booleans and non-numbers are refused with an :class:`InputError` naming ``name``.
+    Booleans and non-numbers are refused with an :class:`InputError` naming ``name``; a
+    0-d array is read as its number.
     """
+    value = _scalar(value)
     if isinstance(value, bool) or not isinstance(value, numbers.Real) \
             or not np.isfinite(float(value)):
         raise InputError(f"`{name}` must be a finite number; got {value!r}.")
@@ -115,6 +125,7 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
 
     Booleans, floats and non-numbers are refused with an :class:`InputError` naming ``name``.
     """
+    value = _scalar(value)
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo:
         what = {0: "a non-negative integer", 1: "a positive integer"}.get(lo, f"an integer >= {lo}")
         raise InputError(f"`{name}` must be {what}; got {value!r}.")
@@ -132,6 +143,7 @@ def as_whole(name: str, value, *, lo: int = 0, what: str = "number",
     whole-valued finite floats (``12.0``, e.g. a budget computed in floating point).  A
     fraction, a bool, a string or a non-finite number is an :class:`InputError`:
     "`name` must be a whole ``what`` >= ``lo``"."""
+    value = _scalar(value)
     ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
     if ok and not isinstance(value, numbers.Integral):
         ok = bool(np.isfinite(value)) and float(value) == np.floor(value)

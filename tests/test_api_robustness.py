@@ -563,3 +563,18 @@ def test_filter_sigma_must_be_a_number(sigma):
         filters.gaussian_filter(x, sigma)
     np.testing.assert_array_equal(filters.gaussian_filter(x, np.array(2.0)),
                                   filters.gaussian_filter(x, 2.0))
+
+
+def test_zero_dimensional_arrays_are_numbers():
+    """A 0-d array (``np.array(2.0)``, e.g. from ``np.asarray(value)``) was refused as
+    "must be a finite number; got array(2.)" by every as_number / as_int / as_whole check."""
+    x, v, n, _ = _inputs(18)
+    y = denoisers.gaussian(1.0)(x)
+    alpha = np.full(x.shape, 0.5)
+    np.testing.assert_array_equal(
+        progressive.confidence_gate(x, y, v, alpha, sigma_s=np.array(2.0)),
+        progressive.confidence_gate(x, y, v, alpha, sigma_s=2.0))
+    np.testing.assert_array_equal(gem.sampling_map(x, v, n, np.array(300), rng=1),
+                                  gem.sampling_map(x, v, n, 300, rng=1))
+    np.testing.assert_array_equal(sure.mc_sure(denoisers.gaussian(1.0), x, v, k=np.array(2), rng=1),
+                                  sure.mc_sure(denoisers.gaussian(1.0), x, v, k=2, rng=1))
