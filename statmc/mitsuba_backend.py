@@ -561,6 +561,9 @@ class MitsubaRenderer:
         The ``params`` given, as strings (what the file's ``$name`` parameters were set to).
     scene_sample_count : int
         The ``sample_count`` of the sensor's sampler in the scene, which is not used.
+    nonfinite_samples : int
+        NaN/Inf samples (counted as zeros) of all renders of this renderer so far: the
+        whole of an adaptive render's passes, whose merged ``meta`` holds the first's.
     channels : int
         Always 3 (RGB).
     name : str
@@ -669,6 +672,7 @@ class MitsubaRenderer:
         self._aov_integrator = mi.load_dict({"type": "aov", "aovs": "albedo:albedo,nn:sh_normal"})
         self._sampler = mi.load_dict({"type": "independent"})
         self._warned_nonfinite = False
+        self.nonfinite_samples = 0
 
     def __repr__(self) -> str:
         return (f"MitsubaRenderer({self.name!r}, width={self.width}, height={self.height}, "
@@ -867,7 +871,9 @@ class MitsubaRenderer:
 
     # ------------------------------------------------------------------ internals
     def _warn_nonfinite(self, n_bad: int, total: int) -> None:
-        """Warn, once per renderer, when a render met NaN/Inf samples (counted as zeros)."""
+        """Count a render's NaN/Inf samples (counted as zeros) in :attr:`nonfinite_samples`
+        and warn, once per renderer, when there are any."""
+        self.nonfinite_samples += n_bad
         if n_bad and not self._warned_nonfinite:
             self._warned_nonfinite = True
             warnings.warn(f"statmc: {n_bad} of {total} samples of scene {self.name!r} were NaN "

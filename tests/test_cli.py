@@ -1742,3 +1742,22 @@ def test_render_cropped_film_with_a_sample_map_of_its_size(tmp_path):
     code, _, err = run_cli("render", scene, "--spp", 2, "--size", "6x3", "--out", tmp_path / "b")
     assert code == 2 and err.count("\n") == 1, err
     assert "new film size 6x3 would not resize; make the size the crop window's, 5x3, or omit --size" in err
+
+
+@pytest.mark.mitsuba
+def test_report_counts_the_nonfinite_samples_of_every_pass(tmp_path):
+    # regression: renderer_info.nonfinite_samples of an adaptive render was its first
+    # pass's count (meta of the merged passes is the first's): 192 of 960 here, where
+    # every sample sees an infinite sky
+    scene = tmp_path / "inf.xml"
+    scene.write_text('<scene version="3.0.0"><integrator type="path"/><sensor '
+                     'type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>'
+                     '<integer name="height" value="6"/><rfilter type="box"/></film></sensor>'
+                     '<emitter type="constant"><rgb name="radiance" value="inf"/></emitter>'
+                     '</scene>')
+    code, _, err = run_cli("render", scene, "--spp", 20, "--sampler", "gem",
+                           "--out", tmp_path / "a", "-q")
+    assert code == 0 and err.count("\n") == 1 and "192 of 192 samples" in err, err
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert rep["renderer_info"]["passes"] > 1
+    assert rep["renderer_info"]["nonfinite_samples"] == rep["total_samples"] == 20 * 48

@@ -1043,7 +1043,10 @@ def test_nonfinite_samples_warn(tmp_path):
     assert s.meta["nonfinite_samples"] > 0 and np.isfinite(s.mean).all()
     with warnings.catch_warnings():         # once per renderer: an adaptive loop's passes
         warnings.simplefilter("error")      # would repeat it
-        assert r.render_uniform(2, features=False).meta["nonfinite_samples"] > 0
+        t = r.render_uniform(2, features=False)
+    assert t.meta["nonfinite_samples"] > 0
+    # the renderer counts every render's (a merge keeps the first's meta only)
+    assert r.nonfinite_samples == s.meta["nonfinite_samples"] + t.meta["nonfinite_samples"]
     if r._jit:
         with pytest.warns(RuntimeWarning, match="NaN or Inf"):
             mb.MitsubaRenderer(path).render_crn(2, stencil=1, features=False)
