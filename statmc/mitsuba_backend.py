@@ -347,9 +347,11 @@ def _check_params(params) -> dict:
     out = {}
     for k, v in params.items():
         if (not isinstance(k, str) or not _PARAM_NAME.match(k)
-                or k in ("update_scene", "parallel")):
+                or k in ("parallel", "optimize", "update_scene")):
+            # the last three are options of Mitsuba's loader (update_scene: older versions)
             raise InputError(f"`params` names must be XML parameter names (letters, digits, "
-                             f"'_', as in $spp), not 'update_scene' or 'parallel'; got {k!r}.")
+                             f"'_', as in $spp), not 'parallel' or 'optimize' (options of "
+                             f"Mitsuba's loader: rename such a $name in the file); got {k!r}.")
         if isinstance(v, bool):
             v = "true" if v else "false"
         if not isinstance(v, (str, numbers.Real)):

@@ -916,7 +916,9 @@ def test_xml_parameters_take_values_and_a_missing_one_says_how(tmp_path):
     with pytest.raises(InputError, match="unused parameters"):
         mb.MitsubaRenderer(path, params={"spp": 16, "r": 0.25, "other": 1})
     for bad, word in (([("spp", 1)], "mapping"), ({"1x": 2}, "names"),
-                      ({"parallel": 1}, "names"), ({"spp": None}, "string or a number")):
+                      ({"parallel": 1}, "names"), ({"optimize": 0}, "not 'parallel' or "
+                                                   "'optimize' .*rename such a \\$name"),
+                      ({"spp": None}, "string or a number")):
         with pytest.raises(InputError, match=word):
             mb.MitsubaRenderer(path, params=bad)
     with pytest.raises(InputError, match="leave `params` unset"):
