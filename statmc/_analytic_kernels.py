@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._threads import serial_below
+from ._threads import serial_below, wait_passively_in_numba
 from numba import njit, prange
+
+wait_passively_in_numba()
 
 GROUP = 3  # channels handled per pass of the convolution kernels
 # Below this many multiply-adds a parallel region costs more than it saves: waking the

@@ -37,10 +37,12 @@ from __future__ import annotations
 import numpy as np
 
 from ._stencil_kernels import shift_slices as _shift_slices
-from ._threads import serial_below
+from ._threads import serial_below, wait_passively_in_numba
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
+
+wait_passively_in_numba()
 
 #: Below this many multiply-adds a parallel region costs more than it saves: waking the
 #: worker threads took ~3 ms per call on a busy 2-core machine (a 45x45, B = 2, 5x5

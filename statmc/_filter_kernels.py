@@ -15,6 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ._threads import wait_passively_in_numba
+
+wait_passively_in_numba()
+
 # Output rows per parallel task; the vertical pass walks the task's rows strip by strip
 # (_STRIP values wide) so the 2r+1 input rows of a strip stay in cache.
 _ROW_BLOCK = 32

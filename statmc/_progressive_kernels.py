@@ -30,6 +30,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ._threads import wait_passively_in_numba
+
+wait_passively_in_numba()
+
 # No NaN reaches the kernels (inputs are checked finite), which lets LLVM turn the
 # compare-and-select of the window argmax into vector max/blend instructions; -inf is
 # used as the initial maximum, so "ninf" is deliberately not among the flags.

@@ -17,6 +17,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ._threads import wait_passively_in_numba
+
+wait_passively_in_numba()
+
 
 def add_neighbour_products(prod, a, b, R):
     """Compiled ``prod[y, x, R + dy, R + dx, c] += a[y, x, c] · b[y + dy, x + dx, c]`` for

@@ -26,7 +26,6 @@ References
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import warnings
@@ -55,41 +54,31 @@ _FLIP_TONEMAP = {
 # ~210 ms instead of ~0.6 ms, a 256x256 one ~350 ms instead of ~170 ms
 # (bench/bench_flip_load.py).  "PASSIVE" makes waiting threads sleep instead; the thread
 # count stays, and the values are the same bit for bit (checked there and in the tests).
-_FLIP_OMP_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
-# Variables that mean the user chose a wait policy for every OpenMP runtime: then we keep out.
-_OMP_USER_CHOICE = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 _FLIP_IMPORT_LOCK = threading.Lock()
 
 
 def _flip_module():
     """``flip_evaluator``, imported with its bundled OpenMP runtime set to wait passively.
 
-    ``_FLIP_OMP_ENV`` is put into the environment just for the import (the moment the
-    bundled libgomp reads it) and the environment is restored right after, so the user's
-    environment is unchanged afterwards.  The environment is process-wide, though: while
-    the import runs, every thread of the process sees ``OMP_WAIT_POLICY=PASSIVE`` (an
-    OpenMP runtime another thread loads in that moment, or a subprocess it starts, would
-    inherit it).  Nothing is changed when the user set ``OMP_WAIT_POLICY`` or
-    ``GOMP_SPINCOUNT`` themselves, or when ``flip_evaluator`` was imported before (its
-    runtime is then already configured).  When another thread is still importing it, this
-    waits for that import to finish (a plain ``import`` does) and returns the complete
-    module, not the half-initialised one ``sys.modules`` already holds.
+    The import runs inside :func:`statmc._threads.passive_omp` (the moment the bundled
+    libgomp reads its settings), so the user's environment is unchanged afterwards, and
+    nothing is changed when the user set ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``
+    themselves, or when ``flip_evaluator`` was imported before (its runtime is then already
+    configured).  When another thread is still importing it, this waits for that import to
+    finish (a plain ``import`` does) and returns the complete module, not the
+    half-initialised one ``sys.modules`` already holds.
     """
     if "flip_evaluator" in sys.modules:
         import flip_evaluator  # waits for an import still running in another thread
         return flip_evaluator
+    from ._threads import passive_omp
+
     with _FLIP_IMPORT_LOCK:
-        if "flip_evaluator" in sys.modules or any(k in os.environ for k in _OMP_USER_CHOICE):
+        if "flip_evaluator" in sys.modules:
             import flip_evaluator
             return flip_evaluator
-        added = [k for k in _FLIP_OMP_ENV if k not in os.environ]
-        try:
-            for k in added:
-                os.environ[k] = _FLIP_OMP_ENV[k]
+        with passive_omp():
             import flip_evaluator
-        finally:
-            for k in added:
-                os.environ.pop(k, None)
     return flip_evaluator
 
 

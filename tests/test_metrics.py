@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from _omp_display import PRINT_BEGIN, PRINT_END, libgomp_settings
 
 from statmc.errors import InputError
 from statmc.metrics import (METRICS, _flip_module, all_metrics, flip, logloss, mse,
@@ -440,13 +441,13 @@ def test_flip_module_waits_for_an_import_running_in_another_thread(tmp_path):
     assert p.stdout.strip() == "complete", p.stdout + p.stderr
 
 
-_FLIP_OMP_PROBE = """
+_FLIP_OMP_PROBE = f"""
 import os, sys
 import numpy as np
 from statmc.metrics import _flip_module, flip
-print("<<statmc: importing flip_evaluator>>", file=sys.stderr, flush=True)
+{PRINT_BEGIN}
 _flip_module()
-print("<<statmc: imported flip_evaluator>>", file=sys.stderr, flush=True)
+{PRINT_END}
 v = flip(np.full((8, 8, 3), 0.3), np.full((8, 8, 3), 0.5))
 print(repr(os.environ.get("OMP_WAIT_POLICY")), v, file=sys.stderr)
 """
@@ -465,33 +466,12 @@ def _bundled_libgomp():
 
 
 def _omp_settings_seen_by_flip(**env_extra):
-    """Run flip in a fresh interpreter with OMP_DISPLAY_ENV=VERBOSE: each OpenMP runtime
-    prints the settings it loaded with when it is loaded.  FLIP's printout is told apart
-    from other runtimes' (MKL's libiomp5, an OpenMP OpenBLAS, numba's) by when and what:
-    it is printed while ``_flip_module`` imports flip_evaluator (between the probe's two
-    markers; runtimes loaded with numpy or statmc print before) and it is libgomp's (only
-    libgomp prints ``GOMP_SPINCOUNT``).  Returns ([(spin count, wait policy) of each such
-    block], env after, FLIP value)."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")}
-    env.update(OMP_DISPLAY_ENV="VERBOSE", **env_extra)
-    p = subprocess.run([sys.executable, "-c", _FLIP_OMP_PROBE], env=env, capture_output=True,
-                       text=True, check=True)
-    lines = p.stderr.splitlines()
-    during = lines[lines.index("<<statmc: importing flip_evaluator>>") + 1:
-                   lines.index("<<statmc: imported flip_evaluator>>")]
-    blocks, block = [], None
-    for ln in during:
-        if "DISPLAY ENVIRONMENT BEGIN" in ln:
-            block = {}
-        elif "DISPLAY ENVIRONMENT END" in ln:
-            blocks.append(block)
-            block = None
-        elif block is not None and "=" in ln:
-            key, val = ln.split("=", 1)
-            block[key.strip()] = val.strip(" '")
-    gomp = [(b["GOMP_SPINCOUNT"], b.get("OMP_WAIT_POLICY")) for b in blocks if "GOMP_SPINCOUNT" in b]
-    assert gomp, "no libgomp printout while flip_evaluator was imported:\n" + p.stderr
+    """Run flip in a fresh interpreter with OMP_DISPLAY_ENV=VERBOSE (tests/_omp_display.py):
+    FLIP's runtime prints while ``_flip_module`` imports flip_evaluator (between the probe's
+    two markers; runtimes loaded with numpy or statmc print before).  Returns ([(spin count,
+    wait policy) of each libgomp block], env after, FLIP value)."""
+    gomp, lines = libgomp_settings(_FLIP_OMP_PROBE, **env_extra)
+    assert gomp, "no libgomp printout while flip_evaluator was imported:\n" + "\n".join(lines)
     after, value = lines[-1].rsplit(" ", 1)
     return gomp, after, float(value)
 

@@ -1,0 +1,85 @@
+"""numba's thread pool starts with passive OpenMP waits (statmc._threads).
+
+Regression (session 10): numba ran statmc's parallel kernels on the system's libgomp with
+its default spin-wait (spin count 300000).  On a machine whose cores are busy with other
+work, waiting threads held the cores their partners needed: ``gem.reconstruct`` of a
+64x64 image took a median 116 ms instead of 11 ms with two busy loops on the two cores,
+512x512 1.6 s instead of 0.17 s (``bench/bench_numba_load.py``).  The runtime's settings
+are read from its own printout (tests/_omp_display.py).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numba
+import pytest
+from _omp_display import PRINT_BEGIN, PRINT_END, libgomp_settings
+
+_PROBE = f"""
+import os, sys
+import numpy as np
+import numba
+import statmc.gem
+from numba.np.ufunc import parallel
+started_at_import = parallel._is_initialized
+{PRINT_BEGIN}
+statmc.gem.reconstruct(np.ones((16, 16, 3)), np.full((16, 16, 3), 0.01))
+{PRINT_END}
+print(repr(os.environ.get("OMP_WAIT_POLICY")), numba.threading_layer(), started_at_import,
+      file=sys.stderr)
+"""
+
+
+def _run(**env):
+    gomp, lines = libgomp_settings(_PROBE, **env)
+    after, layer, started_at_import = lines[-1].rsplit(" ", 2)
+    if layer != "omp":
+        pytest.skip(f"numba runs on its {layer!r} threading layer here, not libgomp")
+    return gomp, after, started_at_import
+
+
+def test_numba_pool_starts_on_a_passive_runtime_at_the_first_kernel_call():
+    """The old code loaded libgomp with spin count 300000 at the first kernel call (this
+    failed on ``gomp``).  The pool is not started by the import (see the fork test), and
+    the user's environment is the same afterwards."""
+    gomp, after, started_at_import = _run()
+    assert gomp == [("0", "PASSIVE")], gomp
+    assert after == "None" and started_at_import == "False"
+
+
+def test_a_wait_policy_the_user_chose_is_kept():
+    gomp, after, _ = _run(OMP_WAIT_POLICY="ACTIVE")
+    assert gomp and all(policy == "ACTIVE" and spin != "0" for spin, policy in gomp), gomp
+    assert after == "'ACTIVE'"
+    gomp, _, _ = _run(GOMP_SPINCOUNT="300000")
+    assert gomp == [("300000", gomp[0][1])], gomp
+
+
+_FORK = """
+import multiprocessing as mp
+import numpy as np
+import statmc.gem as gem
+
+def f(i):
+    m = np.random.default_rng(i).random((24, 24, 3))
+    return float(gem.reconstruct(m, 0.01 * m).mean())
+
+if __name__ == "__main__":
+    with mp.get_context("fork").Pool(2) as p:
+        print(len(p.map(f, range(4))))
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_fork_after_import_still_works():
+    """A process that imports statmc and forks workers before its first kernel call must
+    keep working: GNU OpenMP aborts a forked child once the parent started its pool, so
+    statmc must not start numba's pool at import (a first version of the change above did,
+    and the workers died with 'fork() called from a process already using GNU OpenMP')."""
+    if numba.config.THREADING_LAYER not in ("default", "safe", "omp"):
+        pytest.skip("numba is configured for a threading layer other than omp")
+    p = subprocess.run([sys.executable, "-c", _FORK], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0 and p.stdout.strip() == "4", p.stdout + p.stderr
