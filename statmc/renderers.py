@@ -46,6 +46,10 @@ def make_renderer(scene: str, *, width: int | None = None, height: int | None = 
         if name not in ToyRenderer.scenes():
             known = ", ".join(TOY_PREFIX + k for k in ToyRenderer.scenes())
             raise InputError(f"unknown toy scene {scene!r}; expected one of {known}.")
+        mitsuba_only = sorted(set(options) & {"sensor", "params", "variant", "chunk_samples"})
+        if mitsuba_only:
+            raise InputError(f"`{mitsuba_only[0]}` is an option of Mitsuba scenes; {scene!r} is "
+                             "an analytic toy scene: leave it out.")
         kw = {k: v for k, v in (("width", width), ("height", height)) if v is not None}
         return ToyRenderer(name, **kw, **options)
     from . import scenes

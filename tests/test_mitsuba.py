@@ -310,6 +310,16 @@ def test_bad_scene_raises(tmp_path):
         load_scene_dict("nope")
 
 
+def test_make_renderer_refuses_mitsuba_options_for_a_toy_scene():
+    # regression: make_renderer's docstring offers sensor= and params=, and a toy scene
+    # given one failed with ToyRenderer's TypeError (unexpected keyword argument)
+    from statmc.renderers import make_renderer
+    for option in ({"sensor": 0}, {"params": {"spp": 4}}, {"variant": "scalar_rgb"}):
+        with pytest.raises(InputError, match=f"`{next(iter(option))}` is an option of Mitsuba "
+                                             "scenes; 'toy:mixed' is an analytic toy scene"):
+            make_renderer("toy:mixed", **option)
+
+
 def test_python_integrator_rejected(cornell, mi):
     d = load_scene_dict("cornell-box", 8, 8)
     d["integrator"] = {"type": "prb"}
