@@ -23,8 +23,9 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     density : (H, W) ndarray
         Non-negative, finite sampling density (any scale).  An all-zero map is uniform.
     budget : int
-        Total number of samples to hand out (``>= 0``; a whole-valued float is accepted,
-        a fractional one is an :class:`~statmc.errors.InputError`).
+        Total number of samples to hand out (``0 <= budget <= 2**53``, where float64
+        targets stay exact; a whole-valued float is accepted, a fractional one is an
+        :class:`~statmc.errors.InputError`).
     min_count : int, optional
         Samples every pixel gets first (taken out of the budget), ``>= 0``.
     rng : numpy Generator or int, optional
