@@ -26,60 +26,45 @@ _STRIP = 256
 
 
 @njit(fastmath=True, nogil=True, cache=True)
-def _fold(b, c, s, w, r, out, n):  # pragma: no cover - compiled
-    """out[:n] = w[r]·b[c:c+n] + Σ_{k=1..r} w[r+k]·(b[c+ks : c+ks+n] + b[c−ks : c−ks+n]).
-
-    One symmetric filter window on a flat array: the taps ``±k`` sit ``k·s`` apart (a row
-    of the image for the vertical pass, a pixel for the horizontal one) and share a weight,
-    so each pair is added before it is multiplied; four pairs per sweep.
-    """
-    c0 = b[c:c + n]
-    a = w[r]
-    for j in range(n):
-        out[j] = a * c0[j]
-    k = 1
-    while k + 3 <= r:
-        a0 = w[r + k]
-        a1 = w[r + k + 1]
-        a2 = w[r + k + 2]
-        a3 = w[r + k + 3]
-        o = c + k * s
-        q = c - k * s
-        p0 = b[o:o + n]
-        p1 = b[o + s:o + s + n]
-        p2 = b[o + 2 * s:o + 2 * s + n]
-        p3 = b[o + 3 * s:o + 3 * s + n]
-        m0 = b[q:q + n]
-        m1 = b[q - s:q - s + n]
-        m2 = b[q - 2 * s:q - 2 * s + n]
-        m3 = b[q - 3 * s:q - 3 * s + n]
-        for j in range(n):
-            out[j] += (a0 * (p0[j] + m0[j]) + a1 * (p1[j] + m1[j])
-                       + a2 * (p2[j] + m2[j]) + a3 * (p3[j] + m3[j]))
-        k += 4
-    while k <= r:
-        a0 = w[r + k]
-        o = c + k * s
-        q = c - k * s
-        p0 = b[o:o + n]
-        m0 = b[q:q + n]
-        for j in range(n):
-            out[j] += a0 * (p0[j] + m0[j])
-        k += 1
-
-
-@njit(fastmath=True, nogil=True, cache=True)
 def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
     """trow[j0:j1] = Σ_{k=k0..k1} w[k+r] src[y+k, j0:j1].
 
-    With the full window (k0 = −r, k1 = r) the symmetric taps are folded (:func:`_fold`
-    on the flattened image, rows ``L`` apart); at the borders four taps per sweep.
+    With the full window (k0 = −r, k1 = r) the symmetric taps are folded,
+    ``w[r+k]·(src[y−k] + src[y+k])``, four pairs per sweep; at the borders four taps per
+    sweep.
     """
     n = j1 - j0
     t = trow[j0:j1]
     if k0 == -r and k1 == r:
-        L = src.shape[1]
-        _fold(src.reshape(src.shape[0] * L), y * L + j0, L, w, r, t, n)
+        c0 = src[y, j0:j1]
+        a = w[r]
+        for j in range(n):
+            t[j] = a * c0[j]
+        k = 1
+        while k + 3 <= r:
+            a0 = w[r + k]
+            a1 = w[r + k + 1]
+            a2 = w[r + k + 2]
+            a3 = w[r + k + 3]
+            p0 = src[y + k, j0:j1]
+            p1 = src[y + k + 1, j0:j1]
+            p2 = src[y + k + 2, j0:j1]
+            p3 = src[y + k + 3, j0:j1]
+            m0 = src[y - k, j0:j1]
+            m1 = src[y - k - 1, j0:j1]
+            m2 = src[y - k - 2, j0:j1]
+            m3 = src[y - k - 3, j0:j1]
+            for j in range(n):
+                t[j] += (a0 * (p0[j] + m0[j]) + a1 * (p1[j] + m1[j])
+                         + a2 * (p2[j] + m2[j]) + a3 * (p3[j] + m3[j]))
+            k += 4
+        while k <= r:
+            a0 = w[r + k]
+            p0 = src[y + k, j0:j1]
+            m0 = src[y - k, j0:j1]
+            for j in range(n):
+                t[j] += a0 * (p0[j] + m0[j])
+            k += 1
         return
     for j in range(n):
         t[j] = 0.0
@@ -106,10 +91,46 @@ def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
 
 @njit(fastmath=True, nogil=True, cache=True)
 def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
-    """acc[:n] = Σ_k w[k] trow[j0 + k*C : j1 + k*C] (``trow`` padded by r*C zeros), the
-    symmetric taps folded (:func:`_fold`, pixels ``C`` apart)."""
-    r = w.shape[0] // 2
-    _fold(trow, j0 + r * C, C, w, r, acc, j1 - j0)
+    """acc[:n] = Σ_k w[k] trow[j0 + k*C : j1 + k*C] (``trow`` padded by r*C zeros).
+
+    Symmetric taps folded: ``w[r+k]·(trow[.. + (r+k)C] + trow[.. + (r−k)C])``.
+    """
+    K = w.shape[0]
+    r = K // 2
+    n = j1 - j0
+    c0 = trow[j0 + r * C:j1 + r * C]
+    a = w[r]
+    for j in range(n):
+        acc[j] = a * c0[j]
+    k = 1
+    while k + 3 <= r:
+        a0 = w[r + k]
+        a1 = w[r + k + 1]
+        a2 = w[r + k + 2]
+        a3 = w[r + k + 3]
+        o = j0 + (r + k) * C
+        q = j0 + (r - k) * C
+        p0 = trow[o:o + n]
+        p1 = trow[o + C:o + C + n]
+        p2 = trow[o + 2 * C:o + 2 * C + n]
+        p3 = trow[o + 3 * C:o + 3 * C + n]
+        m0 = trow[q:q + n]
+        m1 = trow[q - C:q - C + n]
+        m2 = trow[q - 2 * C:q - 2 * C + n]
+        m3 = trow[q - 3 * C:q - 3 * C + n]
+        for j in range(n):
+            acc[j] += (a0 * (p0[j] + m0[j]) + a1 * (p1[j] + m1[j])
+                       + a2 * (p2[j] + m2[j]) + a3 * (p3[j] + m3[j]))
+        k += 4
+    while k <= r:
+        a0 = w[r + k]
+        o = j0 + (r + k) * C
+        q = j0 + (r - k) * C
+        p0 = trow[o:o + n]
+        m0 = trow[q:q + n]
+        for j in range(n):
+            acc[j] += a0 * (p0[j] + m0[j])
+        k += 1
 
 
 @njit(fastmath=True, nogil=True, cache=True)
