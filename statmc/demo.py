@@ -9,6 +9,7 @@ the adaptive sampling-density maps, a log-log convergence plot and ``results.jso
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -50,7 +51,17 @@ def cached_reference(renderer, spp: int, cache_dir: str, *, seed: int = 1_000_00
     """Reference mean image of ``renderer`` at ``spp``, rendered once
     (:func:`render_reference`) and cached as EXR."""
     from .exr import read_image, write_exr, write_png_preview
-    name = f"{renderer.name}-{renderer.width}x{renderer.height}-{spp}spp.exr"
+    name = f"{renderer.name}-{renderer.width}x{renderer.height}-{spp}spp"
+    # another camera, or other $name values of a scene file, is another image
+    sensor = getattr(renderer, "sensor", 0)
+    params = getattr(renderer, "params", None)
+    if sensor:
+        name += f"-sensor{sensor}"
+    if params:
+        digest = hashlib.sha1(repr(sorted((str(k), str(v)) for k, v in params.items()))
+                              .encode()).hexdigest()[:10]
+        name += f"-params{digest}"
+    name += ".exr"
     path = os.path.join(cache_dir, name.replace("/", "_").replace(":", "_"))
     if os.path.exists(path):
         try:

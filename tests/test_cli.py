@@ -1505,6 +1505,22 @@ def test_cached_reference_has_the_asked_samples_when_not_a_multiple_of_the_pass(
     np.testing.assert_allclose(read_exr(path).mean, want.mean, rtol=1e-6, atol=1e-7)
 
 
+def test_cached_reference_tells_sensors_and_scene_parameters_apart(tmp_path):
+    """Regression (session 10 review): the cache file name was scene, size and spp only, so
+    another camera (``sensor``) or other ``$name`` values (``params``) of one scene file at
+    the same size were served the first one's reference.  The attributes are set on a toy
+    renderer here (no Mitsuba needed): the name is all cached_reference reads of them."""
+    from statmc.demo import cached_reference
+    from statmc.renderers import make_renderer
+    paths = []
+    for sensor, params in ((0, {}), (1, {}), (0, {"w": 2}), (0, {"w": 3}), (0, {"w": 2})):
+        r = make_renderer("toy:mixed", width=4, height=3)
+        r.sensor, r.params = sensor, params
+        paths.append(cached_reference(r, 4, str(tmp_path), pass_spp=4)[1])
+    assert len(set(paths[:4])) == 4 and paths[4] == paths[2]
+    assert paths[0].endswith("-4x3-4spp.exr")            # the default's name is unchanged
+
+
 def test_combine_spp_for_y_leaves_zs_own_counts(tmp_path):
     """`--spp` is for a Y without SampleCount; a Z with its own counts (say a --crn render at
     another spp) keeps them (`--spp` was applied to Z too: 'disagrees with SampleCount')."""
