@@ -32,6 +32,7 @@ import numbers
 import numpy as np
 
 from . import _filter_kernels as _k
+from ._threads import serial_when_small
 from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
                      check_same_shape)
 
@@ -193,6 +194,7 @@ def _run(x, c, v, cv, sigma, truncate, *, normalize=True, out_x=None, out_v=None
     return out_x, (out_v if out_v.shape[1] else None)
 
 
+@serial_when_small()
 def gaussian_filter(image, sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> np.ndarray:
     """Border-renormalised Gaussian filter of an ``(H, W)`` or ``(H, W, C)`` image.
 
@@ -215,6 +217,7 @@ def gaussian_filter(image, sigma: float, *, truncate: float = DEFAULT_TRUNCATE) 
     return out.reshape(img.shape)
 
 
+@serial_when_small()
 def gaussian_spread(amount, sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> np.ndarray:
     """Adjoint of :func:`gaussian_filter`: spread ``amount(p)`` over p's filter support.
 
@@ -267,6 +270,7 @@ def _check_bank_input(mean, mean_var, sigmas, truncate):
     return m, v, [float(s) for s in sig]
 
 
+@serial_when_small()
 def filter_bank(mean, mean_var, sigmas=ADAPTIVE_SIGMAS, *, truncate: float = DEFAULT_TRUNCATE,
                 sum_channels: bool = False):
     """Filter the pixel estimates at every scale and propagate their variances.

@@ -38,6 +38,7 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
+from ._threads import serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
                      check_finite, check_nonnegative)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
@@ -687,6 +688,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
 # Public entry points
 # ---------------------------------------------------------------------------------------
 
+@serial_when_small()
 def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
            sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE,
            map_scale=None, bias=None) -> dict:
@@ -762,6 +764,7 @@ def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool =
                  keep_bank=False, map_scale=map_scale, bias=bias)["scales"]
 
 
+@serial_when_small()
 def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
                 extra_output: bool = False, sigmas=None, map_scale=None, bias=None):
     """GEM reconstruction: each pixel takes the filter scale that minimises its MSE.
@@ -922,6 +925,7 @@ class SelectedFilter:
         return out
 
 
+@serial_when_small()
 def selected_filter(mean, mean_var, **options):
     """GEM on the render and the kernel it selected: ``(image, SelectedFilter)``.
 
@@ -1047,6 +1051,7 @@ def _spread_reference(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
     return density
 
 
+@serial_when_small()
 def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA,
                  batch: int | None = None, eps: float = RELMSE_EPS, rng=None,
                  rounds: int = 4, var_prior: float = 2.0, var_prior_sigma: float = 1.0,

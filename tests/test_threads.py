@@ -14,6 +14,7 @@ import subprocess
 import sys
 
 import numba
+import numpy as np
 import pytest
 from _omp_display import PRINT_BEGIN, PRINT_END, libgomp_settings
 
@@ -83,3 +84,33 @@ def test_fork_after_import_still_works():
     p = subprocess.run([sys.executable, "-c", _FORK], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 0 and p.stdout.strip() == "4", p.stdout + p.stderr
+
+
+def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
+    """Below ``_threads.SERIAL_VALUES`` a decorated call runs on one numba thread while the
+    pool waits passively (each parallel region would pay a sleeping worker's wake-up), in
+    parallel when the user chose a wait policy; the thread count is restored after, also
+    when the call raises."""
+    from statmc import _threads
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread only")
+    seen = []
+
+    @_threads.serial_when_small(100)
+    def probe(x, fail=False):
+        seen.append(numba.get_num_threads())
+        if fail:
+            raise ValueError("refused")
+
+    for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
+        monkeypatch.delenv(k, raising=False)
+    before = numba.get_num_threads()
+    probe(np.zeros(99))
+    probe(np.zeros(100))
+    with pytest.raises(ValueError):
+        probe(np.zeros(5), fail=True)
+    monkeypatch.setenv("GOMP_SPINCOUNT", "300000")
+    probe(np.zeros(99))
+    assert seen == [1, before, 1, before]
+    assert numba.get_num_threads() == before
