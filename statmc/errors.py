@@ -7,6 +7,7 @@ it as one line.
 
 from __future__ import annotations
 
+import math
 import numbers
 
 import numpy as np
@@ -101,6 +102,15 @@ def _scalar(value):
     if isinstance(value, np.ndarray) and value.ndim == 0:
         return value[()]
     return value
+
+
+def real_or_nan(value) -> float:
+    """``value`` as a float if it is a real number (a 0-d array too; not a bool), else NaN,
+    for checks with their own message: a string "1" was parsed silently by ``float`` and
+    None was its TypeError."""
+    value = _scalar(value)
+    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    return float(value) if ok else math.nan
 
 
 def as_number(name: str, value, *, lo: float | None = None, lo_open: bool = False) -> float:

@@ -27,14 +27,13 @@ References
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 
 from . import _filter_kernels as _k
 from ._threads import serial_when_small
 from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
-                     check_same_shape)
+                     check_same_shape, real_or_nan)
 
 __all__ = [
     "ADAPTIVE_SIGMAS", "FINAL_SIGMAS", "DEFAULT_TRUNCATE",
@@ -52,24 +51,15 @@ FINAL_SIGMAS: tuple[float, ...] = (0.0,) + tuple(2.0 ** (k / 2) for k in range(1
 DEFAULT_TRUNCATE = 3.0
 
 
-def _real(value) -> float:
-    """``value`` as a float if it is a real number (a 0-d array too), else NaN: a string
-    "1" was parsed silently and None was float()'s TypeError."""
-    if isinstance(value, np.ndarray) and value.ndim == 0:
-        value = value.item()
-    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-    return float(value) if ok else math.nan
-
-
 def _check_sigma(sigma) -> float:
-    s = _real(sigma)
+    s = real_or_nan(sigma)
     if not np.isfinite(s) or s < 0:
         raise InputError(f"`sigma` must be a finite number >= 0; got {sigma!r}.")
     return s
 
 
 def _check_truncate(truncate) -> float:
-    t = _real(truncate)
+    t = real_or_nan(truncate)
     if not np.isfinite(t) or t <= 0:
         raise InputError(f"`truncate` must be a finite number > 0; got {truncate!r}.")
     return t

@@ -32,7 +32,6 @@ References
 from __future__ import annotations
 
 import math
-import numbers
 
 import numba
 import numpy as np
@@ -40,7 +39,7 @@ import numpy as np
 from . import _filter_kernels as _k
 from ._threads import serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
-                     check_finite, check_nonnegative)
+                     check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
                       _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
@@ -89,7 +88,7 @@ def error_rate_weight(gamma: float) -> float:
     >>> round(error_rate_weight(0.2), 4)
     0.7022
     """
-    g = float(gamma) if isinstance(gamma, numbers.Real) else math.nan   # None, "0.2": refused
+    g = real_or_nan(gamma)                   # None, "0.2": refused; np.array(0.2) read
     if not (0.0 < g < _GAMMA_MAX) or not math.isfinite(g):
         raise InputError(f"`gamma` must be in (0, {_GAMMA_MAX:.4f}) (error rate of the scale "
                          f"selector; the paper uses 0.1-0.3); got {gamma!r}.")

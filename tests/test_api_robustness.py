@@ -578,3 +578,13 @@ def test_zero_dimensional_arrays_are_numbers():
                                   gem.sampling_map(x, v, n, 300, rng=1))
     np.testing.assert_array_equal(sure.mc_sure(denoisers.gaussian(1.0), x, v, k=np.array(2), rng=1),
                                   sure.mc_sure(denoisers.gaussian(1.0), x, v, k=2, rng=1))
+
+
+def test_gem_gamma_as_zero_dimensional_array():
+    """The gamma type check (64937b9) refused a 0-d array (``isinstance(np.array(0.2),
+    numbers.Real)`` is False) that float(gamma) had read as 0.2 before: '`gamma` must be in
+    (0, 0.5263) ...; got array(0.2)'."""
+    x, v, _, _ = _inputs(19)
+    assert gem.error_rate_weight(np.array(0.2)) == gem.error_rate_weight(0.2)
+    np.testing.assert_array_equal(gem.reconstruct(x, v, gamma=np.array(0.3)),
+                                  gem.reconstruct(x, v, gamma=0.3))
