@@ -127,8 +127,10 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     if _tm_name(name) == "reinhard":
         with np.errstate(over="ignore"):
             x = np.maximum(xr, 0.0) * ex
-        inf = np.isinf(x)                            # x·e beyond the dtype: T = 1
-        return np.where(inf, 1.0, x / (1.0 + np.where(inf, 0.0, x)))
+        # e·x beyond the dtype (inf): the largest finite value instead, whose T is exactly 1
+        # (1 + max rounds to max); finite values pass unchanged, in one pass
+        x = np.minimum(x, np.finfo(x.dtype).max)
+        return x / (1.0 + x)
     x = np.minimum(np.maximum(xr, 0.0), _ACES_CAP / ex) * ex
     a, b, c, d, e = _ACES
     return np.clip(x * (a * x + b) / (x * (c * x + d) + e), 0.0, 1.0)
