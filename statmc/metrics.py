@@ -141,13 +141,15 @@ def relmse(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
                          f"{int((den == 0).sum())} zero values in `ref`. Use eps > 0.")
     with np.errstate(over="ignore", invalid="ignore"):
         err = (xa - ra) ** 2 / den
-    bad = ~np.isfinite(err)
-    if bad.any():    # |x|, |r| beyond ~1e154: the squares overflow (inf/inf), not the ratio
-        xb, rb = xa[bad], ra[bad]
-        s = np.maximum(np.abs(xb), np.abs(rb))
-        with np.errstate(divide="ignore", under="ignore", over="ignore"):   # inf if it is
-            err[bad] = ((xb / s - rb / s) / np.hypot(rb / s, np.sqrt(e) / s)) ** 2
-    return _reduce(err, per_pixel)
+        out = _reduce(err, per_pixel)
+    if np.isfinite(out).all():      # every entry is >= 0: a NaN or inf one reaches its mean
+        return out
+    bad = ~np.isfinite(err)         # |x|, |r| beyond ~1e154: the squares overflow (inf/inf),
+    xb, rb = xa[bad], ra[bad]       # not the ratio
+    s = np.maximum(np.abs(xb), np.abs(rb))
+    with np.errstate(divide="ignore", under="ignore", over="ignore"):   # inf if it is
+        err[bad] = ((xb / s - rb / s) / np.hypot(rb / s, np.sqrt(e) / s)) ** 2
+        return _reduce(err, per_pixel)
 
 
 def mse(x, ref, *, per_pixel: bool = False):
