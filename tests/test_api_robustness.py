@@ -477,6 +477,33 @@ def test_gaussian_wider_than_the_image():
     assert filters.gaussian_spread(v, 1e9).sum() == pytest.approx(v.sum(), rel=1e-12)
 
 
+def test_cut_gaussian_equals_the_full_one_where_its_taps_reach(monkeypatch):
+    """The cut kernel of fdd1b65 must be exact where taps reach the image, not only in the
+    near-flat limit (σ = 2000 on 7×9 pixels varies its weights by 1e-5): with the cut
+    lowered to 2 taps, σ = 4 (12 taps a side, cut to 8 on this image) must give the dense
+    reference's values and variances, the uncut filter and spread, and keep the spread
+    the adjoint of the filter."""
+    x, v, _, _ = _inputs(20)
+    for s in (0.5, 4.0, 4096 / 3):           # up to 4096 taps a side: the kernel, bit for bit
+        np.testing.assert_array_equal(filters._taps(s, 3.0, max(H, W)),
+                                      filters.gaussian_kernel_1d(s))
+    sig = [0.0, 4.0, 6.5]
+    full = (filters.filter_bank(x, v, sig), filters.gaussian_filter(x, 4.0),
+            filters.gaussian_spread(v, 4.0))
+    monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
+    assert len(filters._taps(4.0, 3.0, max(H, W))) == 2 * (max(H, W) - 1) + 1   # cut
+    got = filters.filter_bank(x, v, sig)
+    want = filters.filter_bank_reference(x, v, sig)
+    for g, w, f in zip(got, want, full[0]):
+        np.testing.assert_allclose(g, w, rtol=1e-12)
+        np.testing.assert_allclose(g, f, rtol=1e-12)
+    np.testing.assert_allclose(filters.gaussian_filter(x, 4.0), full[1], rtol=1e-12)
+    spread = filters.gaussian_spread(v, 4.0)
+    np.testing.assert_allclose(spread, full[2], rtol=1e-12)
+    assert np.sum(spread * x) == pytest.approx(np.sum(v * filters.gaussian_filter(x, 4.0)),
+                                               rel=1e-12)
+
+
 def test_all_metrics_takes_one_name_as_a_string():
     """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
     'l', 'm', 's', 'e']"."""
