@@ -61,24 +61,30 @@ SAMPLERS: dict[str, Callable] = {
 }
 
 
-def _sampler_options(name: str) -> set[str]:
-    """The keyword options the named sampler takes (those of the functions it forwards to)."""
+def _sampler_options(fn: Callable) -> set[str] | None:
+    """The keyword options the sampler ``fn`` takes: for the built-in ones, those of the
+    functions they forward to; for a sampler a user registered in :data:`SAMPLERS`, its own
+    (None, i.e. any, when it takes ``**options`` or has no signature)."""
     import inspect
 
-    if name == "gem":
-        fns = [_gem_sampler]
-    elif name == "expected-error":
+    extra = set()
+    if fn is _expected_error_sampler:
         from .analytic import expected_error_sampler
-        fns = [expected_error_sampler]
-    elif name == "denoising-aware":
+        fns, extra = [expected_error_sampler], {"gem_options"}     # PilotKernelSampler
+    elif fn is _denoising_aware_sampler:
         from .da_sampling import denoising_aware_density, sampler
         fns = [sampler, denoising_aware_density]
     else:
-        fns = [_uniform_sampler]
+        try:
+            params = inspect.signature(fn).parameters.values()
+        except (TypeError, ValueError):
+            return None
+        if any(p.kind == inspect.Parameter.VAR_KEYWORD for p in params):
+            return None
+        fns = [fn]
     kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     names = {p.name for f in fns for p in inspect.signature(f).parameters.values()
              if p.kind in kinds}
-    extra = {"gem_options"} if name == "expected-error" else set()   # PilotKernelSampler
     return (names | extra) - {"stats", "budget", "rng", "extra_output"}
 
 
@@ -89,8 +95,8 @@ def get_sampler(name_or_callable, **options) -> Callable:
     :class:`~statmc.errors.InputError` (not a ``TypeError`` after the first render pass).
     """
     if not callable(name_or_callable) and name_or_callable in SAMPLERS and options:
-        allowed = _sampler_options(name_or_callable)
-        unknown = sorted(set(options) - allowed)
+        allowed = _sampler_options(SAMPLERS[name_or_callable])
+        unknown = [] if allowed is None else sorted(set(options) - allowed)
         if unknown:
             raise InputError(f"unknown option(s) {unknown} for sampler {name_or_callable!r}; "
                              f"expected some of {sorted(allowed) or 'none'}.")

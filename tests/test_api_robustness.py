@@ -259,6 +259,28 @@ def test_sampler_options_are_checked_by_name():
             get_sampler(name, nope=1)
 
 
+def test_sampler_options_of_a_registered_sampler_are_its_own(monkeypatch):
+    """SAMPLERS is public and da_sampling.sampler's docstring says to register samplers in
+    it; 1a57dd7 checked every name outside the built-in four against the uniform sampler,
+    so a user's registered sampler refused its own option ("unknown option(s) ['power'] for
+    sampler 'capped'; expected some of none"), and one registered over "gem" was checked
+    against GEM's gamma."""
+    from statmc.adaptive import SAMPLERS, get_sampler
+    x, v, n, _ = _inputs(21)
+    stats = PixelStats.from_mean_var(x, v * n[..., None], n)
+
+    def capped(stats, budget, rng, *, power=1.0):
+        return sampling.counts_from_density(stats.mean_var.mean(axis=2) ** power, budget, rng=rng)
+
+    monkeypatch.setitem(SAMPLERS, "capped", capped)
+    assert get_sampler("capped", power=0.5)(stats, 100, 1).sum() == 100
+    with pytest.raises(InputError, match=r"unknown option\(s\) \['pwr'\] for sampler 'capped'"):
+        get_sampler("capped", pwr=0.5)
+    monkeypatch.setitem(SAMPLERS, "gem", lambda stats, budget, rng, **kw: capped(stats, budget,
+                                                                                  rng, **kw))
+    assert get_sampler("gem", power=0.5)(stats, 100, 1).sum() == 100
+
+
 @pytest.mark.parametrize("args,kwargs,match", [
     ((4, 10), {}, "`first`=10 samples exceed `total`=4"),     # gave [0, 0, -1, -1, ...]
     ((-1, 2), {}, "`total` must be a whole number"),
