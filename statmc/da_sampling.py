@@ -103,6 +103,14 @@ def _exposure(exposure):
     return float(exposure)
 
 
+def _aces_input(xr, ex):
+    """``e·max(x, 0)`` capped at :data:`_ACES_CAP`; the cap ``8/e`` in the image's dtype
+    (beyond float32's range for ``e`` < ~2.4e-38, where np.minimum warned of an overflowing
+    cast; the dtype's maximum caps nothing there either)."""
+    cap = min(_ACES_CAP / ex, float(np.finfo(xr.dtype).max))
+    return np.minimum(np.maximum(xr, 0.0), cap) * ex
+
+
 def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     """Per-channel tone mapping ``T(e·x)`` into [0, 1].
 
@@ -131,7 +139,7 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
         # (1 + max rounds to max); finite values pass unchanged, in one pass
         x = np.minimum(x, np.finfo(x.dtype).max)
         return x / (1.0 + x)
-    x = np.minimum(np.maximum(xr, 0.0), _ACES_CAP / ex) * ex
+    x = _aces_input(xr, ex)
     a, b, c, d, e = _ACES
     return np.clip(x * (a * x + b) / (x * (c * x + d) + e), 0.0, 1.0)
 
@@ -145,7 +153,7 @@ def tonemap_derivative(image, name: str = "aces", *, exposure: float = 1.0) -> n
         with np.errstate(over="ignore"):            # (1 + x)² = inf: the derivative is 0
             out = ex / (1.0 + np.maximum(xr, 0.0) * ex) ** 2
     else:
-        x = np.minimum(np.maximum(xr, 0.0), _ACES_CAP / ex) * ex
+        x = _aces_input(xr, ex)
         a, b, c, d, e = _ACES
         num = x * (a * x + b)
         den = x * (c * x + d) + e

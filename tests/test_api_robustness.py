@@ -8,6 +8,8 @@ real risk (non-contiguous or foreign-byte-order arrays handed to compiled kernel
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -214,6 +216,25 @@ def test_tonemap_saturates_for_huge_radiance(name, dtype):
     e = 0.5 * 1.0
     want = e / (1 + e) if name == "reinhard" else e * (2.51 * e + 0.03) / (e * (2.43 * e + 0.59) + 0.14)
     assert tonemap(x, name)[3] == pytest.approx(want, rel=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_tonemap_with_a_tiny_exposure_is_quiet_and_unchanged(dtype):
+    """The ACES cap 8/exposure (6c9d1ab) passed beyond float32's range for an exposure
+    below ~2.4e-38 and np.minimum warned 'overflow encountered in cast' on a float32 image;
+    the values must stay those of the curve (clamped to 1 from e·x = 7.24)."""
+    from statmc.da_sampling import tonemap, tonemap_derivative
+
+    x = np.array([0.0, 1.0, 1e30, np.finfo(dtype).max], dtype)
+    for exposure in (1e-38, 1e-300):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            t = tonemap(x, exposure=exposure)
+            d = tonemap_derivative(x, exposure=exposure)
+        y = np.minimum(x.astype(np.float64) * exposure, 8.0)     # the curve is 1 from 7.24
+        want = np.minimum(y * (2.51 * y + 0.03) / (y * (2.43 * y + 0.59) + 0.14), 1.0)
+        np.testing.assert_allclose(t, want.astype(dtype), rtol=1e-6, atol=0)
+        assert t.dtype == dtype and np.isfinite(d).all() and (d >= 0).all()
 
 
 # ----------------------------------------------------------------------- adaptive loop
