@@ -21,25 +21,20 @@ from typing import Callable
 import numpy as np
 
 from .errors import InputError, as_int, as_number, as_rng, as_whole
-from .stats import PixelStats
+from .stats import PixelStats, check_stats
 
 __all__ = ["adaptive_render", "AdaptiveResult", "SAMPLERS", "get_sampler", "pass_budgets"]
 
 
-def _check_stats(stats):
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
-
-
 def _uniform_sampler(stats: PixelStats, budget: int, rng) -> np.ndarray:
     from .sampling import counts_from_density
-    _check_stats(stats)
+    check_stats(stats)
     return counts_from_density(np.ones(stats.n.shape), budget, rng=rng)
 
 
 def _gem_sampler(stats: PixelStats, budget: int, rng, *, gamma: float = 0.2) -> np.ndarray:
     from .gem import sampling_map
-    _check_stats(stats)
+    check_stats(stats)
     return sampling_map(stats.mean, stats.mean_var, stats.n, budget, gamma=gamma, rng=rng)
 
 

@@ -139,9 +139,8 @@ def _check_kernels(kernels, hw):
 def _check_stats(stats):
     """A sampler's ``stats`` must be PixelStats: an ndarray has a ``mean`` *method*, which
     failed as "'builtin_function_or_method' object has no attribute 'shape'"."""
-    from .stats import PixelStats
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    from .stats import check_stats
+    check_stats(stats)
 
 
 def _check_loss(loss, eps):

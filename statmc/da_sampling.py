@@ -58,7 +58,7 @@ import numpy as np
 
 from .errors import (MAX_BUDGET, InputError, as_broadcast_arrays, as_float_array, as_rng,
                      as_whole, check_finite)
-from .stats import PixelStats
+from .stats import PixelStats, check_stats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
            "sampler", "mix_variance", "njs_variance", "tonemap", "tonemap_derivative",
@@ -217,8 +217,7 @@ def njs_variance(rho, alpha, var_fa, var_fb, var_x) -> np.ndarray:
 
 # =========================================================================== the map
 def _check_stats(stats):
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    check_stats(stats)
     stats.require_variance(hint=" Render an initial uniform pass of >= 2 spp first.")
 
 

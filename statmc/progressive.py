@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
                      check_nonempty, check_nonnegative)
-from .stats import PixelStats
+from .stats import PixelStats, check_stats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
            "bind_denoiser", "auto_sigma_s", "DEFAULT_SMOOTH", "DEFAULT_RELATIVE_EPS",
@@ -578,8 +578,7 @@ def bind_denoiser(denoiser, stats: PixelStats, **options):
     """
     from . import denoisers as _d
 
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    check_stats(stats)
     if isinstance(denoiser, str):
         name = denoiser.lower()
         if name == "oidn":
@@ -722,8 +721,7 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
     """
     from .sure import mc_sure
 
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    check_stats(stats)
     if not isinstance(gate, (bool, np.bool_)):
         raise InputError(f"`gate` must be a bool; got {gate!r}.")
     if outlier is not None:

@@ -443,6 +443,13 @@ class PixelStats:
                           m2_cross=None if self.m2_cross is None else self.m2_cross.copy())
 
 
+def check_stats(stats, name: str = "stats") -> None:
+    """Raise :class:`InputError` unless ``stats`` is a :class:`PixelStats` (an image passed
+    instead failed deep inside: an ndarray's ``mean`` is a method)."""
+    if not isinstance(stats, PixelStats):
+        raise InputError(f"`{name}` must be a statmc.PixelStats; got {type(stats).__name__}.")
+
+
 def replace_nonfinite(a, value: float = 0.0):
     """Return ``(copy of a with NaN/Inf replaced by value, number replaced)``."""
     arr = np.array(a, copy=True)

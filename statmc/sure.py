@@ -43,7 +43,7 @@ import numpy as np
 from .analytic import apply_kernels
 from .errors import (InputError, as_float_array, as_int, as_number, as_rng, check_finite,
                      check_nonempty, check_nonnegative)
-from .stats import PixelStats
+from .stats import check_stats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
            "DoubleBufferEstimates", "METHODS", "DEFAULT_EPS", "DEFAULT_VARIANCE_EPS", "DEFAULT_K"]
@@ -531,8 +531,7 @@ def double_buffer_estimates(stats_a, stats_b, denoiser) -> DoubleBufferEstimates
     anything directly about ``f`` of the merged buffer.
     """
     for name, s in (("stats_a", stats_a), ("stats_b", stats_b)):
-        if not isinstance(s, PixelStats):
-            raise InputError(f"`{name}` must be a statmc.PixelStats; got {type(s).__name__}.")
+        check_stats(s, name)
     if stats_a.mean.shape != stats_b.mean.shape:
         raise InputError(f"`stats_b` must have the shape of `stats_a` {stats_a.mean.shape}; "
                          f"got {stats_b.mean.shape}.")
