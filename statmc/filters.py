@@ -89,7 +89,16 @@ def gaussian_kernel_1d(sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> n
     t = _check_truncate(truncate)
     if s == 0.0:
         return np.ones(1)
-    r = max(1, int(math.ceil(t * s - 1e-9)))  # 3·2.0 -> 6, not 7 after rounding noise
+    return _gauss(s, _radius(s, t))
+
+
+def _radius(s: float, t: float) -> int:
+    """Taps a side of :func:`gaussian_kernel_1d` for checked ``σ > 0`` and ``truncate``."""
+    return max(1, int(math.ceil(t * s - 1e-9)))  # 3·2.0 -> 6, not 7 after rounding noise
+
+
+def _gauss(s: float, r: int) -> np.ndarray:
+    """The ``2r + 1`` central taps ``exp(−k²/(2σ²))``, normalised to sum 1."""
     k = np.arange(-r, r + 1, dtype=np.float64)
     with np.errstate(over="ignore"):             # σ ~ 1e-300: (k/σ)² = inf, weight 0
         w = np.exp(-0.5 * (k / s) ** 2)
@@ -143,12 +152,10 @@ def _taps(sigma, truncate, n):
     """
     s = _check_sigma(sigma)
     t = _check_truncate(truncate)
-    r = max(1, int(math.ceil(t * s - 1e-9))) if s > 0 else 0
-    if r <= max(n - 1, _MAX_FULL_RADIUS):
-        return gaussian_kernel_1d(s, truncate=t)
-    k = np.arange(-(n - 1), n, dtype=np.float64)
-    w = np.exp(-0.5 * (k / s) ** 2)
-    return w / w.sum()
+    if s == 0.0:
+        return np.ones(1)
+    r = _radius(s, t)
+    return _gauss(s, r if r <= max(n - 1, _MAX_FULL_RADIUS) else n - 1)
 
 
 def _as_image(name, a, dtype=None):
