@@ -56,8 +56,8 @@ import numbers
 
 import numpy as np
 
-from .errors import (MAX_BUDGET, InputError, as_broadcast_arrays, as_float_array, as_rng,
-                     as_whole, check_finite)
+from .errors import (MAX_BUDGET, InputError, _scalar, as_broadcast_arrays, as_float_array,
+                     as_rng, as_whole, check_finite)
 from .stats import PixelStats, check_stats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -97,6 +97,7 @@ def _tm_name(name):
 
 
 def _exposure(exposure):
+    exposure = _scalar(exposure)                 # a 0-d array is its number
     if isinstance(exposure, bool) or not isinstance(exposure, numbers.Real) \
             or not np.isfinite(float(exposure)) or float(exposure) <= 0:
         raise InputError(f"`exposure` must be a finite number > 0; got {exposure!r}.")
@@ -325,6 +326,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     if tonemap is not None:
         _tm_name(tonemap)
     _exposure(exposure)
+    eps, k = _scalar(eps), _scalar(k)            # 0-d arrays are their numbers
     if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not np.isfinite(eps) \
             or eps <= 0:
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")

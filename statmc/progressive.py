@@ -29,8 +29,8 @@ import numbers
 
 import numpy as np
 
-from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, check_finite,
-                     check_nonempty, check_nonnegative)
+from .errors import (InputError, _scalar, as_broadcast_arrays, as_float_array, as_number,
+                     check_finite, check_nonempty, check_nonnegative)
 from .stats import PixelStats, check_stats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
@@ -530,6 +530,7 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         check_nonnegative("mean_var", v)
     if bad[5]:                                   # beyond float32's safe range: work in double
         u, vw, _, _ = _pk.prepare(xx, yy, v, al, np.float64)
+    window = _scalar(window)                     # a 0-d array is its number
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1 \
             or window % 2 == 0:
         raise InputError(f"`window` must be an odd positive integer; got {window!r}.")

@@ -648,6 +648,16 @@ def test_zero_dimensional_arrays_are_numbers():
                                   gem.sampling_map(x, v, n, 300, rng=1))
     np.testing.assert_array_equal(sure.mc_sure(denoisers.gaussian(1.0), x, v, k=np.array(2), rng=1),
                                   sure.mc_sure(denoisers.gaussian(1.0), x, v, k=2, rng=1))
+    from statmc.da_sampling import denoising_aware_density, tonemap
+    np.testing.assert_array_equal(tonemap(x, exposure=np.array(2.0)), tonemap(x, exposure=2.0))
+    np.testing.assert_array_equal(
+        progressive.confidence_gate(x, y, v, alpha, window=np.array(5), sigma_s=2.0),
+        progressive.confidence_gate(x, y, v, alpha, window=5, sigma_s=2.0))
+    stats = PixelStats.from_mean_var(x, v * n[..., None], n)
+    gauss = denoisers.gaussian(1.0)
+    np.testing.assert_array_equal(
+        denoising_aware_density(stats, gauss, eps=np.array(1e-3), k=np.array(2), rng=1),
+        denoising_aware_density(stats, gauss, eps=1e-3, k=2, rng=1))
 
 
 def test_gem_gamma_as_zero_dimensional_array():
