@@ -114,3 +114,29 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
     probe(np.zeros(99))
     assert seen == [1, before, 1, before]
     assert numba.get_num_threads() == before
+
+
+_OIDN_PROBE = f"""
+import os, sys
+import numpy as np
+import statmc.denoisers as D
+d = D.oidn()
+{PRINT_BEGIN}
+d(np.full((8, 8, 3), 0.5, np.float32))
+{PRINT_END}
+print(repr(os.environ.get("OMP_WAIT_POLICY")), "torch" in sys.modules, file=sys.stderr)
+"""
+
+
+def test_oidn_loads_torchs_openmp_runtime_with_passive_waits():
+    """pyoidn imports torch, and numba's kernels then share torch's bundled libgomp.  The
+    old code imported pyoidn plainly (spin count 300000: this failed on ``gomp``); two
+    statmc jobs that had run OIDN first then took 4.5-6.8 s each for six 512x512
+    reconstructions against 0.55 s.  Skipped where pyoidn does not bring torch along."""
+    pytest.importorskip("pyoidn")
+    gomp, lines = libgomp_settings(_OIDN_PROBE)
+    after, torch_loaded = lines[-1].rsplit(" ", 1)
+    if torch_loaded != "True" or not gomp:
+        pytest.skip("pyoidn loads no libgomp here")
+    assert gomp == [("0", "PASSIVE")] * len(gomp), gomp
+    assert after == "None"
