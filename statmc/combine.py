@@ -557,7 +557,9 @@ def combine_bias_variance(weights, var_y, cov_z, *, z_bias=None, y_bias=None, co
         # taps outside the image are never read (a NaN there stays out of the sums)
         wb = {o: np.where(_valid(H, W, *o) > 0, w[:, :, b, o[0] + r, o[1] + r], 0.0)
               .astype(np.float64) for o in offs}
-        bad = ~np.isfinite(sum(np.abs(x) for x in wb.values()))
+        bad = np.zeros((H, W), bool)
+        for x in wb.values():          # per tap: a sum of huge finite weights overflows
+            bad |= ~np.isfinite(x)
         if bad.any():
             py, px = (int(i[0]) for i in np.nonzero(bad))
             raise InputError(f"`weights` must be finite at the taps inside the image; "

@@ -405,6 +405,13 @@ def test_combine_bias_variance_ignores_outside_taps_and_refuses_nan_inside():
     inside[3, 4, 2, 2] = np.nan
     with pytest.raises(InputError, match=r"`weights` must be finite .* \(row 3, column 4\)"):
         combine.combine_bias_variance(inside, v, v)
+    # finite weights whose absolute sum overflows are finite all the same (session-10
+    # review: they were refused as "must be finite")
+    huge = k.copy()
+    huge[3, 4, :, :] = 1e308
+    with np.errstate(all="ignore"):
+        bias, var = combine.combine_bias_variance(huge, v, v)
+    assert bias.shape == var.shape == x.shape
 
 
 @pytest.mark.parametrize("bounds", [None, 1.0, (0.0, 1.0, 2.0)])
