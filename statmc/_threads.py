@@ -4,7 +4,9 @@ small problems run on the calling thread."""
 from __future__ import annotations
 
 import functools
+import importlib
 import os
+import sys
 import threading
 from contextlib import contextmanager
 
@@ -16,6 +18,11 @@ PASSIVE_OMP_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
 #: Variables that mean the user chose a wait policy for every OpenMP runtime: then we keep out.
 OMP_USER_CHOICE = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 _ENV_LOCK = threading.RLock()
+
+
+def _user_chose_policy() -> bool:
+    """The user set a wait policy (:data:`OMP_USER_CHOICE`) for every OpenMP runtime."""
+    return any(k in os.environ for k in OMP_USER_CHOICE)
 
 
 @contextmanager
@@ -30,7 +37,7 @@ def passive_omp():
     ``GOMP_SPINCOUNT`` themselves.  The blocks of several threads run one at a time.
     """
     with _ENV_LOCK:
-        if any(k in os.environ for k in OMP_USER_CHOICE):
+        if _user_chose_policy():
             yield
             return
         added = [k for k in PASSIVE_OMP_ENV if k not in os.environ]
@@ -41,6 +48,21 @@ def passive_omp():
         finally:
             for k in added:
                 os.environ.pop(k, None)
+
+
+def import_passively(name: str):
+    """Import module ``name``, any OpenMP runtime it loads set to wait passively.
+
+    The first import runs inside :func:`passive_omp` (its lock makes a second thread wait
+    for it); a module imported before, its runtime already configured, is returned as it
+    is.  When another thread is still importing it, this waits for that import to finish
+    (as a plain ``import`` does) and returns the complete module, not the half-initialised
+    one ``sys.modules`` already holds.
+    """
+    if name not in sys.modules:
+        with passive_omp():
+            return importlib.import_module(name)
+    return importlib.import_module(name)
 
 
 def wait_passively_in_numba() -> None:
@@ -118,7 +140,7 @@ def serial_when_small(threshold: int = SERIAL_VALUES):
                 work = int(np.size(first))
             except Exception:                  # ragged input: the function will say why
                 work = threshold
-            if any(k in os.environ for k in OMP_USER_CHOICE):
+            if _user_chose_policy():
                 work = threshold               # spinning workers wake at once: stay parallel
             with serial_below(work, threshold):
                 return fn(first, *args, **kwargs)

@@ -35,7 +35,6 @@ exact output variance (:func:`statmc.sure.kernel_variance`) apply to them.
 from __future__ import annotations
 
 import inspect
-import sys
 import threading
 import weakref
 from typing import Protocol, runtime_checkable
@@ -292,17 +291,13 @@ class OIDNDenoiser:
 
     def _setup(self, shape):
         """Create (once) the device and one filter bound to persistent shared buffers."""
-        if "pyoidn" in sys.modules:
-            import pyoidn
-        else:
-            # pyoidn imports torch (when installed), whose bundled OpenMP runtime numba's
-            # kernels then share: load it with passive waits (see statmc._threads).  Two
-            # statmc jobs side by side that had run OIDN first: 512x512 gem.reconstruct
-            # x6 took 4.5-6.8 s each with torch's default spin-wait, 0.55 s with this.
-            from ._threads import passive_omp
+        from ._threads import import_passively
 
-            with passive_omp():
-                import pyoidn
+        # pyoidn imports torch (when installed), whose bundled OpenMP runtime numba's
+        # kernels then share: load it with passive waits.  Two statmc jobs side by side
+        # that had run OIDN first: 512x512 gem.reconstruct x6 took 4.5-6.8 s each with
+        # torch's default spin-wait, 0.55 s with this.
+        pyoidn = import_passively("pyoidn")
 
         st = self._state
         if "device" not in st:

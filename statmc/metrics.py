@@ -26,8 +26,6 @@ References
 
 from __future__ import annotations
 
-import sys
-import threading
 import warnings
 
 import numpy as np
@@ -54,32 +52,14 @@ _FLIP_TONEMAP = {
 # ~210 ms instead of ~0.6 ms, a 256x256 one ~350 ms instead of ~170 ms
 # (bench/bench_flip_load.py).  "PASSIVE" makes waiting threads sleep instead; the thread
 # count stays, and the values are the same bit for bit (checked there and in the tests).
-_FLIP_IMPORT_LOCK = threading.Lock()
-
-
 def _flip_module():
-    """``flip_evaluator``, imported with its bundled OpenMP runtime set to wait passively.
+    """``flip_evaluator``, imported with its bundled OpenMP runtime set to wait passively
+    (:func:`statmc._threads.import_passively`: the user's environment is unchanged
+    afterwards, a wait policy the user set is kept, an earlier import is returned as is,
+    and an import still running in another thread is waited for)."""
+    from ._threads import import_passively
 
-    The import runs inside :func:`statmc._threads.passive_omp` (the moment the bundled
-    libgomp reads its settings), so the user's environment is unchanged afterwards, and
-    nothing is changed when the user set ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``
-    themselves, or when ``flip_evaluator`` was imported before (its runtime is then already
-    configured).  When another thread is still importing it, this waits for that import to
-    finish (a plain ``import`` does) and returns the complete module, not the
-    half-initialised one ``sys.modules`` already holds.
-    """
-    if "flip_evaluator" in sys.modules:
-        import flip_evaluator  # waits for an import still running in another thread
-        return flip_evaluator
-    from ._threads import passive_omp
-
-    with _FLIP_IMPORT_LOCK:
-        if "flip_evaluator" in sys.modules:
-            import flip_evaluator
-            return flip_evaluator
-        with passive_omp():
-            import flip_evaluator
-    return flip_evaluator
+    return import_passively("flip_evaluator")
 
 
 def _pair(x, ref):
