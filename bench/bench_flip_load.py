@@ -26,6 +26,8 @@ import subprocess
 import sys
 import time
 
+from _timing import busy_loops  # noqa: E402  (bench/ is the script's folder)
+
 _CHILD = r"""
 import os, sys, time, json, hashlib
 import numpy as np
@@ -99,15 +101,8 @@ def main():
     a = ap.parse_args()
     if not a.no_idle:
         table("as is (no busy loops of ours)", {m: run_mode(m, *a.reps) for m in MODES})
-    loops = [subprocess.Popen(["nice", "-n", str(a.nice), sys.executable, "-c", "while 1: pass"])
-             for _ in range(a.loops)]
-    try:
-        time.sleep(1.0)
+    with busy_loops(a.loops, a.nice):
         res = {m: run_mode(m, *a.reps) for m in MODES}
-    finally:
-        for p in loops:
-            p.kill()
-            p.wait()
     table(f"{a.loops} busy loops at nice {a.nice}", res)
 
 
