@@ -43,6 +43,7 @@ from . import _analytic_kernels as _ak
 from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, as_rng,
                      as_whole, check_finite, check_nonempty, check_nonnegative)
 from .sampling import counts_from_density
+from .stats import check_stats
 
 __all__ = [
     "DISTRIBUTIONS", "RELMSE_EPS", "future_moments", "gamma_parameters", "sample_future",
@@ -134,13 +135,6 @@ def _check_kernels(kernels, hw):
         check_finite("kernels", K)
         raise InputError("`kernels` must hold finite values whose sum is finite; got an overflow.")
     return K
-
-
-def _check_stats(stats):
-    """A sampler's ``stats`` must be PixelStats: an ndarray has a ``mean`` *method*, which
-    failed as "'builtin_function_or_method' object has no attribute 'shape'"."""
-    from .stats import check_stats
-    check_stats(stats)
 
 
 def _check_loss(loss, eps):
@@ -1021,7 +1015,7 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     against uniform sampling on toy and Mitsuba scenes, with the Gaussian and with fixed
     pilot-GEM kernels, in ``bench/bench_quality_expected_error.py``.
     """
-    _check_stats(stats)
+    check_stats(stats)
     if not isinstance(objective, str) or objective not in _OBJECTIVES:
         raise InputError(f"`objective` must be one of {_OBJECTIVES}; got {objective!r}.")
     lam = _check_mix(mix)
@@ -1147,7 +1141,7 @@ class PilotKernelSampler:
 
     def select(self, stats):
         """Fix the kernels from ``stats`` (done automatically on the first call)."""
-        _check_stats(stats)
+        check_stats(stats)
         if isinstance(self.source, str):
             K = gem_kernels(stats.mean, stats.mean_var, n=stats.n, **self.gem_options)
         elif callable(self.source):
