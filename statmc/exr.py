@@ -19,6 +19,10 @@ pbrt-v4's ``gbuffer`` film writes exactly these names (plus ``P.*``, ``dzdx``, `
 its output loads directly with :func:`read_exr`; since it stores no ``SampleCount``,
 pass the render's uniform ``spp``.
 
+Arrays hold the file's data window (a crop or an overscan region as stored);
+:func:`exr_windows` says where it lies, and ``write_exr(..., data_window=, display_window=)``
+writes a result back in the same place.
+
 Every failure to read raises :class:`~statmc.errors.FileFormatError` naming the file.
 Writes are atomic (temporary file beside the target, then ``os.replace``) and refuse
 to overwrite any path listed in ``protect``.
@@ -39,7 +43,7 @@ import numpy as np
 from .errors import FileFormatError, InputError, as_float_array, check_finite
 from .stats import PixelStats
 
-__all__ = ["read_exr", "read_image", "read_channels", "exr_info", "write_exr",
+__all__ = ["read_exr", "read_image", "read_channels", "exr_info", "exr_windows", "write_exr",
            "write_png_preview", "to_display", "SAMPLE_COUNT", "spatial_covariance_channels",
            "read_spatial_covariance", "SPATIAL_COVARIANCE", "bin_channels", "read_bins", "BIN",
            "capturing_openexr_output"]
@@ -175,8 +179,68 @@ def _openexr_diagnosis(p: str, text: str) -> str:
     return first.split(": ", 1)[1] if first.startswith(p + ": ") else first
 
 
-def _open(path):
-    """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``."""
+class _Channels(dict):
+    """``{name: (H, W) array}`` of part 0, with ``note``: what other parts of the file hold
+    (empty for a one-part file), appended to the channel list of a missing-channel error."""
+    note = ""
+
+
+def _other_parts_note(f) -> str:
+    """``"; only part 0 ('beauty') of 2 is read — part 1 ('variance'): [...]"`` or ""."""
+    with contextlib.suppress(Exception):
+        parts = list(f.parts)
+        if len(parts) > 1:
+            def label(i, part):
+                with contextlib.suppress(Exception):
+                    if part.name():
+                        return f"part {i} ({part.name()!r})"
+                return f"part {i}"
+            rest = "; ".join(f"{label(i, q)}: {sorted(q.channels)}"
+                             for i, q in enumerate(parts) if i > 0)
+            return (f" (only {label(0, parts[0])} of this {len(parts)}-part file is read; "
+                    f"{rest})")
+    return ""
+
+
+#: OpenEXR's lossy compressions (PXR24 rounds float32 to 24 bits; B44/B44A are lossy for
+#: half channels; DWAA/DWAB quantise the DCT of colour-named channels such as ``*.R``).
+_LOSSY = ("PXR24", "B44", "B44A", "DWAA", "DWAB")
+
+
+def _compression(header) -> str:
+    """The header's compression as OpenEXR names it without ``_COMPRESSION``: ``"ZIP"``."""
+    name = str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0]
+    return name[:-len("_COMPRESSION")] if name.endswith("_COMPRESSION") else name
+
+
+def _present(arrays) -> str:
+    """The channel list of a missing-channel error, with what other parts hold."""
+    return f"{sorted(arrays)}{getattr(arrays, 'note', '')}"
+
+
+def _windows(header) -> tuple[list, list]:
+    """``(data_window, display_window)`` of a header, each ``[x0, y0, x1, y1]`` (inclusive)."""
+    def box(w):
+        (x0, y0), (x1, y1) = (np.asarray(v).tolist() for v in w)
+        return [int(x0), int(y0), int(x1), int(y1)]
+    data = box(header["dataWindow"])
+    return data, box(header.get("displayWindow", header["dataWindow"]))
+
+
+def exr_windows(path) -> tuple[list, list]:
+    """The data window and display window of an EXR file (part 0), each
+    ``[x0, y0, x1, y1]`` with inclusive corners as OpenEXR stores them, read from the header
+    only.  Pixel ``(i, j)`` of an array read by :func:`read_exr` or :func:`read_image` is
+    pixel ``(x0 + j, y0 + i)`` of the image; pass the windows to :func:`write_exr` to write
+    a result in the same place (``statmc reconstruct``, ``denoise``, ``progressive`` and
+    ``combine`` do)."""
+    header, _, _ = _open(path, header_only=True)
+    return _windows(header)
+
+
+def _open(path, *, header_only: bool = False):
+    """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``
+    (the arrays and types empty with ``header_only``)."""
     import OpenEXR
 
     p = _name(path)
@@ -190,10 +254,10 @@ def _open(path):
     with (_CAPTURE_LOCK if capture else contextlib.nullcontext()), \
             (_captured_c_output() if capture else contextlib.nullcontext([])) as said:
         try:
-            f = OpenEXR.File(p, separate_channels=True)
+            f = OpenEXR.File(p, separate_channels=True, header_only=header_only)
             n_parts = len(f.parts)
             header = f.header(0)
-            chans = f.channels(0)
+            chans = {} if header_only else f.channels(0)
         except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
             err = e
     # OpenEXR reports a corrupt chunk on stdout and stderr (three lines) and then drops the
@@ -211,7 +275,8 @@ def _open(path):
         raise FileFormatError(f"{p!r} is a deep EXR ({storage}); only flat images are supported.")
     (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
     hw = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
-    arrays, types = {}, {}
+    arrays, types = _Channels(), {}
+    arrays.note = _other_parts_note(f)
     for name, ch in chans.items():
         px = np.asarray(ch.pixels)
         if ch.xSampling != 1 or ch.ySampling != 1 or px.shape != hw:
@@ -234,7 +299,7 @@ def _group(p, arrays, names, what):
     if len(present) != len(names):
         missing = [n for n in names if n not in arrays]
         raise FileFormatError(f"{p!r} has only part of the {what} channels: missing {missing}; "
-                              f"channels present: {sorted(arrays)}.")
+                              f"channels present: {_present(arrays)}.")
     return np.stack([arrays[n].astype(np.float64) for n in names], axis=-1)
 
 
@@ -243,12 +308,36 @@ def _color_names(p, arrays):
         if not all(n in arrays for n in _RGB):
             missing = [n for n in _RGB if n not in arrays]
             raise FileFormatError(f"{p!r} lacks colour channel(s) {missing}; expected R, G, B "
-                                  f"(or Y). Channels present: {sorted(arrays)}.")
+                                  f"(or Y). Channels present: {_present(arrays)}.")
         return _RGB
     if "Y" in arrays:
         return ("Y",)
     raise FileFormatError(f"{p!r} has no colour channels R, G, B (or Y); channels present: "
-                          f"{sorted(arrays)}.")
+                          f"{_present(arrays)}.{_colour_hint(arrays)}")
+
+
+# Layers whose R, G, B are statmc's or pbrt-v4's own channels, not an image's colour.
+_NOT_COLOUR_LAYERS = ("variance", "relativevariance", "albedo", "covariance")
+
+
+def _colour_hint(arrays) -> str:
+    """What a file without ``R, G, B`` holds instead: a layer's ``<layer>.R/G/B`` (Blender's
+    ``ViewLayer.Combined.R``, a ``diffuse.R`` pass) or lowercase ``r, g, b``; "" if neither."""
+    layers = sorted({n[:-2] for n in arrays if n[-2:] in (".R", ".G", ".B")
+                     and all(n[:-2] + "." + c in arrays for c in _RGB)
+                     and n[:-2].lower() not in _NOT_COLOUR_LAYERS and not _BIN_CHANNEL.match(n)})
+    if layers:
+        which = ", ".join(repr(x) for x in layers[:4]) + (", ..." if len(layers) > 4 else "")
+        return (f" R, G, B are only inside layer(s) {which} (e.g. {layers[0] + '.R'!r}): "
+                "statmc reads the unprefixed R, G, B (pbrt-v4's layout); write the layer's "
+                f"channels as R, G, B (e.g. `oiiotool IN.exr --ch R={layers[0]}.R,"
+                f"G={layers[0]}.G,B={layers[0]}.B -o OUT.exr`), or read them with "
+                "statmc.exr.read_channels().")
+    lower = [c for c in ("r", "g", "b") if c in arrays]
+    if len(lower) == 3:
+        return (" The file has lowercase r, g, b: EXR channel names are case-sensitive and "
+                "statmc reads R, G, B; rename them.")
+    return ""
 
 
 def _count_nonfinite(a) -> tuple[int, int]:
@@ -315,7 +404,8 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         channel co-moment ``m2_cross = Covariance · (n − 1)``, else ``m2_cross`` is None;
         albedo, normal and depth when present.  ``meta`` holds ``source``, ``channels``,
         ``extra_channels`` (present but unused), ``has_variance``, ``has_covariance``,
-        ``depth_channel``,
+        ``data_window`` and ``display_window`` (``[x0, y0, x1, y1]``: where the pixels lie
+        in the frame, :func:`exr_windows`), ``depth_channel``,
         ``sample_count_source`` (``"file"`` or ``"spp"``), ``nonfinite_replaced`` and
         ``nonfinite_by_group``.
 
@@ -344,7 +434,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
-    _, arrays, _ = _open(p)
+    header, arrays, _ = _open(p)
     color = _color_names(p, arrays)
     mean = _group(p, arrays, color, "colour")
     var_names = tuple("Variance." + c for c in color)
@@ -352,7 +442,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     if var is None and require_variance:
         raise FileFormatError(
             f"{p!r} has no {', '.join(var_names)} channels (the sample variance per sample, "
-            f"as pbrt-v4's gbuffer film writes). Channels present: {sorted(arrays)}. Pass "
+            f"as pbrt-v4's gbuffer film writes). Channels present: {_present(arrays)}. Pass "
             "require_variance=False to read it with zero variance, or use read_image().")
     cov = _group(p, arrays, _COV, "covariance") if color == _RGB else None
     if cov is not None and var is None:
@@ -367,7 +457,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         raise FileFormatError(
             f"{p!r} has no {SAMPLE_COUNT} channel, so the samples per pixel are unknown "
             f"(pbrt-v4 does not write them): pass the render's uniform spp=. Channels present: "
-            f"{sorted(arrays)}.")
+            f"{_present(arrays)}.")
 
     groups = {"+".join(color): mean, "Variance": var, "Covariance": cov, "Albedo": albedo,
               "N": normal,
@@ -376,8 +466,12 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     by_group = _handle_nonfinite(p, groups, nonfinite, replace_value)
 
     if var is not None and var.size and var.min() < 0:
+        comp = _compression(header)
+        why = (f" The file is {comp}-compressed, a lossy codec whose errors turn small "
+               "variances negative (and change the others): write statistics with a lossless "
+               "compression (ZIP, PIZ, ZIPS, RLE, NONE)." if comp in _LOSSY else "")
         raise FileFormatError(f"{p!r}: Variance channels hold {int((var < 0).sum())} negative "
-                              f"values (min {var.min():.4g}); a variance is >= 0.")
+                              f"values (min {var.min():.4g}); a variance is >= 0.{why}")
     if count is not None:
         _check_counts(p, count)
         if spp is not None and not spp_if_missing:
@@ -392,6 +486,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         var = np.zeros_like(mean)
     stats = PixelStats.from_mean_var(mean, var, n, sample_cov=cov, albedo=albedo, normal=normal,
                                      depth=depth)
+    data_window, display_window = _windows(header)
     stats.meta.update({
         "source": p, "channels": sorted(arrays),
         "extra_channels": sorted(set(arrays) - set(color) - set(var_names) - set(_ALBEDO)
@@ -399,6 +494,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
                                  - (set(_COV) if cov is not None else set())),
         "has_variance": bool(all(v in arrays for v in var_names)),
         "has_covariance": cov is not None,
+        "data_window": data_window, "display_window": display_window,
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -456,7 +552,7 @@ def read_channels(path, names=None) -> dict:
     names = [names] if isinstance(names, str) else list(names)
     missing = [n for n in names if n not in arrays]
     if missing:
-        raise FileFormatError(f"{p!r} lacks channel(s) {missing}; channels present: {sorted(arrays)}.")
+        raise FileFormatError(f"{p!r} lacks channel(s) {missing}; channels present: {_present(arrays)}.")
     return {n: arrays[n] for n in names}
 
 
@@ -546,7 +642,7 @@ def exr_info(path, *, families: bool = False) -> dict:
     """A JSON-ready summary of an EXR file (for ``statmc info``).
 
     Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
-    ``compression``, ``parts``, ``channels`` (name → pixel type), ``groups`` (group →
+    ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts``, ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
     (group → NaN and Inf counts, only groups that have any).
@@ -582,6 +678,7 @@ def exr_info(path, *, families: bool = False) -> dict:
         "data_window": [int(x0), int(y0), int(x1), int(y1)],
         "display_window": [int(v) for v in np.concatenate([np.asarray(d) for d in disp])],
         "compression": str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0],
+        "lossy_compression": _compression(header) in _LOSSY,
         "parts": int(header["_parts"]),
         "channels": {n: types[n] for n in sorted(arrays)},
         "groups": groups,
@@ -608,12 +705,36 @@ def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
         write(tmp)
 
 
-def _write_exr_file(tmp: str, channels: dict) -> None:
-    """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR."""
+def _write_exr_file(tmp: str, channels: dict, windows=None) -> None:
+    """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR, with
+    ``windows = (data_window, display_window)`` (``[x0, y0, x1, y1]`` each) when given."""
     import OpenEXR
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if windows is not None:
+        for key, (x0, y0, x1, y1) in zip(("dataWindow", "displayWindow"), windows):
+            header[key] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
     OpenEXR.File(header, channels).write(tmp)
+
+
+def _check_window(name: str, box, hw=None) -> list:
+    """``box`` as ``[x0, y0, x1, y1]`` ints (x1 >= x0, y1 >= y0, within OpenEXR's int32),
+    of the image size ``hw = (H, W)`` when given."""
+    try:
+        b = [int(v) for v in box]
+        ok = len(b) == 4 and all(v == w for v, w in zip(b, box))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"`{name}` must be [x0, y0, x1, y1], four whole numbers (inclusive "
+                         f"corners, as exr_windows() returns); got {box!r}.")
+    lim = 2 ** 30      # OpenEXR keeps coordinates and sizes in int32
+    if b[2] < b[0] or b[3] < b[1] or any(abs(v) > lim for v in b):
+        raise InputError(f"`{name}` must have x1 >= x0 and y1 >= y0 within +-2**30; got {b}.")
+    if hw is not None and (b[3] - b[1] + 1, b[2] - b[0] + 1) != tuple(hw):
+        raise InputError(f"`{name}` {b} is {b[2] - b[0] + 1}x{b[3] - b[1] + 1} (W x H) but the "
+                         f"image is {hw[1]}x{hw[0]}; the data window must have the image's size.")
+    return b
 
 
 def _f32(name, a):
@@ -675,7 +796,8 @@ def _stats_channels(stats: PixelStats) -> dict:
     return out
 
 
-def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> None:
+def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
+              overwrite: bool = True, protect=()) -> None:
     """Write per-pixel statistics or a plain image as an EXR file, atomically.
 
     Parameters
@@ -690,6 +812,12 @@ def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> 
         ``Y``) only.
     extra : dict of str to (H, W) ndarray, optional
         Further channels, e.g. selected filter scales; names must not clash with the layout.
+    data_window, display_window : [x0, y0, x1, y1], optional
+        Where the pixels lie (OpenEXR's inclusive corners, as :func:`exr_windows` and
+        ``read_exr(...).meta`` give them): the data window must have the image's size; the
+        display window, the frame the image belongs to, defaults to the data window.  Left
+        out, the image lies at the origin, ``[0, 0, W - 1, H - 1]``.  Pass an input's
+        windows to write a result in the input's place (a crop render stays a crop).
     overwrite : bool, default True
         With ``False``, an existing ``path`` raises :class:`InputError`.
     protect : path or sequence of paths
@@ -716,10 +844,16 @@ def write_exr(path, data, *, extra=None, overwrite: bool = True, protect=()) -> 
         if arr.shape != hw:
             raise InputError(f"`extra[{name!r}]` must have the image size {hw}; got {arr.shape}.")
         channels[name] = _f32(f"extra[{name!r}]", arr)
+    windows = None
+    if data_window is not None or display_window is not None:
+        data = _check_window("data_window", data_window if data_window is not None
+                             else [0, 0, hw[1] - 1, hw[0] - 1], hw)
+        windows = (data, data if display_window is None
+                   else _check_window("display_window", display_window))
 
     def write(tmp):
         try:
-            _write_exr_file(tmp, channels)
+            _write_exr_file(tmp, channels, windows)
         except OSError:
             raise
         except Exception as e:

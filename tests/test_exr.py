@@ -357,7 +357,7 @@ def test_failed_write_leaves_existing_file_and_no_temp(tmp_path, monkeypatch):
     write_exr(p, np.ones((4, 4, 3)))
     before = p.read_bytes()
 
-    def broken(tmp, channels):
+    def broken(tmp, channels, windows=None):
         with open(tmp, "wb") as f:
             f.write(b"partial garbage")
         raise OSError("disk full")
@@ -746,3 +746,178 @@ def test_spp_if_missing_keeps_a_files_own_counts(tmp_path):
     assert np.all(read_exr(without, spp=16, spp_if_missing=True).n == 16)
     with pytest.raises(InputError, match="disagrees"):
         read_exr(with_n, spp=16)
+
+
+# ------------------------------------------------- files as other tools write them (session 11)
+_LOSSLESS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ")
+_LOSSY_CODECS = ("PXR24", "B44", "B44A", "DWAA", "DWAB")
+
+
+def _write_with(path, channels, *, compression="ZIP", tiled=False, windows=None):
+    """Write ``channels`` as another program would: any compression, scanline or tiled
+    (4x4 tiles), optional ``windows = (data_window, display_window)``."""
+    header = {"compression": getattr(OpenEXR, compression + "_COMPRESSION"),
+              "type": OpenEXR.tiledimage if tiled else OpenEXR.scanlineimage}
+    if tiled:
+        td = OpenEXR.TileDescription()
+        td.xSize, td.ySize, td.mode = 4, 4, OpenEXR.ONE_LEVEL
+        header["tiles"] = td
+    if windows is not None:
+        for key, (x0, y0, x1, y1) in zip(("dataWindow", "displayWindow"), windows):
+            header[key] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
+    OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in channels.items()}).write(str(path))
+
+
+@pytest.mark.parametrize("tiled", [False, True], ids=["scanline", "tiled"])
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.uint32])
+@pytest.mark.parametrize("compression", _LOSSLESS + _LOSSY_CODECS)
+def test_every_compression_pixel_type_and_layout_reads_what_the_file_holds(tmp_path, compression,
+                                                                          dtype, tiled):
+    rng = np.random.default_rng(11)
+    h, w = 6, 5
+    scale = 100 if dtype == np.uint32 else 1
+    ch = {c: (rng.random((h, w)) * scale).astype(dtype) for c in ("R", "G", "B")}
+    ch.update({f"Variance.{c}": (rng.random((h, w)) * scale).astype(dtype) for c in "RGB"})
+    p = tmp_path / "a.exr"
+    _write_with(p, dict(ch), compression=compression, tiled=tiled)
+    # what OpenEXR itself decodes (lossy codecs change the values, as they should)
+    held = {k: v.pixels.astype(np.float64)
+            for k, v in OpenEXR.File(str(p), separate_channels=True).channels().items()}
+    if compression in _LOSSLESS:
+        assert all(np.array_equal(held[k], ch[k].astype(np.float64)) for k in ch)
+    s = read_exr(p, spp=4)              # values in [0, 1) (or 0-99): no lossy value below 0
+    np.testing.assert_array_equal(s.mean, np.stack([held[c] for c in "RGB"], -1))
+    np.testing.assert_array_equal(s.sample_var, np.stack([held["Variance." + c] for c in "RGB"], -1))
+    img = read_image(p)
+    np.testing.assert_array_equal(img, np.stack([held[c] for c in "RGB"], -1).astype(np.float32))
+    assert exr_info(p)["compression"] == compression + "_COMPRESSION"
+    assert exr_info(p)["lossy_compression"] == (compression in _LOSSY_CODECS)
+
+
+def _stats_channels_for(h, w, rng, n=16):
+    ch = {c: rng.random((h, w)).astype(np.float32) for c in "RGB"}
+    ch.update({f"Variance.{c}": (rng.random((h, w)) * 0.1).astype(np.float32) for c in "RGB"})
+    ch["SampleCount"] = np.full((h, w), n, np.float32)
+    return ch
+
+
+@pytest.mark.parametrize("windows", [
+    ([3, 2, 12, 9], [0, 0, 19, 15]),       # a crop inside the frame (pbrt-v4 cropwindow/pixelbounds)
+    ([-2, -1, 7, 6], [0, 0, 5, 4]),        # overscan: data beyond the frame, negative origin
+])
+def test_data_and_display_windows_are_read_and_written_back(tmp_path, windows):
+    # before session 11 read_exr did not report where the pixels lie and write_exr put every
+    # image at the origin with display = data window: a reconstructed crop landed in the
+    # frame's corner in a compositor
+    rng = np.random.default_rng(3)
+    (x0, y0, x1, y1), disp = windows
+    ch = _stats_channels_for(y1 - y0 + 1, x1 - x0 + 1, rng)
+    p = tmp_path / "crop.exr"
+    _write_with(p, dict(ch), windows=windows)
+    s = read_exr(p)
+    assert s.shape == (y1 - y0 + 1, x1 - x0 + 1, 3)
+    np.testing.assert_array_equal(s.mean[..., 0], ch["R"])
+    assert (s.meta["data_window"], s.meta["display_window"]) == (list(windows[0]), disp)
+    assert exr.exr_windows(p) == (list(windows[0]), disp)
+    q = tmp_path / "out.exr"
+    write_exr(q, s, data_window=s.meta["data_window"], display_window=s.meta["display_window"])
+    assert exr.exr_windows(q) == (list(windows[0]), disp)
+    t = read_exr(q)
+    np.testing.assert_array_equal(t.mean, s.mean)
+    np.testing.assert_array_equal(t.sample_var, s.sample_var)
+    # the display window defaults to the data window; without either, the origin
+    write_exr(q, s.mean, data_window=windows[0])
+    assert exr.exr_windows(q) == (list(windows[0]), list(windows[0]))
+    write_exr(q, s.mean)
+    h, w = s.shape[:2]
+    assert exr.exr_windows(q) == ([0, 0, w - 1, h - 1], [0, 0, w - 1, h - 1])
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"data_window": [0, 0, 3, 3]}, r"`data_window` \[0, 0, 3, 3\] is 4x4 \(W x H\) but the image is 5x6"),
+    ({"data_window": [0, 0, 4]}, r"`data_window` must be \[x0, y0, x1, y1\]"),
+    ({"data_window": [0.5, 0, 4.5, 5]}, r"`data_window` must be \[x0, y0, x1, y1\], four whole"),
+    ({"data_window": "abcd"}, r"`data_window` must be"),
+    ({"display_window": [4, 0, 0, 5]}, r"`display_window` must have x1 >= x0"),
+    ({"display_window": [0, 0, 2 ** 31, 5]}, r"within \+-2\*\*30"),
+])
+def test_write_exr_refuses_bad_windows_before_writing(tmp_path, kw, needle):
+    p = tmp_path / "a.exr"
+    with pytest.raises(InputError, match=needle):
+        write_exr(p, np.zeros((6, 5, 3)), **kw)
+    assert not p.exists() and os.listdir(tmp_path) == []
+
+
+def test_multipart_file_errors_name_what_the_other_parts_hold(tmp_path):
+    # before: "has no Variance.R, ... Channels present: ['B', 'G', 'R']" although part 1 of
+    # the file held them; the error did not say that only part 0 is read
+    rng = np.random.default_rng(4)
+    ch = _stats_channels_for(4, 3, rng)
+    def hdr():                                        # a Part keeps (and names) its header
+        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+    p = tmp_path / "parts.exr"
+    OpenEXR.File([OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty"),
+                  OpenEXR.Part(hdr(), {f"Variance.{c}": ch[f"Variance.{c}"] for c in "RGB"},
+                               name="variance")]).write(str(p))
+    with pytest.raises(FileFormatError, match=r"only part 0 \('beauty'\) of this 2-part file is "
+                       r"read; part 1 \('variance'\): \['Variance.B', 'Variance.G', 'Variance.R'\]"):
+        read_exr(p, spp=4)
+    np.testing.assert_array_equal(read_image(p)[..., 1], ch["G"])     # part 0's colour
+    assert exr_info(p)["parts"] == 2
+    q = tmp_path / "second.exr"
+    OpenEXR.File([OpenEXR.Part(hdr(), {"Z": ch["R"]}, name="depth"),
+                  OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty")]).write(str(q))
+    with pytest.raises(FileFormatError, match=r"no colour channels.*\['Z'\] \(only part 0 "
+                       r"\('depth'\).*part 1 \('beauty'\): \['B', 'G', 'R'\]"):
+        read_image(q)
+    with pytest.raises(FileFormatError, match=r"lacks channel\(s\) \['B'\].*part 1 \('beauty'\)"):
+        read_channels(q, ["B"])
+
+
+@pytest.mark.parametrize("names, needle", [
+    (["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
+      "ViewLayer.Combined.A", "ViewLayer.Depth.Z"],
+     r"R, G, B are only inside layer\(s\) 'ViewLayer.Combined' .*--ch "
+     r"R=ViewLayer.Combined.R,G=ViewLayer.Combined.G,B=ViewLayer.Combined.B"),
+    (["diffuse.R", "diffuse.G", "diffuse.B", "Variance.R", "Variance.G", "Variance.B"],
+     r"only inside layer\(s\) 'diffuse' \(e.g. 'diffuse.R'\)"),
+    (["r", "g", "b"], r"lowercase r, g, b: EXR channel names are case-sensitive"),
+])
+def test_missing_colour_names_the_layer_or_lowercase_channels_instead(tmp_path, names, needle):
+    # before: only "has no colour channels R, G, B (or Y); channels present: [...]"
+    p = tmp_path / "a.exr"
+    _write_raw(p, {n: np.ones((2, 3)) for n in names})
+    for read in (read_image, lambda q: read_exr(q, spp=2)):
+        with pytest.raises(FileFormatError, match=needle):
+            read(p)
+
+
+def test_no_layer_hint_for_statmc_feature_layers(tmp_path):
+    p = tmp_path / "a.exr"
+    _write_raw(p, {n: np.ones((2, 3)) for n in ("Albedo.R", "Albedo.G", "Albedo.B",
+                                                "Variance.R", "Variance.G", "Variance.B")})
+    with pytest.raises(FileFormatError) as e:
+        read_image(p)
+    assert str(e.value).endswith("'Variance.R'].")
+
+
+@pytest.mark.parametrize("compression", ["B44", "DWAA"])
+def test_negative_variance_from_a_lossy_codec_names_the_compression(tmp_path, compression):
+    # before: "Variance channels hold 75 negative values (min -7.8e-06); a variance is >= 0."
+    # with no word on why (DWAA is a common default of compositing tools)
+    rng = np.random.default_rng(3)
+    h = w = 32
+    ch = {c: rng.random((h, w)).astype(np.float16) for c in "RGB"}
+    ch.update({f"Variance.{c}": (rng.exponential(1, (h, w)) ** 3 * 1e-3).astype(np.float16)
+               for c in "RGB"})
+    p = tmp_path / "lossy.exr"
+    _write_with(p, ch, compression=compression)
+    with pytest.raises(FileFormatError, match=rf"negative values .*The file is {compression}-"
+                       r"compressed, a lossy codec.*lossless compression \(ZIP, PIZ"):
+        read_exr(p, spp=4)
+    q = tmp_path / "lossless.exr"                     # a lossless file says nothing of codecs
+    ch["Variance.R"][0, 0] = -1
+    _write_with(q, ch, compression="ZIP")
+    with pytest.raises(FileFormatError, match=r"a variance is >= 0\.$"):
+        read_exr(q, spp=4)
