@@ -320,12 +320,15 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
-def _write_result(path, data, image, *, inputs, extra=None, quiet=False) -> None:
+def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
-    beside it, both or neither, never onto one of ``inputs``."""
-    from .exr import write_exr, write_png_preview
+    beside it, both or neither, never onto one of ``inputs``.  ``place``: an input file
+    whose data and display windows the output takes (a crop stays where it was)."""
+    from .exr import exr_windows, write_exr, write_png_preview
+    data_window, display_window = exr_windows(place) if place is not None else (None, None)
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
-        write_exr(stage(path), data, protect=inputs, extra=extra)
+        write_exr(stage(path), data, protect=inputs, extra=extra, data_window=data_window,
+                  display_window=display_window)
         write_png_preview(stage(os.path.splitext(path)[0] + ".png"), image, protect=inputs)
     if not quiet:
         print(f"wrote {path}")
@@ -587,7 +590,8 @@ def cmd_reconstruct(args) -> int:
     _fill_gem_defaults(args)
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
-                  extra={f"{args.method}.{k}": v for k, v in maps.items()})
+                  extra={f"{args.method}.{k}": v for k, v in maps.items()},
+                  place=args.input)
     return 0
 
 
@@ -750,7 +754,8 @@ def cmd_denoise(args) -> int:
         n = stats.n.astype(np.float64)[..., None]
         result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
-    _write_result(args.out, result, out, inputs=[args.input], quiet=args.quiet)
+    _write_result(args.out, result, out, inputs=[args.input], quiet=args.quiet,
+                  place=args.input)
     return 0
 
 
@@ -765,7 +770,8 @@ def cmd_progressive(args) -> int:
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
-                  extra={f"progressive.{k}": v for k, v in maps.items()})
+                  extra={f"progressive.{k}": v for k, v in maps.items()},
+                  place=args.input)
     return 0
 
 
@@ -821,7 +827,8 @@ def _combine_bins_file(args) -> int:
         weights = (cb.uniform_weights(h, w, B, args.size) if args.weights == "uniform"
                    else cb.gaussian_weights(h, w, B, args.size, args.sigma))
         out = cb.combine_multi(ys, zs, weights)
-    _write_result(args.out, out, out, inputs=[args.y], quiet=args.quiet)
+    _write_result(args.out, out, out, inputs=[args.y], quiet=args.quiet,
+                  place=args.y)
     return 0
 
 
@@ -898,6 +905,7 @@ def cmd_combine(args) -> int:
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
+    _same_window(args.y, args.z, "Y", "Z")
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -918,8 +926,22 @@ def cmd_combine(args) -> int:
         weights = cb.statistical_weights(y, z, y_stats.mean_var.astype(np.float32), cov_z,
                                          args.size)
     out = cb.combine(y, z, weights)
-    _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet)
+    _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet,
+                  place=args.y)
     return 0
+
+
+def _same_window(a, b, name_a: str, name_b: str) -> None:
+    """Refuse two files of one size whose data windows lie in different places: pixel by
+    pixel they would pair different pixels of the image (say a crop and the full frame's
+    corner)."""
+    from .exr import exr_windows
+    wa, wb = exr_windows(a)[0], exr_windows(b)[0]
+    if wa != wb:
+        raise InputError(f"{name_a} {a} has the data window {wa} but {name_b} {b} has {wb} "
+                         "([x0, y0, x1, y1]): the same size in different places, so pixel by "
+                         "pixel they pair different pixels; expected the same data window "
+                         "(`statmc info` shows it).")
 
 
 def cmd_reference(args) -> int:
@@ -951,6 +973,7 @@ def cmd_metrics(args) -> int:
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
+    _same_window(args.image, args.reference, "IMAGE", "REFERENCE")
     print(json.dumps(all_metrics(img, ref), indent=2, default=_json_default))
     return 0
 

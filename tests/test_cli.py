@@ -1777,3 +1777,80 @@ def test_report_counts_the_nonfinite_samples_of_every_pass(tmp_path):
     rep = json.loads((tmp_path / "a" / "report.json").read_text())
     assert rep["renderer_info"]["passes"] > 1
     assert rep["renderer_info"]["nonfinite_samples"] == rep["total_samples"] == 20 * 48
+
+
+# --------------------------------------------- files from other tools: windows (session 11)
+def _write_windowed(path, channels, data_window, display_window):
+    import OpenEXR
+    (x0, y0, x1, y1), (u0, v0, u1, v1) = data_window, display_window
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "dataWindow": (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32)),
+                  "displayWindow": (np.array([u0, v0], np.int32), np.array([u1, v1], np.int32))},
+                 {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}).write(str(path))
+
+
+def _crop_stats(rng, h=8, w=10):
+    ch = {c: rng.random((h, w)) for c in "RGB"}
+    ch.update({f"Variance.{c}": rng.random((h, w)) * 0.05 for c in "RGB"})
+    ch["SampleCount"] = np.full((h, w), 16.0)
+    return ch
+
+
+CROP = ([3, 2, 12, 9], [0, 0, 19, 15])     # a 10x8 crop at (3, 2) of a 20x16 frame
+
+
+@pytest.mark.parametrize("args", [
+    ["reconstruct", "{a}"],
+    ["reconstruct", "{a}", "--method", "oidn+combine"],
+    ["denoise", "{a}", "--denoiser", "gaussian"],
+    ["denoise", "{a}", "--denoiser", "gaussian", "--variance"],
+    ["progressive", "{a}", "--denoiser", "gaussian"],
+    ["combine", "{a}", "{b}", "--weights", "uniform"],
+    ["combine", "{a}", "{b}", "--weights", "statistical"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_outputs_keep_the_inputs_data_and_display_windows(tmp_path, args):
+    # before: every output was written at the origin with display window = data window,
+    # so the reconstruction of a crop (pbrt-v4 writes its cropwindow so) lost its place
+    from statmc.exr import exr_windows, read_image
+    rng = np.random.default_rng(7)
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    _write_windowed(a, _crop_stats(rng), *CROP)
+    _write_windowed(b, _crop_stats(rng), *CROP)
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli(*[x.format(a=a, b=b) for x in args], "--out", out, "-q")
+    assert code == 0, err
+    assert exr_windows(out) == CROP
+    assert read_image(out).shape == (8, 10, 3)
+
+
+def test_combine_bins_file_keeps_its_windows(tmp_path):
+    from statmc.exr import bin_channels, exr_windows, write_exr
+    rng = np.random.default_rng(8)
+    ys = rng.random((2, 8, 10, 3))
+    p = tmp_path / "bins.exr"
+    write_exr(p, ys.mean(0), extra=bin_channels(ys, ys * 0.9), data_window=CROP[0],
+              display_window=CROP[1])
+    code, _, err = run_cli("combine", p, "--out", tmp_path / "out.exr", "-q")
+    assert code == 0, err
+    assert exr_windows(tmp_path / "out.exr") == CROP
+
+
+@pytest.mark.parametrize("cmd", [["metrics"], ["combine", "--weights", "uniform", "--out", "{o}"]])
+def test_same_size_in_different_places_is_refused(tmp_path, cmd):
+    # before: `statmc metrics` compared the crop at (3, 2) with the frame's top-left corner
+    # pixel by pixel and printed relmse 0.0 for two images of different parts of the frame
+    rng = np.random.default_rng(9)
+    ch = {c: rng.random((8, 10)) for c in "RGB"}
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    _write_windowed(a, ch, [0, 0, 9, 7], CROP[1])
+    _write_windowed(b, ch, *CROP)
+    out = tmp_path / "o.exr"
+    code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
+    assert code == 2 and stdout == "" and err.count("\n") == 1, err
+    assert (f"has the data window [0, 0, 9, 7] but {'REFERENCE' if cmd[0] == 'metrics' else 'Z'} "
+            f"{b} has [3, 2, 12, 9]") in err
+    assert not out.exists()
+    # the same window in both: compared as before (a different display window is fine)
+    _write_windowed(a, ch, CROP[0], [0, 0, 30, 30])
+    code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
+    assert code == 0, err
