@@ -256,6 +256,14 @@ def _need_variance(stats, path: str, what: str) -> None:
                          "in every pixel.")
 
 
+def _need_rgb(stats, path: str, what: str, instead: str) -> None:
+    """Refuse a one-channel (``Y``) file where OIDN, a colour denoiser, would run on it."""
+    if stats.mean.shape[2] != 3:
+        raise InputError(f"{path} is a one-channel (Y) image, but {what} runs OIDN, which "
+                         f"denoises R, G, B images; {instead}, or write the luminance into "
+                         "R, G and B.")
+
+
 def _write_json(path, obj, protect=()):
     from ._atomic import write_text
     write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n", protect=protect)
@@ -585,6 +593,7 @@ def cmd_reconstruct(args) -> int:
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
                        "options of --method gem's scale selection)")
         _need_variance(stats, args.input, f"--method {args.method}")
+        _need_rgb(stats, args.input, f"--method {args.method}", "use --method gem")
     else:
         _refuse_pooled_gamma(args, "on --method gem")
     _fill_gem_defaults(args)
@@ -734,6 +743,8 @@ def cmd_denoise(args) -> int:
     args.seed = 0 if args.seed is None else args.seed
     if args.variance or args.denoiser == "gem":
         _need_variance(stats, args.input, "--variance" if args.variance else "--denoiser gem")
+    if args.denoiser == "oidn":
+        _need_rgb(stats, args.input, "--denoiser oidn", "use --denoiser gem or gaussian")
     den = _make_denoiser(args.denoiser, stats, gamma=args.gamma, sigma=args.sigma,
                          gem_bias=args.gem_bias)
     x = stats.mean.astype(np.float32)
@@ -767,6 +778,9 @@ def cmd_progressive(args) -> int:
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
+    if args.denoiser == "oidn":
+        _need_rgb(stats, args.input, "--denoiser oidn (the default)",
+                  "use --denoiser gem or gaussian")
     image, maps = reconstruct_stats(stats, "progressive", denoiser=args.denoiser, gamma=args.gamma,
                                     seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,

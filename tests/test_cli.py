@@ -1854,3 +1854,27 @@ def test_same_size_in_different_places_is_refused(tmp_path, cmd):
     _write_windowed(a, ch, CROP[0], [0, 0, 30, 30])
     code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
     assert code == 0, err
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["denoise", "--denoiser", "oidn"], "--denoiser oidn runs OIDN"),
+    (["denoise", "--denoiser", "oidn", "--variance"], "--denoiser oidn runs OIDN"),
+    (["progressive"], "--denoiser oidn (the default) runs OIDN"),
+    (["reconstruct", "--method", "oidn+combine"], "--method oidn+combine runs OIDN"),
+])
+def test_a_luminance_file_is_refused_by_oidn_naming_file_and_fix(tmp_path, args, needle):
+    # before: "the denoiser needs an R,G,B image; got shape (12, 10, 1)", naming neither
+    # the file nor what to do
+    rng = np.random.default_rng(10)
+    p = tmp_path / "y.exr"
+    _write_channels(p, {"Y": rng.random((6, 5)), "Variance.Y": rng.random((6, 5)) * 0.01,
+                        "SampleCount": np.full((6, 5), 8.0)})
+    out = tmp_path / "o.exr"
+    code, _, err = run_cli(args[0], p, *args[1:], "--out", out, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{p} is a one-channel (Y) image, but {needle}" in err and "write the luminance" in err
+    assert not out.exists()
+    # the kernel methods take it
+    code, _, err = run_cli(args[0], p, *(["--denoiser", "gaussian"] if args[0] != "reconstruct"
+                                         else []), "--out", out, "-q")
+    assert code == 0, err
