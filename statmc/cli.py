@@ -464,6 +464,15 @@ def cmd_render(args) -> int:
         raise InputError(f"reference {args.reference} is {ref.shape[1]}x{ref.shape[0]} with "
                          f"{ref.shape[2]} channel(s) but the render is {renderer.width}x"
                          f"{renderer.height} R,G,B.")
+    if ref is not None:
+        from .exr import exr_windows
+        ref_window = exr_windows(args.reference)[0]
+        if ref_window[:2] != [0, 0]:
+            raise InputError(f"reference {args.reference} has the data window {ref_window} "
+                             f"([x0, y0, x1, y1]) but the render lies at the origin, [0, 0, "
+                             f"{renderer.width - 1}, {renderer.height - 1}]: pixel by pixel "
+                             "they would pair different pixels; expected a reference whose "
+                             "data window starts at 0, 0 (`statmc info` shows it).")
     t0 = time.perf_counter()
     extra = {}
     bins = None
