@@ -180,26 +180,33 @@ def _openexr_diagnosis(p: str, text: str) -> str:
 
 
 class _Channels(dict):
-    """``{name: (H, W) array}`` of part 0, with ``note``: what other parts of the file hold
-    (empty for a one-part file), appended to the channel list of a missing-channel error."""
-    note = ""
+    """``{name: (H, W) array}`` of part 0, with ``parts``: ``{"part", "name", "channels"}``
+    of every part of the file (:func:`_parts_summary`)."""
+    parts: list = []
+
+    @property
+    def note(self) -> str:
+        """``" (only part 0 ('beauty') of this 2-part file is read; part 1 ('variance'):
+        [...])"``, appended to the channel list of a missing-channel error, or ""."""
+        if len(self.parts) < 2:
+            return ""
+
+        def label(q):
+            return f"part {q['part']}" + (f" ({q['name']!r})" if q["name"] else "")
+        rest = "; ".join(f"{label(q)}: {q['channels']}" for q in self.parts[1:])
+        return f" (only {label(self.parts[0])} of this {len(self.parts)}-part file is read; {rest})"
 
 
-def _other_parts_note(f) -> str:
-    """``"; only part 0 ('beauty') of 2 is read — part 1 ('variance'): [...]"`` or ""."""
+def _parts_summary(f) -> list:
+    """``[{"part": i, "name": name or None, "channels": sorted names}]`` of an open file."""
+    out = []
     with contextlib.suppress(Exception):
-        parts = list(f.parts)
-        if len(parts) > 1:
-            def label(i, part):
-                with contextlib.suppress(Exception):
-                    if part.name():
-                        return f"part {i} ({part.name()!r})"
-                return f"part {i}"
-            rest = "; ".join(f"{label(i, q)}: {sorted(q.channels)}"
-                             for i, q in enumerate(parts) if i > 0)
-            return (f" (only {label(0, parts[0])} of this {len(parts)}-part file is read; "
-                    f"{rest})")
-    return ""
+        for i, q in enumerate(f.parts):
+            name = None
+            with contextlib.suppress(Exception):
+                name = q.name() or None
+            out.append({"part": i, "name": name, "channels": sorted(q.channels)})
+    return out
 
 
 #: OpenEXR's lossy compressions (PXR24 rounds float32 to 24 bits; B44/B44A are lossy for
@@ -276,7 +283,7 @@ def _open(path, *, header_only: bool = False):
     (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
     hw = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
     arrays, types = _Channels(), {}
-    arrays.note = _other_parts_note(f)
+    arrays.parts = _parts_summary(f)
     for name, ch in chans.items():
         px = np.asarray(ch.pixels)
         if ch.xSampling != 1 or ch.ySampling != 1 or px.shape != hw:
@@ -642,7 +649,9 @@ def exr_info(path, *, families: bool = False) -> dict:
     """A JSON-ready summary of an EXR file (for ``statmc info``).
 
     Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
-    ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts``, ``channels`` (name → pixel type), ``groups`` (group →
+    ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts``,
+    ``other_parts`` (``part``, ``name`` and ``channels`` of each part after part 0, which
+    statmc does not read), ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
     (group → NaN and Inf counts, only groups that have any).
@@ -680,6 +689,8 @@ def exr_info(path, *, families: bool = False) -> dict:
         "compression": str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0],
         "lossy_compression": _compression(header) in _LOSSY,
         "parts": int(header["_parts"]),
+        "other_parts": [{"part": q["part"], "name": q["name"], "channels": q["channels"]}
+                        for q in arrays.parts[1:]],
         "channels": {n: types[n] for n in sorted(arrays)},
         "groups": groups,
         "layout": {

@@ -308,7 +308,7 @@ def test_exr_info(tmp_path):
     write_exr(p, s, extra={"scale": np.zeros((3, 5))})
     info = exr_info(p)
     assert (info["width"], info["height"]) == (5, 3)
-    assert info["data_window"] == [0, 0, 4, 2] and info["parts"] == 1
+    assert info["data_window"] == [0, 0, 4, 2] and info["parts"] == 1 and info["other_parts"] == []
     assert info["channels"]["R"] == "float" and info["channels"]["SampleCount"] == "float"
     assert info["groups"]["Variance"] == ["Variance.B", "Variance.G", "Variance.R"]
     assert info["layout"] == {"color": "R,G,B", "variance": True, "sample_count": True,
@@ -865,6 +865,8 @@ def test_multipart_file_errors_name_what_the_other_parts_hold(tmp_path):
         read_exr(p, spp=4)
     np.testing.assert_array_equal(read_image(p)[..., 1], ch["G"])     # part 0's colour
     assert exr_info(p)["parts"] == 2
+    assert exr_info(p, families=True)["other_parts"] == [
+        {"part": 1, "name": "variance", "channels": ["Variance.B", "Variance.G", "Variance.R"]}]
     q = tmp_path / "second.exr"
     OpenEXR.File([OpenEXR.Part(hdr(), {"Z": ch["R"]}, name="depth"),
                   OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty")]).write(str(q))
