@@ -41,7 +41,7 @@ from ._threads import serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
                      check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
-                      _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
+                      _taps, _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
 
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
@@ -128,7 +128,16 @@ def _moments(sigmas, truncate):
 
 
 def _pair_factors(sigmas, truncate):
+    """Kernel second moments of the (checked, increasing) ``sigmas`` and their pair
+    factors; an :class:`InputError` naming ``sigmas`` when the moments are not finite
+    and strictly increasing (σ above ~1e154, whose ``r² ≈ σ²`` overflows, or two scales
+    a rounding error apart)."""
     r2 = _moments(sigmas, truncate)
+    if not (np.all(np.isfinite(r2)) and np.all(np.diff(r2) > 0)):
+        raise InputError(f"`sigmas` must give finite, strictly increasing kernel second "
+                         f"moments r² (statmc.filters.kernel_moment2; σ up to ~1e154, "
+                         f"scales more than a rounding error apart); got sigmas {sigmas} "
+                         f"with r² {r2.tolist()}.")
     return r2, bias_factor(r2[:-1], r2[1:])
 
 
@@ -386,7 +395,7 @@ def _postprocess(raw, sig, final, truncate, map_scale=None):
     out = np.empty_like(raw)
     filt = np.empty((h, w), np.float32)
     for k, s in enumerate(_map_sigmas(sig, final, map_scale)):
-        wk = gaussian_kernel_1d(s, truncate=truncate)
+        wk = _taps(s, truncate, max(h, w))        # the kernel _run applies
         _run(raw[k], 1, None, 0, s, truncate, out_x=filt)
         r = len(wk) // 2
         _k.finish_stop_map(filt, raw[k], np.float32(wk[r]),
@@ -468,10 +477,11 @@ def _estimate_mse_reference(values, variances, r2, scales):
     return (np.take_along_axis(cum, s, 0) + np.take_along_axis(np.asarray(variances, np.float64), s, 0))[0]
 
 
-def _product_taps(sa, sb, truncate):
+def _product_taps(sa, sb, truncate, n):
     """1-D taps ``g_a(k)·g_b(k)``, ``σ_a < σ_b``, on the support of the narrower kernel
-    (outside it the product is 0)."""
-    ga, gb = gaussian_kernel_1d(sa, truncate=truncate), gaussian_kernel_1d(sb, truncate=truncate)
+    (outside it the product is 0); ``g`` the bank's taps on an image of longer side ``n``
+    (:func:`statmc.filters._taps`), returned too."""
+    ga, gb = _taps(sa, truncate, n), _taps(sb, truncate, n)
     r = min(len(ga), len(gb)) // 2
     return ga[len(ga) // 2 - r:len(ga) // 2 + r + 1] * gb[len(gb) // 2 - r:len(gb) // 2 + r + 1], ga, gb
 
@@ -488,12 +498,12 @@ def _pair_covariance_rows(vr, cv, sa, sb, truncate, out=None):
     if out is None:
         out = np.empty_like(vr)
     if sa == 0.0:  # pixel filter: w_a(p, q) = [p = q], so Cov = w_b(p, p) mean_var(p)
-        gb = gaussian_kernel_1d(sb, truncate=truncate)
+        gb = _taps(sb, truncate, max(h, wd))
         g0 = gb[len(gb) // 2]
         _k.scale_rows(vr, cv, (g0 * border_scale(h, gb)).astype(dt),
                       (g0 * border_scale(wd, gb)).astype(dt), out)
         return out
-    taps, ga, gb = _product_taps(sa, sb, truncate)
+    taps, ga, gb = _product_taps(sa, sb, truncate, max(h, wd))
     sy = border_scale(h, ga) * border_scale(h, gb)
     sx = border_scale(wd, ga) * border_scale(wd, gb)
     _k.sep_filter(vr, cv, np.empty((h, 0), dt), 1, taps.astype(dt), sy.astype(dt),
@@ -669,7 +679,7 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
             for k in range(p0, nsc - 1):
                 _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate, out=cov[k - p0])
             if p0:
-                g1 = gaussian_kernel_1d(sig[1], truncate=truncate)
+                g1 = _taps(sig[1], truncate, max(h, w))
                 fy0 = (g1[len(g1) // 2] * border_scale(h, g1)).astype(dt)
                 fx0 = (g1[len(g1) // 2] * border_scale(w, g1)).astype(dt)
             else:
@@ -1024,17 +1034,16 @@ def _spread(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
     h, w = amount.shape
     fy = np.ones((len(sig) - 1, h))
     fx = np.ones((len(sig) - 1, w))
-    for s, sigma in enumerate(sig[1:]):
-        wk = gaussian_kernel_1d(sigma, truncate=truncate)
+    taps = [_taps(sigma, truncate, max(h, w)) for sigma in sig[1:]]   # the bank's kernels
+    for s, wk in enumerate(taps):
         fy[s], fx[s] = border_scale(h, wk), border_scale(w, wk)
     density = np.empty((h, w))
     parts = np.empty((len(sig) - 1, h, w))
     per_scale = _k.spread_parts(amount, scales, fy, fx, density, parts)
     ones_h, ones_w = np.ones(h), np.ones(w)
-    for s, sigma in enumerate(sig[1:]):
+    for s, wk in enumerate(taps):
         if per_scale[s + 1] > 0:   # density += unnormalised filter of the pre-scaled part
-            _k.sep_filter_add(parts[s], gaussian_kernel_1d(sigma, truncate=truncate),
-                              ones_h, ones_w, density)
+            _k.sep_filter_add(parts[s], wk, ones_h, ones_w, density)
     return density
 
 

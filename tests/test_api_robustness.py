@@ -554,6 +554,74 @@ def test_cut_gaussian_equals_the_full_one_where_its_taps_reach(monkeypatch):
                                                rel=1e-12)
 
 
+def _gem_calls_at(sig, x, v, n):
+    """Every GEM path that builds a kernel of the scales ``sig``: the selection (both
+    bias modes: pair covariances, stopping-map filters and their centre taps), the
+    difference variances, the post-processing alone and the exposed filter."""
+    pooled = gem.select(x, v, sigmas=sig)
+    paper = gem.select(x, v, sigmas=sig, bias="paper", final=False, n=n)
+    return {"pooled": pooled, "paper": paper,
+            "recon": gem.reconstruct(x, v, sigmas=sig, bias="paper", n=n),
+            "dv": gem.difference_variance(v, sig),
+            "post": gem.postprocess_stop_maps(paper["stop_raw"], sig, final=True),
+            "sf": gem.SelectedFilter(pooled["scales"], sig)(v)}
+
+
+def test_gem_with_absurd_scales_stays_small():
+    """F10: only the bank's filter cut kernels longer than the image; the kernel moments,
+    the stopping-map filters' centre taps, the pair covariances and the difference
+    variances built the whole kernel, so gem.reconstruct(sigmas=(0, 1, 1e8)) on 64×64
+    ran 68 s into a MemoryError (13.7 GiB resident) and σ = 1e6 allocated ~275 MiB
+    here (137 MiB in kernel_moment2 alone).  Now a few MiB whatever σ."""
+    import tracemalloc
+    x, v, n, _ = _inputs(12)
+    _gem_calls_at([0.0, 1.0, 3.0], x, v, n)              # compile outside the measurement
+    for big in (1e6, 1e8, 1e150):
+        sig = [0.0, 1.0, big]
+        tracemalloc.start()
+        try:
+            out = _gem_calls_at(sig, x, v, n)
+            filters.kernel_moment2(big)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 4 << 20, (big, peak)
+        for key in ("recon", "dv", "sf"):
+            assert np.all(np.isfinite(out[key])), key
+    with pytest.raises(InputError, match=r"`sigmas` must give finite, strictly increasing "
+                                         r"kernel second moments.*1e\+300"):
+        gem.reconstruct(x, v, sigmas=[0.0, 1.0, 1e300])   # r² = inf: was a NaN bias factor
+
+
+def test_gem_on_cut_kernels_equals_gem_on_whole_ones(monkeypatch):
+    """Every GEM kernel comes from filters._taps, cut where it cannot reach the image:
+    with the cut lowered to 2 taps (σ = 4 and 6.5 on 7×9 pixels are cut to 8 a side, the
+    map filters of 2σ too), selection, stopping maps, estimated MSE, difference
+    variances, post-processing and the exposed filter must be those of the whole
+    kernels: the cut kernel's centre tap and border scales must go together."""
+    x, v, n, _ = _inputs(21)
+    sig = [0.0, 1.0, 4.0, 6.5]
+    full = _gem_calls_at(sig, x, v, n)
+    monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
+    assert len(filters._taps(4.0, 3.0, max(H, W))) == 2 * (max(H, W) - 1) + 1   # cut
+    cut = _gem_calls_at(sig, x, v, n)
+    for mode in ("pooled", "paper"):
+        for key in ("scales", "stop_raw", "stop"):
+            np.testing.assert_array_equal(cut[mode][key], full[mode][key], err_msg=key)
+        for key in ("image", "values", "variances", "est_mse", "r2"):
+            np.testing.assert_allclose(cut[mode][key], full[mode][key], rtol=1e-12, err_msg=key)
+    np.testing.assert_array_equal(cut["post"], full["post"])
+    for key in ("recon", "dv", "sf"):
+        np.testing.assert_allclose(cut[key], full[key], rtol=1e-12, err_msg=key)
+    np.testing.assert_allclose(cut["dv"], gem._difference_variance_reference(v, sig), rtol=1e-12)
+    info = gem.select(x, v, sigmas=sig, final=False, n=n)
+    np.testing.assert_array_equal(
+        gem.postprocess_stop_maps(info["stop_raw"], sig, final=False),
+        gem._postprocess_reference(info["stop_raw"], sig, False, 3.0))
+    np.testing.assert_allclose(cut["sf"], gem.SelectedFilter(full["pooled"]["scales"], sig)
+                               .reference(v), rtol=1e-12)
+
+
 def test_all_metrics_takes_one_name_as_a_string():
     """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
     'l', 'm', 's', 'e']"."""

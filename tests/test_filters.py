@@ -40,6 +40,48 @@ def test_second_moment_tends_to_sigma_squared(sigma):
     assert F.kernel_moment2(0.0) == 0.0
 
 
+def _moment2_summed(sigma, r):
+    """Σ k² g / Σ g over |k| <= r, summed exactly (math.fsum) from the taps."""
+    import math
+    k = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (k / sigma) ** 2)
+    return math.fsum(g * k * k) / math.fsum(g)
+
+
+@pytest.mark.parametrize("sigma,truncate", [
+    (3000.0, 3.0), (1e5, 1.0), (1e5, 3.0), (1e6, 0.5), (2e6, 3.0),   # closed form
+    (2e7, 0.005),            # y = r/σ = 0.005: the small-y integral without cancellation
+    (2000.0, 50.0),          # 100000 taps a side, the ones past 40σ (exactly 0) skipped
+    (1e-3, 1e6), (1.0, 1e8)])  # a huge cut on a narrow Gaussian: all but a few taps are 0
+def test_second_moment_of_long_kernels_without_building_them(sigma, truncate):
+    """kernel_moment2 built the whole kernel (and four temporaries like it): σ = 1e6 took
+    137 MiB, σ = 1e8 some 20 GiB (gem.reconstruct(sigmas=(0, 1, 1e8)) ran 68 s into a
+    MemoryError).  Long kernels now skip their zero taps and beyond 2^16 non-zero taps a
+    side take the Euler–Maclaurin closed form; both must be the summed taps' moment."""
+    import math
+    r = max(1, math.ceil(truncate * sigma - 1e-9))
+    want = _moment2_summed(sigma, min(r, math.ceil(40 * sigma)))
+    assert F.kernel_moment2(sigma, truncate=truncate) == pytest.approx(want, rel=1e-14, abs=0)
+
+
+def test_second_moment_is_the_summed_kernel_bit_for_bit_up_to_4096_taps():
+    for sigma, t in [(0.3, 3.0), (2.0, 3.0), (7.7, 4.5), (1365.3, 3.0), (4096.0, 1.0)]:
+        w = F.gaussian_kernel_1d(sigma, truncate=t)
+        k = np.arange(len(w), dtype=np.float64) - len(w) // 2
+        assert F.kernel_moment2(sigma, truncate=t) == float(np.sum(w * k * k))
+
+
+def test_second_moment_of_huge_and_tiny_sigmas():
+    """σ·truncate past float64's range raised OverflowError ('cannot convert float
+    infinity to integer'); r² ≈ σ² overflows to inf only past ~1e154."""
+    # the sum is the integral plus the end taps' O(1/σ) (3.7e-10 relative at σ = 1e8)
+    assert F.kernel_moment2(1e8) == pytest.approx(sps.truncnorm(-3, 3).var() * 1e16, rel=1e-9)
+    assert F.kernel_moment2(1e150) == pytest.approx(sps.truncnorm(-3, 3).var() * 1e300, rel=1e-12)
+    assert F.kernel_moment2(1e300) == np.inf
+    assert F.kernel_moment2(1.0, truncate=1e308) == pytest.approx(1.0, rel=1e-6)
+    assert F.kernel_moment2(1e-300, truncate=1e308) == 0.0    # the pixel filter itself
+
+
 def test_border_scale_renormalises():
     w = F.gaussian_kernel_1d(2.0)
     s = F.border_scale(9, w)
