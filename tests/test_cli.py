@@ -818,7 +818,8 @@ def test_file_errors_name_the_command_line_options(tmp_path, toy_render):
     _write_channels(tmp_path / "y.exr", {"Y": ch["G"], "Variance.Y": ch["Variance.G"],
                                          "SampleCount": ch["SampleCount"]})
     code, _, err = run_cli("denoise", tmp_path / "y.exr", "--denoiser", "oidn", "--out", tmp_path / "o.exr")
-    _assert_one_line_error(code, err, "needs an R,G,B image")
+    # refused by the command before OIDN's own "`color` must be an (H, W, 3) image" (session 11)
+    _assert_one_line_error(code, err, "is a one-channel (Y) image, but --denoiser oidn runs OIDN")
     assert not (tmp_path / "o.exr").exists()
 
 
