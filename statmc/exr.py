@@ -716,6 +716,24 @@ def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
         write(tmp)
 
 
+# Extensions of other formats: a file written under one holds something else than its name
+# says (an EXR named .png opens in no PNG viewer).
+_EXTENSIONS = {"exr": (".exr",), "png": (".png",)}
+_OTHER_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".bmp", ".gif",
+                     ".webp", ".npy", ".npz")
+
+
+def _check_extension(path, what: str, hint: str, protect=()) -> None:
+    """Refuse ``path`` whose extension names another image or array format than ``what``
+    (after refusing it as one of the inputs ``protect``, the more telling error)."""
+    from ._atomic import check_not_input
+    check_not_input(_name(path), protect)
+    ext = os.path.splitext(_name(path))[1].lower()
+    if ext in _OTHER_EXTENSIONS and ext not in _EXTENSIONS[what]:
+        raise InputError(f"`path` {_name(path)!r} ends in {ext}, but this writes {what.upper()}; "
+                         f"name it {_EXTENSIONS[what][0]} ({hint}).")
+
+
 def _write_exr_file(tmp: str, channels: dict, windows=None) -> None:
     """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR, with
     ``windows = (data_window, display_window)`` (``[x0, y0, x1, y1]`` each) when given."""
@@ -841,7 +859,10 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
     onto it (``os.replace``), so readers see the old or the new file, never a partial one;
     on failure the temporary file is removed and an existing file stays as it was.
     Values are stored as float32: float32-representable data round-trips bit-exactly.
+    A ``path`` ending in another format's extension (``.png``, ``.jpg``, ``.hdr``, ``.tif``,
+    ``.npy``, ...) is refused: the file would not be what its name says.
     """
+    _check_extension(path, "exr", "write_png_preview writes an 8-bit PNG preview", protect)
     if isinstance(data, PixelStats):
         channels = _stats_channels(data)
     else:
@@ -1054,10 +1075,12 @@ def write_png_preview(path, image, *, exposure: float = 0.0, tonemap: str = "srg
     """Write an 8-bit sRGB PNG preview of a linear image, atomically (see :func:`to_display`).
 
     ``image`` is ``(H, W, 3)``, ``(H, W, 1)``, ``(H, W)`` or a :class:`PixelStats`.
-    ``overwrite`` and ``protect`` behave as in :func:`write_exr`.
+    ``overwrite`` and ``protect`` behave as in :func:`write_exr`; a ``path`` ending in another
+    format's extension (``.exr``, ``.jpg``, ...) is refused.
     """
     from PIL import Image
 
+    _check_extension(path, "png", "write_exr writes the linear image as OpenEXR", protect)
     disp = to_display(image, exposure=exposure, tonemap=tonemap)
     if disp.ndim == 3 and disp.shape[2] == 1:
         disp = disp[..., 0]

@@ -923,3 +923,22 @@ def test_negative_variance_from_a_lossy_codec_names_the_compression(tmp_path, co
     _write_with(q, ch, compression="ZIP")
     with pytest.raises(FileFormatError, match=r"a variance is >= 0\.$"):
         read_exr(q, spp=4)
+
+
+@pytest.mark.parametrize("name", ["out.png", "out.JPG", "out.hdr", "out.tiff", "out.npy"])
+def test_write_exr_refuses_another_formats_extension(tmp_path, name):
+    # before: write_exr("out.png", img) wrote an OpenEXR file named .png (no PNG viewer opens
+    # it), and write_png_preview("x.exr", img) a PNG named .exr
+    with pytest.raises(InputError, match=rf"ends in {os.path.splitext(name)[1].lower()}, but this "
+                       r"writes EXR; name it \.exr \(write_png_preview"):
+        write_exr(tmp_path / name, np.ones((2, 2, 3)))
+    assert os.listdir(tmp_path) == []
+    write_exr(tmp_path / "noext", np.ones((2, 2, 3)))            # no extension: as asked
+    assert read_image(tmp_path / "noext").shape == (2, 2, 3)
+
+
+@pytest.mark.parametrize("name", ["x.exr", "x.jpeg", "x.HDR"])
+def test_write_png_preview_refuses_another_formats_extension(tmp_path, name):
+    with pytest.raises(InputError, match=r"but this writes PNG; name it \.png \(write_exr"):
+        write_png_preview(tmp_path / name, np.ones((2, 2, 3)))
+    assert os.listdir(tmp_path) == []
