@@ -328,12 +328,35 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
+def _alpha_of(path, hw):
+    """The ``A`` (alpha) channel of an input file as float32, or None if it has none: an
+    image result keeps its input's coverage, as a compositor expects (denoisers pass alpha
+    through).  Refused when it holds NaN/Inf, which no output may carry."""
+    from .exr import _channel_names, read_channels
+    if "A" not in _channel_names(path):
+        return None
+    a = np.asarray(read_channels(path, ["A"])["A"], np.float32)
+    if a.shape != tuple(hw):
+        return None
+    bad = int((~np.isfinite(a)).sum())
+    if bad:
+        raise InputError(f"{path}: its alpha channel A holds {bad} NaN/Inf values, which the "
+                         "output would carry over; expected finite values (`statmc info FILE` "
+                         "counts them).")
+    return a
+
+
 def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
     beside it, both or neither, never onto one of ``inputs``.  ``place``: an input file
-    whose data and display windows the output takes (a crop stays where it was)."""
+    whose data and display windows the output takes (a crop stays where it was), and its
+    alpha channel ``A`` if it has one."""
     from .exr import exr_windows, write_exr, write_png_preview
     data_window, display_window = exr_windows(place) if place is not None else (None, None)
+    if place is not None:
+        alpha = _alpha_of(place, np.shape(image)[:2])
+        if alpha is not None and "A" not in (extra or {}):
+            extra = dict(extra or {}, A=alpha)
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
         write_exr(stage(path), data, protect=inputs, extra=extra, data_window=data_window,
                   display_window=display_window)

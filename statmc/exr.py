@@ -245,6 +245,12 @@ def exr_windows(path) -> tuple[list, list]:
     return _windows(header)
 
 
+def _channel_names(path) -> list:
+    """The channel names of part 0, from the header only."""
+    header, _, _ = _open(path, header_only=True)
+    return sorted(str(c.name) for c in header.get("channels", ()))
+
+
 def _open(path, *, header_only: bool = False):
     """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``
     (the arrays and types empty with ``header_only``)."""

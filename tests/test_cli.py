@@ -1896,3 +1896,42 @@ def test_render_refuses_a_reference_lying_elsewhere_in_the_frame(tmp_path):
     code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",
                            "--reference", ref, "--out", tmp_path / "r", "-q")
     assert code == 0, err
+
+
+@pytest.mark.parametrize("args", [
+    ["reconstruct", "{a}"],
+    ["denoise", "{a}", "--denoiser", "gaussian"],
+    ["denoise", "{a}", "--denoiser", "gaussian", "--variance"],
+    ["progressive", "{a}", "--denoiser", "gaussian"],
+    ["combine", "{a}", "{b}", "--weights", "uniform"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_outputs_keep_the_inputs_alpha(tmp_path, args):
+    # before: an RGBA render lost its A channel in every output (a compositor then sees an
+    # opaque frame); now the input's alpha passes through, as denoisers do
+    from statmc.exr import read_channels
+    rng = np.random.default_rng(13)
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    alpha = (rng.random((8, 10)) > 0.3).astype(np.float64) * rng.random((8, 10))
+    _write_channels(a, dict(_crop_stats(rng), A=alpha))
+    _write_channels(b, _crop_stats(rng))                       # Z's alpha, if any, is not used
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli(*[x.format(a=a, b=b) for x in args], "--out", out, "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_channels(out, ["A"])["A"], alpha.astype(np.float32))
+    # an input without alpha gives an output without
+    code, _, err = run_cli(*[x.format(a=b, b=a) for x in args], "--out", out, "-q")
+    assert code == 0, err
+    assert "A" not in read_channels(out)
+
+
+def test_nonfinite_alpha_is_refused_before_writing(tmp_path):
+    rng = np.random.default_rng(14)
+    a = tmp_path / "a.exr"
+    alpha = np.ones((8, 10))
+    alpha[1, 2] = np.nan
+    _write_channels(a, dict(_crop_stats(rng), A=alpha))
+    out = tmp_path / "sub" / "out.exr"
+    code, _, err = run_cli("denoise", a, "--denoiser", "gaussian", "--out", out)
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{a}: its alpha channel A holds 1 NaN/Inf values" in err
+    assert not (tmp_path / "sub").exists()
