@@ -133,6 +133,8 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
     xr = as_float_array("image", image)
     check_finite("image", xr)
     ex = _exposure(exposure)
+    if ex > float(np.finfo(xr.dtype).max):   # e in float32 would be inf, and T(0·inf) NaN
+        return tonemap(xr.astype(np.float64), _tm_name(name), exposure=ex).astype(xr.dtype)
     if _tm_name(name) == "reinhard":
         with np.errstate(over="ignore"):
             x = np.maximum(xr, 0.0) * ex
@@ -146,19 +148,29 @@ def tonemap(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
 
 
 def tonemap_derivative(image, name: str = "aces", *, exposure: float = 1.0) -> np.ndarray:
-    """``d/dx T(e·x)`` of :func:`tonemap`, per element (0 where clamped)."""
+    """``d/dx T(e·x)`` of :func:`tonemap`, per element (0 where clamped).
+
+    In the image's dtype; a slope beyond its range (``e·T'(0)`` for an exposure near the
+    float32 maximum) is ``inf``.
+    """
     xr = as_float_array("image", image)
     check_finite("image", xr)
     ex = _exposure(exposure)
+    if ex > float(np.finfo(xr.dtype).max):   # e in float32 would be inf, and 0·inf NaN
+        out = tonemap_derivative(xr.astype(np.float64), _tm_name(name), exposure=ex)
+        with np.errstate(over="ignore"):
+            return out.astype(xr.dtype)
     if _tm_name(name) == "reinhard":
-        with np.errstate(over="ignore"):            # (1 + x)² = inf: the derivative is 0
-            out = ex / (1.0 + np.maximum(xr, 0.0) * ex) ** 2
+        with np.errstate(over="ignore"):            # 1 + e·x = inf: the derivative is 0
+            g = 1.0 + np.maximum(xr, 0.0) * ex
+            out = ex / g / g                         # not e/g²: g² overflows first
     else:
         x = _aces_input(xr, ex)
         a, b, c, d, e = _ACES
         num = x * (a * x + b)
         den = x * (c * x + d) + e
-        out = ex * ((2 * a * x + b) * den - num * (2 * c * x + d)) / (den * den)
+        # e·(…/den²), not (e·…)/den²: the product overflowed for e > ~1e36 in float32
+        out = ex * (((2 * a * x + b) * den - num * (2 * c * x + d)) / (den * den))
         out = np.where(num / den >= 1.0, 0.0, out)
     return np.where(xr < 0, 0.0, out)
 

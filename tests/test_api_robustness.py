@@ -237,6 +237,49 @@ def test_tonemap_with_a_tiny_exposure_is_quiet_and_unchanged(dtype):
         assert t.dtype == dtype and np.isfinite(d).all() and (d >= 0).all()
 
 
+@pytest.mark.parametrize("name", ["aces", "reinhard"])
+def test_tonemap_with_a_huge_exposure_keeps_zero_at_zero(name):
+    """An exposure beyond float32's range became inf in a float32 image's arithmetic, so
+    T(0·inf) was NaN where the image is 0 (and everywhere for ACES: its cap 8/inf = 0
+    times inf), its derivative NaN likewise.  The curve of e·x is computed as in float64
+    there: 0 stays 0, any positive pixel saturates (or not: 1e-39·1e39 = 1), the slope
+    at 0 (e·T'(0), beyond float32) is inf, and nothing warns."""
+    from statmc.da_sampling import tonemap, tonemap_derivative
+
+    x = np.array([0.0, 1e-45, 1e-39, 3e-39, 1.0, -1.0, 3e38], np.float32)
+    for exposure in (1e39, 1e300, np.finfo(np.float64).max):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            t = tonemap(x, name, exposure=exposure)
+            d = tonemap_derivative(x, name, exposure=exposure)
+            t64 = tonemap(x.astype(np.float64), name, exposure=exposure)
+            d64 = tonemap_derivative(x.astype(np.float64), name, exposure=exposure)
+        assert t.dtype == d.dtype == np.float32
+        assert not np.isnan(t).any() and not np.isnan(d).any()
+        assert t[0] == t[5] == 0.0 and t[6] == 1.0 and d[5] == d[6] == 0.0
+        np.testing.assert_array_equal(t, t64.astype(np.float32))
+        with np.errstate(over="ignore"):
+            np.testing.assert_array_equal(d, d64.astype(np.float32))
+        assert d[0] == np.inf or exposure == 1e39        # e·T'(0) > 3.4e38 (not 0.2e39)
+
+
+def test_tonemap_derivative_where_its_intermediates_overflow():
+    """In float32 the ACES slope was (e·N)/den², and e·N overflowed to inf for e > ~1e36
+    where the slope itself is finite (e = 1e37, e·x = 5: 9.5e34); Reinhard's e/(1 + e·x)²
+    squared first, and 0 came out where the slope is 1e-20 (e = 1e20, x = 1)."""
+    from statmc.da_sampling import tonemap_derivative
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        aces = tonemap_derivative(np.array([5e-37], np.float32), "aces", exposure=1e37)
+        reinhard = tonemap_derivative(np.array([1.0], np.float32), "reinhard", exposure=1e20)
+    y, (a, b, c, d, e) = 5.0, (2.51, 0.03, 2.43, 0.59, 0.14)
+    num, den = y * (a * y + b), y * (c * y + d) + e
+    want = 1e37 * ((2 * a * y + b) * den - num * (2 * c * y + d)) / den ** 2
+    assert float(aces[0]) == pytest.approx(want, rel=1e-5)
+    assert float(reinhard[0]) == pytest.approx(1e-20, rel=1e-6)
+
+
 # ----------------------------------------------------------------------- adaptive loop
 @pytest.fixture(scope="module")
 def toy():
