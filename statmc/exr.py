@@ -367,8 +367,9 @@ def _check_policy(nonfinite, replace_value):
         raise InputError(f"`replace_value` must be a finite number; got {replace_value!r}.")
 
 
-def _handle_nonfinite(p, groups: dict, nonfinite, replace_value):
-    """Count NaN/Inf per channel group; raise or replace in place. Returns counts."""
+def _handle_nonfinite(p, groups: dict, nonfinite, replace_value, half=()):
+    """Count NaN/Inf per channel group; raise or replace in place. Returns counts.
+    ``half``: the groups stored as half floats, whose Inf is most likely an overflow."""
     counts = {}
     for key, a in groups.items():
         n_nan, n_inf = _count_nonfinite(a)
@@ -376,7 +377,11 @@ def _handle_nonfinite(p, groups: dict, nonfinite, replace_value):
             counts[key] = {"nan": n_nan, "inf": n_inf}
     if counts and nonfinite == "error":
         detail = "; ".join(f"{k}: {v['nan']} NaN, {v['inf']} Inf" for k, v in counts.items())
-        raise FileFormatError(f"{p!r} holds non-finite values ({detail}); pass "
+        over = [k for k, v in counts.items() if v["inf"] and k in half]
+        why = (f" (the Inf of {', '.join(over)} is likely an overflow: half floats end at "
+               "65504, and pbrt-v4 writes half floats, clamping R, G, B but not Variance, "
+               "unless its film has \"bool savefp16\" false)" if over else "")
+        raise FileFormatError(f"{p!r} holds non-finite values ({detail}){why}; pass "
                               "nonfinite='replace' to replace them by `replace_value`.")
     for key in counts:
         a = groups[key]
@@ -447,7 +452,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
-    header, arrays, _ = _open(p)
+    header, arrays, types = _open(p)
     color = _color_names(p, arrays)
     mean = _group(p, arrays, color, "colour")
     var_names = tuple("Variance." + c for c in color)
@@ -476,7 +481,11 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
               "N": normal,
               depth_name or "Z": depth, SAMPLE_COUNT: count}
     groups = {k: v for k, v in groups.items() if v is not None}
-    by_group = _handle_nonfinite(p, groups, nonfinite, replace_value)
+    members = {"+".join(color): color, "Variance": var_names, "Covariance": _COV,
+               "Albedo": _ALBEDO, "N": _NORMAL, depth_name or "Z": (depth_name,),
+               SAMPLE_COUNT: (SAMPLE_COUNT,)}
+    half = {k for k in groups if all(types.get(c) == "half" for c in members[k])}
+    by_group = _handle_nonfinite(p, groups, nonfinite, replace_value, half)
 
     if var is not None and var.size and var.min() < 0:
         comp = _compression(header)
@@ -546,10 +555,12 @@ def read_image(path, *, nonfinite: str = "error", replace_value: float = 0.0) ->
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
-    _, arrays, _ = _open(p)
+    _, arrays, types = _open(p)
     color = _color_names(p, arrays)
     img = np.stack([arrays[c].astype(np.float32) for c in color], axis=-1)
-    _handle_nonfinite(p, {"+".join(color): img}, nonfinite, replace_value)
+    key = "+".join(color)
+    _handle_nonfinite(p, {key: img}, nonfinite, replace_value,
+                      {key} if all(types[c] == "half" for c in color) else ())
     return img
 
 

@@ -942,3 +942,31 @@ def test_write_png_preview_refuses_another_formats_extension(tmp_path, name):
     with pytest.raises(InputError, match=r"but this writes PNG; name it \.png \(write_exr"):
         write_png_preview(tmp_path / name, np.ones((2, 2, 3)))
     assert os.listdir(tmp_path) == []
+
+
+def test_inf_in_half_channels_is_named_as_an_overflow(tmp_path):
+    # pbrt-v4's default savefp16 clamps R, G, B at 65504 but not Variance: a firefly's
+    # variance above 65504 becomes half Inf.  Before, the error only counted it.
+    ch = {n: np.full((3, 4), 0.5, np.float16) for n in PBRT_V4_GBUFFER}
+    ch["Variance.G"][1, 1] = np.float16(np.inf)           # what float -> half makes of 1e5
+    p = tmp_path / "pbrt.exr"
+    _write_raw(p, ch, dtype=np.float16)
+    with pytest.raises(FileFormatError, match=r"Variance: 0 NaN, 1 Inf\) \(the Inf of Variance is "
+                       r"likely an overflow: half floats end at 65504.*savefp16\\?\" false\); pass"):
+        read_exr(p, spp=4)
+    # float channels, or a NaN: no such guess
+    q = tmp_path / "float.exr"
+    _write_raw(q, {k: v.astype(np.float32) for k, v in ch.items()})
+    with pytest.raises(FileFormatError) as e:
+        read_exr(q, spp=4)
+    assert "overflow" not in str(e.value)
+    ch["Variance.G"][1, 1] = np.float16(np.nan)
+    _write_raw(p, ch, dtype=np.float16)
+    with pytest.raises(FileFormatError) as e:
+        read_exr(p, spp=4)
+    assert "overflow" not in str(e.value)
+    ch["Variance.G"][1, 1] = 0
+    ch["R"][0, 0] = np.float16(np.inf)                     # another tool's unclamped half colour
+    _write_raw(p, ch, dtype=np.float16)
+    with pytest.raises(FileFormatError, match=r"the Inf of R\+G\+B is likely an overflow"):
+        read_image(p)
