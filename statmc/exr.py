@@ -331,21 +331,28 @@ def _color_names(p, arrays):
 
 # Layers whose R, G, B are statmc's or pbrt-v4's own channels, not an image's colour.
 _NOT_COLOUR_LAYERS = ("variance", "relativevariance", "albedo", "covariance")
+# Last names of the layer that holds a renderer's beauty image (Blender: Combined).
+_BEAUTY_LAYERS = ("combined", "beauty", "rgba", "rgb", "color", "colour")
 
 
 def _colour_hint(arrays) -> str:
     """What a file without ``R, G, B`` holds instead: a layer's ``<layer>.R/G/B`` (Blender's
     ``ViewLayer.Combined.R``, a ``diffuse.R`` pass) or lowercase ``r, g, b``; "" if neither."""
+    import shlex
+
+    # the beauty first (Blender's Combined), then by name
     layers = sorted({n[:-2] for n in arrays if n[-2:] in (".R", ".G", ".B")
                      and all(n[:-2] + "." + c in arrays for c in _RGB)
-                     and n[:-2].lower() not in _NOT_COLOUR_LAYERS and not _BIN_CHANNEL.match(n)})
+                     and n[:-2].lower() not in _NOT_COLOUR_LAYERS and not _BIN_CHANNEL.match(n)},
+                    key=lambda x: (x.rsplit(".", 1)[-1].lower() not in _BEAUTY_LAYERS, x))
     if layers:
         which = ", ".join(repr(x) for x in layers[:4]) + (", ..." if len(layers) > 4 else "")
-        return (f" R, G, B are only inside layer(s) {which} (e.g. {layers[0] + '.R'!r}): "
+        first = layers[0]
+        ch = shlex.quote(",".join(f"{c}={first}.{c}" for c in _RGB))
+        return (f" R, G, B are only inside layer(s) {which} (e.g. {first + '.R'!r}): "
                 "statmc reads the unprefixed R, G, B (pbrt-v4's layout); write the layer's "
-                f"channels as R, G, B (e.g. `oiiotool IN.exr --ch R={layers[0]}.R,"
-                f"G={layers[0]}.G,B={layers[0]}.B -o OUT.exr`), or read them with "
-                "statmc.exr.read_channels().")
+                f"channels as R, G, B (e.g. `oiiotool IN.exr --ch {ch} -o OUT.exr`), or read "
+                "them with statmc.exr.read_channels().")
     lower = [c for c in ("r", "g", "b") if c in arrays]
     if len(lower) == 3:
         return (" The file has lowercase r, g, b: EXR channel names are case-sensitive and "

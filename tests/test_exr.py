@@ -970,3 +970,20 @@ def test_inf_in_half_channels_is_named_as_an_overflow(tmp_path):
     _write_raw(p, ch, dtype=np.float16)
     with pytest.raises(FileFormatError, match=r"the Inf of R\+G\+B is likely an overflow"):
         read_image(p)
+
+
+def test_layer_hint_puts_blenders_combined_first_and_quotes_spaces(tmp_path):
+    names = [f"ViewLayer.{layer}.{c}" for layer in ("Noisy Image", "DiffCol", "Combined",
+                                                    "Denoising Albedo") for c in "RGB"]
+    p = tmp_path / "blender.exr"
+    _write_raw(p, {n: np.ones((2, 3)) for n in names})
+    with pytest.raises(FileFormatError, match=r"layer\(s\) 'ViewLayer.Combined', "
+                       r"'ViewLayer.Denoising Albedo', 'ViewLayer.DiffCol', 'ViewLayer.Noisy Image' \(e.g. "
+                       r"'ViewLayer.Combined.R'\)") as e:
+        read_image(p)
+    assert "--ch R=ViewLayer.Combined.R,G=ViewLayer.Combined.G,B=ViewLayer.Combined.B -o" in str(e.value)
+    q = tmp_path / "noisy.exr"
+    _write_raw(q, {n: np.ones((2, 3)) for n in names if "Noisy" in n})
+    with pytest.raises(FileFormatError, match=r"--ch 'R=ViewLayer.Noisy Image.R,G=ViewLayer.Noisy "
+                       r"Image.G,B=ViewLayer.Noisy Image.B' -o OUT.exr"):
+        read_image(q)
