@@ -28,7 +28,7 @@ import numpy as np
 from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
                      check_same_shape)
 
-__all__ = ["PixelStats", "replace_nonfinite"]
+__all__ = ["PixelStats", "replace_nonfinite", "MERGED_META_SUMS"]
 
 
 def _pair_index(c):
@@ -393,15 +393,24 @@ class PixelStats:
         (Chan, Golub and LeVeque 1979, Eq. 2.1b; the outer-product form is the
         multivariate version), kept only when both sides have it (never invented).
         Features are taken from ``self`` when present, else from ``other``; ``meta`` is the
-        union of both, ``self``'s entries winning.
+        union of both, ``self``'s entries winning, except the counters of a render
+        (:data:`MERGED_META_SUMS`: ``samples``, ``seconds``, ``chunks``,
+        ``nonfinite_samples``), which are added up when both sides have them as numbers,
+        and ``samples_per_second``, then recomputed as ``samples / seconds``: the merge of
+        an adaptive render's passes reports their totals, not the first pass's.
         """
         if not isinstance(other, PixelStats):
-            raise InputError(f"can only merge PixelStats with PixelStats; got {type(other).__name__}.")
+            raise InputError(f"`other` must be a statmc.PixelStats to merge; got "
+                             f"{type(other).__name__}.")
         if other.shape != self.shape:
-            raise InputError(f"cannot merge statistics of shape {other.shape} into {self.shape}.")
-        if np.any(other.n > _INT64_MAX - self.n):
-            raise InputError("cannot merge: the summed sample counts overflow int64 (>= 2**63) "
-                             f"in {int(np.sum(other.n > _INT64_MAX - self.n))} pixels.")
+            raise InputError(f"`other` must have the shape of the statistics it is merged into, "
+                             f"(H, W, C) = {self.shape}; cannot merge {other.shape} into it.")
+        over = other.n > _INT64_MAX - self.n
+        if np.any(over):
+            raise InputError(f"`other` must add to the sample counts `n` without overflowing "
+                             f"int64 (a merged count < 2**63); got {int(np.sum(over))} pixels "
+                             f"whose summed counts overflow int64 (largest `n`: "
+                             f"{int(self.n.max())} here and {int(other.n.max())} in `other`).")
         na = self.n.astype(np.float64)[..., None]
         nb = other.n.astype(np.float64)[..., None]
         n = na + nb
@@ -421,7 +430,7 @@ class PixelStats:
             albedo=self.albedo if self.albedo is not None else other.albedo,
             normal=self.normal if self.normal is not None else other.normal,
             depth=self.depth if self.depth is not None else other.depth,
-            meta={**other.meta, **self.meta},
+            meta=_merged_meta(self.meta, other.meta),
             m2_cross=cross,
         )
 
@@ -441,6 +450,29 @@ class PixelStats:
                           depth=None if self.depth is None else self.depth.copy(),
                           meta=dict(self.meta),
                           m2_cross=None if self.m2_cross is None else self.m2_cross.copy())
+
+
+#: ``meta`` entries that count what a render did, added up by :meth:`PixelStats.merge`
+#: (the renderers write them: :mod:`statmc.mitsuba_backend`); ``samples_per_second`` is
+#: recomputed from the sums.
+MERGED_META_SUMS = ("samples", "seconds", "chunks", "nonfinite_samples")
+
+
+def _merged_meta(a: dict, b: dict) -> dict:
+    """``meta`` of ``a`` merged with ``b``: the union (``a`` winning) with the entries of
+    :data:`MERGED_META_SUMS` summed where both are numbers (not bools)."""
+    out = {**b, **a}
+    summed = set()
+    for key in MERGED_META_SUMS:
+        x, y = a.get(key), b.get(key)
+        if all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+               for v in (x, y)):
+            out[key] = x + y
+            summed.add(key)
+    if "samples_per_second" in out and {"samples", "seconds"} <= summed:
+        out["samples_per_second"] = (out["samples"] / out["seconds"] if out["seconds"] > 0
+                                     else float("nan"))
+    return out
 
 
 def check_stats(stats, name: str = "stats") -> None:

@@ -190,11 +190,22 @@ def test_counts_beyond_int64_are_refused(n):
 
 
 def test_merge_refuses_overflowing_counts():
-    """The merged count overflowed to a negative int64, reported as "`n` must be >= 0"."""
+    """The merged count overflowed to a negative int64, reported as "`n` must be >= 0";
+    then the refusal named no parameter ("cannot merge: the summed sample counts overflow
+    int64 ..."): it names `other`, what was expected and the counts given."""
     x, v, _, _ = _inputs(2)
     big = PixelStats(np.full((H, W), 2 ** 62, np.int64), x, v)
-    with pytest.raises(InputError, match="overflow int64"):
+    with pytest.raises(InputError, match=r"^`other` must add to the sample counts `n` without "
+                                         r"overflowing int64 \(a merged count < 2\*\*63\); got "
+                                         rf"{H * W} pixels .*largest `n`: {2 ** 62} here and "
+                                         rf"{2 ** 62} in `other`"):
         big.merge(big)
+    with pytest.raises(InputError, match=r"^`other` must be a statmc.PixelStats to merge; "
+                                         r"got ndarray"):
+        big.merge(x)
+    with pytest.raises(InputError, match=r"^`other` must have the shape .*\(7, 9, 3\); "
+                                         r"cannot merge \(7, 8, 3\)"):
+        big.merge(PixelStats(np.ones((H, W - 1)), x[:, 1:], v[:, 1:]))
 
 
 # ----------------------------------------------------------------------- tone mapping

@@ -112,6 +112,45 @@ def test_bad_input_is_named(kwargs, match):
         PixelStats(**kwargs)
 
 
+def test_merge_sums_the_render_counters_of_meta():
+    """A merge kept the first side's meta, so an adaptive render's merged passes (and
+    report.json's renderer_info) gave the first pass's samples, seconds and chunks; they
+    are the totals now, samples_per_second their ratio, and the rest as before: the union,
+    the first side winning (seed, features' seconds), nothing summed unless both are
+    numbers."""
+    rng = np.random.default_rng(3)
+
+    def stats(s, **meta):
+        out = PixelStats.from_samples(rng.normal(size=(s, 2, 2, 3)))
+        out.meta.update(meta)
+        return out
+
+    a, b = stats(3), stats(5)
+    a.meta.update(renderer="mitsuba", seed=1, samples=12, seconds=2.0, samples_per_second=6.0,
+                  chunks=3, nonfinite_samples=1, feature_seconds=0.5)
+    b.meta.update(renderer="mitsuba", seed=2, samples=20, seconds=0.5, samples_per_second=40.0,
+                  chunks=5, nonfinite_samples=0, passes=1)
+    m = a.merge(b).meta
+    assert m == dict(renderer="mitsuba", seed=1, samples=32, seconds=2.5,
+                     samples_per_second=32 / 2.5, chunks=8, nonfinite_samples=1,
+                     feature_seconds=0.5, passes=1)
+    assert m["samples"] == a.merge(b).total_samples
+    assert (b + a).meta["seed"] == 2 and (b + a).meta["samples"] == 32
+    assert a.meta["samples"] == 12 and b.meta["samples"] == 20          # inputs untouched
+    # one side without a counter, or a non-number: the union as before, nothing summed
+    c = stats(2, samples="many")
+    assert a.merge(c).meta["samples"] == 12 and c.merge(a).meta["samples"] == "many"
+    d = stats(2, seconds=True)
+    assert a.merge(d).meta["seconds"] == 2.0
+    e = stats(2, renderer="toy")
+    assert a.merge(e).meta == a.meta and e.merge(a).meta == {**a.meta, "renderer": "toy"}
+    # no time measured: the rate is NaN, as a renderer writes it
+    z = dict(samples=4, seconds=0.0, samples_per_second=float("nan"))
+    f = stats(2, **z)
+    g = stats(2, **z)
+    assert np.isnan(f.merge(g).meta["samples_per_second"]) and f.merge(g).meta["samples"] == 8
+
+
 def test_merge_shape_mismatch_and_bad_features():
     a = PixelStats.empty(2, 2)
     with pytest.raises(InputError, match="cannot merge"):
