@@ -328,12 +328,13 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
-def _alpha_of(path, hw):
-    """The ``A`` (alpha) channel of an input file as float32, or None if it has none: an
-    image result keeps its input's coverage, as a compositor expects (denoisers pass alpha
-    through).  Refused when it holds NaN/Inf, which no output may carry."""
-    from .exr import _channel_names, read_channels
-    if "A" not in _channel_names(path):
+def _alpha_of(path, hw, channels):
+    """The ``A`` (alpha) channel of an input file as float32, or None if it has none (among
+    ``channels``): an image result keeps its input's coverage, as a compositor expects
+    (denoisers pass alpha through).  Refused when it holds NaN/Inf, which no output may
+    carry."""
+    from .exr import read_channels
+    if "A" not in channels:
         return None
     a = np.asarray(read_channels(path, ["A"])["A"], np.float32)
     if a.shape != tuple(hw):
@@ -350,16 +351,17 @@ def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=N
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
     beside it, both or neither, never onto one of ``inputs``.  ``place``: an input file
     whose data and display windows the output takes (a crop stays where it was), and its
-    alpha channel ``A`` if it has one."""
-    from .exr import exr_windows, write_exr, write_png_preview
-    data_window, display_window = exr_windows(place) if place is not None else (None, None)
+    chromaticities (an ACEScg render stays ACEScg) and alpha channel ``A`` if it has them."""
+    from .exr import _header_summary, write_exr, write_png_preview
+    keep = {}
     if place is not None:
-        alpha = _alpha_of(place, np.shape(image)[:2])
+        info = _header_summary(place)
+        keep = {k: info[k] for k in ("data_window", "display_window", "chromaticities")}
+        alpha = _alpha_of(place, np.shape(image)[:2], info["channels"])
         if alpha is not None and "A" not in (extra or {}):
             extra = dict(extra or {}, A=alpha)
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
-        write_exr(stage(path), data, protect=inputs, extra=extra, data_window=data_window,
-                  display_window=display_window)
+        write_exr(stage(path), data, protect=inputs, extra=extra, **keep)
         write_png_preview(stage(os.path.splitext(path)[0] + ".png"), image, protect=inputs)
     if not quiet:
         print(f"wrote {path}")
@@ -1045,7 +1047,8 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
 
 
-SPP_HELP = "samples per pixel of a file without SampleCount (a positive integer)"
+SPP_HELP = ("samples per pixel of a file without SampleCount (a positive integer; pbrt-v4 "
+            "files give theirs in the samplesPerPixel header attribute)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -1100,7 +1103,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     rc = sub.add_parser("reconstruct", help="reconstruct an image from a statistics EXR (any renderer)")
-    rc.add_argument("input", help="EXR with R,G,B, Variance.* and SampleCount (or --spp)")
+    rc.add_argument("input", help="EXR with R,G,B, Variance.* and SampleCount (or pbrt-v4's "
+                    "samplesPerPixel attribute, or --spp)")
     rc.add_argument("--method", choices=["gem", "oidn+combine"], default="gem",
                     help="gem (default; Rousselle 2011) or oidn+combine (OIDN improved by Back "
                          "2020's combination kernel: covariances probed through OIDN, a SURE "

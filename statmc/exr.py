@@ -234,6 +234,35 @@ def _windows(header) -> tuple[list, list]:
     return data, box(header.get("displayWindow", header["dataWindow"]))
 
 
+def _header_spp(header):
+    """pbrt-v4's ``samplesPerPixel`` header attribute (the uniform count of the render it
+    wrote, partial images included), or None when absent or not a whole number >= 0."""
+    v = header.get("samplesPerPixel")
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0:
+        return int(v)
+    return None
+
+
+def _chromaticities(header):
+    """The ``chromaticities`` attribute as 8 floats (red, green, blue, white x, y), or None."""
+    v = header.get("chromaticities")
+    with contextlib.suppress(TypeError, ValueError):
+        c = tuple(float(x) for x in v)
+        if len(c) == 8 and all(np.isfinite(c)):
+            return c
+    return None
+
+
+def _header_summary(path) -> dict:
+    """What an output takes from an input, from the header only: ``data_window``,
+    ``display_window``, ``chromaticities`` and the ``channels`` names of part 0."""
+    header, _, _ = _open(path, header_only=True)
+    data, display = _windows(header)
+    return {"data_window": data, "display_window": display,
+            "chromaticities": _chromaticities(header),
+            "channels": sorted(str(c.name) for c in header.get("channels", ()))}
+
+
 def exr_windows(path) -> tuple[list, list]:
     """The data window and display window of an EXR file (part 0), each
     ``[x0, y0, x1, y1]`` with inclusive corners as OpenEXR stores them, read from the header
@@ -241,14 +270,8 @@ def exr_windows(path) -> tuple[list, list]:
     pixel ``(x0 + j, y0 + i)`` of the image; pass the windows to :func:`write_exr` to write
     a result in the same place (``statmc reconstruct``, ``denoise``, ``progressive`` and
     ``combine`` do)."""
-    header, _, _ = _open(path, header_only=True)
-    return _windows(header)
-
-
-def _channel_names(path) -> list:
-    """The channel names of part 0, from the header only."""
-    header, _, _ = _open(path, header_only=True)
-    return sorted(str(c.name) for c in header.get("channels", ()))
+    info = _header_summary(path)
+    return info["data_window"], info["display_window"]
 
 
 def _open(path, *, header_only: bool = False):
@@ -405,9 +428,10 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     path : str or os.PathLike
         The file.
     spp : int or (H, W) array of int, optional
-        Samples per pixel, needed when the file has no ``SampleCount`` channel (pbrt-v4
-        output).  When the file has one, ``spp`` must agree with it or be omitted (or
-        ``spp_if_missing`` be set).
+        Samples per pixel, needed when the file has neither a ``SampleCount`` channel nor
+        pbrt-v4's ``samplesPerPixel`` header attribute (which pbrt-v4 writes: its files
+        load without ``spp``).  When the file has either, ``spp`` must agree with it or be
+        omitted (or ``spp_if_missing`` be set).
     require_variance : bool, default True
         Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
         them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
@@ -431,14 +455,17 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         ``extra_channels`` (present but unused), ``has_variance``, ``has_covariance``,
         ``data_window`` and ``display_window`` (``[x0, y0, x1, y1]``: where the pixels lie
         in the frame, :func:`exr_windows`), ``depth_channel``,
-        ``sample_count_source`` (``"file"`` or ``"spp"``), ``nonfinite_replaced`` and
+        ``chromaticities`` (the header's 8 primaries and white point x, y, or None),
+        ``sample_count_source`` (``"file"``: the channel, ``"header"``: the
+        ``samplesPerPixel`` attribute, or ``"spp"``), ``nonfinite_replaced`` and
         ``nonfinite_by_group``.
 
     Raises
     ------
     FileFormatError
         Missing or unreadable file; missing colour, variance (unless allowed) or partial
-        feature channels; inconsistent channel sizes; no ``SampleCount`` and no ``spp``;
+        feature channels; inconsistent channel sizes; no ``SampleCount``, no
+        ``samplesPerPixel`` attribute and no ``spp``;
         NaN/Inf (with ``nonfinite="error"``); negative variance; negative or fractional
         sample counts.
 
@@ -478,11 +505,12 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     depth_name = next((d for d in _DEPTH if d in arrays), None)
     depth = arrays[depth_name].astype(np.float64) if depth_name else None
     count = arrays[SAMPLE_COUNT].astype(np.float64) if SAMPLE_COUNT in arrays else None
-    if count is None and spp is None:
+    header_spp = _header_spp(header)
+    if count is None and spp is None and header_spp is None:
         raise FileFormatError(
-            f"{p!r} has no {SAMPLE_COUNT} channel, so the samples per pixel are unknown "
-            f"(pbrt-v4 does not write them): pass the render's uniform spp=. Channels present: "
-            f"{_present(arrays)}.")
+            f"{p!r} has no {SAMPLE_COUNT} channel and no samplesPerPixel header attribute, so "
+            f"the samples per pixel are unknown: pass the render's uniform spp=. Channels "
+            f"present: {_present(arrays)}.")
 
     groups = {"+".join(color): mean, "Variance": var, "Covariance": cov, "Albedo": albedo,
               "N": normal,
@@ -509,6 +537,14 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
                 raise InputError(f"`spp` disagrees with the {SAMPLE_COUNT} channel of {p!r} in "
                                  f"{int((want != count).sum())} pixels; omit spp= to use the file's counts.")
         n, source = count, "file"
+    elif header_spp is not None:
+        if spp is not None and not spp_if_missing:
+            want = _spp_map(spp, mean.shape[:2])
+            if np.any(want != header_spp):
+                raise InputError(f"`spp` disagrees with the samplesPerPixel header attribute "
+                                 f"of {p!r}, {header_spp} (the count pbrt-v4 rendered); omit "
+                                 "spp= to use the file's counts.")
+        n, source = np.full(mean.shape[:2], float(header_spp)), "header"
     else:
         n, source = _spp_map(spp, mean.shape[:2]).astype(np.float64), "spp"
     if var is None:
@@ -524,6 +560,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         "has_variance": bool(all(v in arrays for v in var_names)),
         "has_covariance": cov is not None,
         "data_window": data_window, "display_window": display_window,
+        "chromaticities": _chromaticities(header),
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -675,7 +712,8 @@ def exr_info(path, *, families: bool = False) -> dict:
     Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
     ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts``,
     ``other_parts`` (``part``, ``name`` and ``channels`` of each part after part 0, which
-    statmc does not read), ``channels`` (name → pixel type), ``groups`` (group →
+    statmc does not read), ``samples_per_pixel`` (pbrt-v4's ``samplesPerPixel`` header
+    attribute or None), ``chromaticities`` (or None), ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
     (group → NaN and Inf counts, only groups that have any).
@@ -712,6 +750,8 @@ def exr_info(path, *, families: bool = False) -> dict:
         "display_window": [int(v) for v in np.concatenate([np.asarray(d) for d in disp])],
         "compression": str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0],
         "lossy_compression": _compression(header) in _LOSSY,
+        "samples_per_pixel": _header_spp(header),
+        "chromaticities": _chromaticities(header),
         "parts": int(header["_parts"]),
         "other_parts": [{"part": q["part"], "name": q["name"], "channels": q["channels"]}
                         for q in arrays.parts[1:]],
@@ -758,12 +798,14 @@ def _check_extension(path, what: str, hint: str, protect=()) -> None:
                          f"name it {_EXTENSIONS[what][0]} ({hint}).")
 
 
-def _write_exr_file(tmp: str, channels: dict, windows=None) -> None:
+def _write_exr_file(tmp: str, channels: dict, windows=None, attrs=None) -> None:
     """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR, with
-    ``windows = (data_window, display_window)`` (``[x0, y0, x1, y1]`` each) when given."""
+    ``windows = (data_window, display_window)`` (``[x0, y0, x1, y1]`` each) when given and
+    the header attributes ``attrs``."""
     import OpenEXR
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update(attrs or {})
     if windows is not None:
         for key, (x0, y0, x1, y1) in zip(("dataWindow", "displayWindow"), windows):
             header[key] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
@@ -850,7 +892,7 @@ def _stats_channels(stats: PixelStats) -> dict:
 
 
 def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
-              overwrite: bool = True, protect=()) -> None:
+              chromaticities=None, overwrite: bool = True, protect=()) -> None:
     """Write per-pixel statistics or a plain image as an EXR file, atomically.
 
     Parameters
@@ -871,6 +913,11 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
         display window, the frame the image belongs to, defaults to the data window.  Left
         out, the image lies at the origin, ``[0, 0, W - 1, H - 1]``.  Pass an input's
         windows to write a result in the input's place (a crop render stays a crop).
+    chromaticities : sequence of 8 floats, optional
+        The RGB primaries and white point ``(rx, ry, gx, gy, bx, by, wx, wy)`` of the
+        data (OpenEXR's ``chromaticities`` attribute; ``read_exr(...).meta`` gives an
+        input's).  Left out, none is written, which readers take as Rec. 709/sRGB; pass an
+        input's to keep, say, an ACEScg render's colours.
     overwrite : bool, default True
         With ``False``, an existing ``path`` raises :class:`InputError`.
     protect : path or sequence of paths
@@ -900,6 +947,16 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
         if arr.shape != hw:
             raise InputError(f"`extra[{name!r}]` must have the image size {hw}; got {arr.shape}.")
         channels[name] = _f32(f"extra[{name!r}]", arr)
+    attrs = {}
+    if chromaticities is not None:
+        try:
+            c = tuple(float(x) for x in chromaticities)
+        except (TypeError, ValueError):
+            c = ()
+        if len(c) != 8 or not all(np.isfinite(c)):
+            raise InputError("`chromaticities` must be 8 finite numbers (rx, ry, gx, gy, bx, by, "
+                             f"wx, wy); got {chromaticities!r}.")
+        attrs["chromaticities"] = c
     windows = None
     if data_window is not None or display_window is not None:
         data = _check_window("data_window", data_window if data_window is not None
@@ -909,7 +966,7 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
 
     def write(tmp):
         try:
-            _write_exr_file(tmp, channels, windows)
+            _write_exr_file(tmp, channels, windows, attrs)
         except OSError:
             raise
         except Exception as e:

@@ -1935,3 +1935,28 @@ def test_nonfinite_alpha_is_refused_before_writing(tmp_path):
     assert code == 2 and err.count("\n") == 1, err
     assert f"{a}: its alpha channel A holds 1 NaN/Inf values" in err
     assert not (tmp_path / "sub").exists()
+
+
+def test_pbrt_v4_file_needs_no_spp_and_keeps_its_colour_space(tmp_path):
+    # before: `statmc reconstruct pbrt.exr` asked for --spp although pbrt-v4 writes
+    # samplesPerPixel in the header, and outputs dropped an ACEScg render's chromaticities
+    import OpenEXR
+
+    from statmc.exr import exr_info
+    rng = np.random.default_rng(15)
+    aces = (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)
+    ch = {c: rng.random((8, 10)).astype(np.float16) for c in "RGB"}
+    ch.update({f"Variance.{c}": (rng.random((8, 10)) * 0.05).astype(np.float16) for c in "RGB"})
+    p = tmp_path / "pbrt.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "samplesPerPixel": 16, "chromaticities": aces}, ch).write(str(p))
+    for args in (["reconstruct", p], ["denoise", p, "--denoiser", "gaussian", "--variance"],
+                 ["progressive", p, "--denoiser", "gaussian"]):
+        out = tmp_path / "o.exr"
+        code, _, err = run_cli(*args, "--out", out, "-q")
+        assert code == 0, err
+        np.testing.assert_allclose(exr_info(out)["chromaticities"], aces, rtol=1e-7)
+    code, _, err = run_cli("reconstruct", p, "--spp", 4, "--out", tmp_path / "x.exr")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "--spp disagrees with the samplesPerPixel header attribute" in err
+    assert "omit --spp to use the file's counts" in err

@@ -177,7 +177,8 @@ def test_pbrt_v4_gbuffer_file_loads_with_spp(tmp_path, dtype):
 def test_pbrt_v4_file_without_spp_says_so(tmp_path):
     p = tmp_path / "pbrt.exr"
     _pbrt_file(p, np.random.default_rng(4))
-    with pytest.raises(FileFormatError, match=r"no SampleCount channel.*spp=.*'dzdx'") as e:
+    with pytest.raises(FileFormatError, match=r"no SampleCount channel and no samplesPerPixel "
+                       r"header attribute.*spp=.*'dzdx'") as e:
         read_exr(p)
     assert str(p) in str(e.value)
 
@@ -357,7 +358,7 @@ def test_failed_write_leaves_existing_file_and_no_temp(tmp_path, monkeypatch):
     write_exr(p, np.ones((4, 4, 3)))
     before = p.read_bytes()
 
-    def broken(tmp, channels, windows=None):
+    def broken(tmp, channels, *rest):
         with open(tmp, "wb") as f:
             f.write(b"partial garbage")
         raise OSError("disk full")
@@ -987,3 +988,64 @@ def test_layer_hint_puts_blenders_combined_first_and_quotes_spaces(tmp_path):
     with pytest.raises(FileFormatError, match=r"--ch 'R=ViewLayer.Noisy Image.R,G=ViewLayer.Noisy "
                        r"Image.G,B=ViewLayer.Noisy Image.B' -o OUT.exr"):
         read_image(q)
+
+
+def _pbrt_file_with_header(path, *, spp=64, chromaticities=None, dtype=np.float16):
+    """A pbrt-v4 gbuffer file as pbrt-v4 writes it: its channels, and the header attribute
+    samplesPerPixel (Image::WriteEXR, from the integrator's metadata), chromaticities for a
+    colour space other than sRGB."""
+    rng = np.random.default_rng(21)
+    ch = {n: rng.random((4, 5)).astype(dtype) for n in PBRT_V4_GBUFFER}
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+           "renderTimeSeconds": 1.5}
+    if spp is not None:
+        hdr["samplesPerPixel"] = spp
+    if chromaticities is not None:
+        hdr["chromaticities"] = chromaticities
+    OpenEXR.File(hdr, {k: v.copy() for k, v in ch.items()}).write(str(path))
+    return ch
+
+
+ACESCG = (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)
+
+
+def test_pbrt_v4_samples_per_pixel_attribute_gives_the_counts(tmp_path):
+    # before: a pbrt-v4 file needed spp= although pbrt-v4 writes its count in the header
+    p = tmp_path / "pbrt.exr"
+    ch = _pbrt_file_with_header(p, spp=64)
+    s = read_exr(p)
+    assert (s.n == 64).all() and s.meta["sample_count_source"] == "header"
+    np.testing.assert_array_equal(s.sample_var[..., 1], ch["Variance.G"].astype(np.float64))
+    np.testing.assert_array_equal(s.mean_var[..., 1], ch["Variance.G"].astype(np.float64) / 64)
+    assert exr_info(p)["samples_per_pixel"] == 64
+    assert (read_exr(p, spp=64).n == 64).all()                   # agreeing spp: fine
+    with pytest.raises(InputError, match=r"`spp` disagrees with the samplesPerPixel header "
+                       r"attribute of .*, 64 \(the count pbrt-v4 rendered\)"):
+        read_exr(p, spp=16)
+    assert (read_exr(p, spp=16, spp_if_missing=True).n == 64).all()   # the file's own count
+    q = tmp_path / "nospp.exr"
+    _pbrt_file_with_header(q, spp=None)
+    assert exr_info(q)["samples_per_pixel"] is None
+    with pytest.raises(FileFormatError, match="no SampleCount channel and no samplesPerPixel "
+                       "header attribute"):
+        read_exr(q)
+    assert (read_exr(q, spp=8).n == 8).all()
+
+
+def test_chromaticities_are_read_and_written(tmp_path):
+    # before: the attribute was neither reported nor writable, so an ACEScg render's
+    # reconstruction was shown with Rec. 709 primaries
+    p = tmp_path / "aces.exr"
+    _pbrt_file_with_header(p, chromaticities=ACESCG)
+    s = read_exr(p)
+    np.testing.assert_allclose(s.meta["chromaticities"], ACESCG, rtol=1e-7)
+    np.testing.assert_allclose(exr_info(p)["chromaticities"], ACESCG, rtol=1e-7)
+    q = tmp_path / "out.exr"
+    write_exr(q, s.mean, chromaticities=s.meta["chromaticities"])
+    assert read_exr(q, spp=1, require_variance=False).meta["chromaticities"] == s.meta["chromaticities"]
+    write_exr(q, s.mean)
+    assert exr_info(q)["chromaticities"] is None
+    for bad in ((0.1,) * 7, (0.1,) * 7 + (np.nan,), "abc"):
+        with pytest.raises(InputError, match="`chromaticities` must be 8 finite numbers"):
+            write_exr(tmp_path / "bad.exr", s.mean, chromaticities=bad)
+    assert not (tmp_path / "bad.exr").exists()
