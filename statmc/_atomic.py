@@ -8,6 +8,7 @@ on one of the command's input files.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 
@@ -55,6 +56,18 @@ def _final_mode(path: str) -> int:
         return 0o666 & ~mask
 
 
+def _cannot_write(path: str, directory: str, e: OSError) -> OSError:
+    """``e`` (of the same class and errno) saying which output could not be created where."""
+    d = directory
+    while d and not os.path.lexists(d):
+        d = os.path.dirname(d)
+    if d and not os.path.isdir(d):
+        return NotADirectoryError(errno.ENOTDIR, f"cannot write {path!r}: {d!r} is not a "
+                                  "directory")
+    return type(e)(e.errno, f"cannot write {path!r}: cannot create a file in {directory!r} "
+                            f"({e.strerror or e})")
+
+
 @contextlib.contextmanager
 def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     """Yield a temporary path in ``path``'s directory; rename it onto ``path`` on success.
@@ -71,10 +84,14 @@ def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     if not overwrite and os.path.lexists(path):
         raise InputError(f"{path!r} exists and overwrite=False; choose another path or allow overwriting.")
     directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
     mode = _final_mode(path)
     suffix = suffix if suffix is not None else os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix=".statmc-", suffix=suffix, dir=directory)
+    try:
+        os.makedirs(directory, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".statmc-", suffix=suffix, dir=directory)
+    except OSError as e:
+        # name the target and the directory, not the hidden temporary file or a bare errno
+        raise _cannot_write(path, directory, e) from None
     os.close(fd)
     try:
         yield tmp

@@ -1049,3 +1049,33 @@ def test_chromaticities_are_read_and_written(tmp_path):
         with pytest.raises(InputError, match="`chromaticities` must be 8 finite numbers"):
             write_exr(tmp_path / "bad.exr", s.mean, chromaticities=bad)
     assert not (tmp_path / "bad.exr").exists()
+
+
+def test_an_uncreatable_output_names_the_target_not_the_temporary_file(tmp_path, monkeypatch):
+    # before: "[Errno 17] File exists: '.../file.txt'" for a path under a file, and
+    # "[Errno 2] No such file or directory: '/proc/.statmc-j25ujoo4.exr'" (the hidden
+    # temporary file) where the directory takes no new files
+    import errno
+    import tempfile as tf
+    f = tmp_path / "file.txt"
+    f.write_text("x")
+    with pytest.raises(NotADirectoryError, match=rf"cannot write '{f}/sub/a.exr': '{f}' is not "
+                       "a directory"):
+        write_exr(f / "sub" / "a.exr", np.ones((2, 2, 3)))
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = tf.mkstemp
+
+    def refuse(*a, dir=None, **k):
+        if dir == str(ro):
+            raise PermissionError(errno.EACCES, "Permission denied", os.path.join(dir, ".statmc-x"))
+        return real(*a, dir=dir, **k)
+
+    monkeypatch.setattr(tf, "mkstemp", refuse)
+    for write in (lambda p: write_exr(p, np.ones((2, 2, 3))),
+                  lambda p: write_png_preview(p.with_suffix(".png"), np.ones((2, 2, 3)))):
+        with pytest.raises(PermissionError, match=rf"cannot write '{ro}/a\.(exr|png)': cannot "
+                           rf"create a file in '{ro}' \(Permission denied\)") as e:
+            write(ro / "a.exr")
+        assert ".statmc-" not in str(e.value)
+    assert os.listdir(ro) == []
