@@ -374,8 +374,8 @@ def _colour_hint(arrays) -> str:
         ch = shlex.quote(",".join(f"{c}={first}.{c}" for c in _RGB))
         return (f" R, G, B are only inside layer(s) {which} (e.g. {first + '.R'!r}): "
                 "statmc reads the unprefixed R, G, B (pbrt-v4's layout); write the layer's "
-                f"channels as R, G, B (e.g. `oiiotool IN.exr --ch {ch} -o OUT.exr`), or read "
-                "them with statmc.exr.read_channels().")
+                f"channels as R, G, B (e.g. `oiiotool IN.exr --ch {ch} -o OUT.exr`), or, in "
+                f"Python, read them with statmc.exr.read_exr/read_image(path, layer={first!r}).")
     lower = [c for c in ("r", "g", "b") if c in arrays]
     if len(lower) == 3:
         return (" The file has lowercase r, g, b: EXR channel names are case-sensitive and "
@@ -419,8 +419,31 @@ def _handle_nonfinite(p, groups: dict, nonfinite, replace_value, half=()):
     return counts
 
 
-def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = "error",
-             replace_value: float = 0.0, spp_if_missing: bool = False) -> PixelStats:
+def _select_layer(p, arrays, types, layer):
+    """The channels of ``layer`` (``"ViewLayer.Combined"``) under their names inside it
+    (``"ViewLayer.Combined.R"`` → ``"R"``); others are left out."""
+    if layer is None:
+        return arrays, types
+    if not isinstance(layer, str) or not layer or layer.endswith("."):
+        raise InputError(f"`layer` must be a layer name such as 'ViewLayer.Combined' (without "
+                         f"the channel's last part); got {layer!r}.")
+    prefix = layer + "."
+    out, kinds = _Channels(), {}
+    out.parts = arrays.parts
+    for name, a in arrays.items():
+        if name.startswith(prefix) and len(name) > len(prefix):
+            out[name[len(prefix):]] = a
+            kinds[name[len(prefix):]] = types[name]
+    if not out:
+        layers = sorted({n.rsplit(".", 1)[0] for n in arrays if "." in n})
+        raise FileFormatError(f"{p!r} has no channels in layer {layer!r} (named "
+                              f"'{prefix}<channel>'); its layers: {layers}.")
+    return out, kinds
+
+
+def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
+             nonfinite: str = "error", replace_value: float = 0.0,
+             spp_if_missing: bool = False) -> PixelStats:
     """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
 
     Parameters
@@ -432,6 +455,10 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         pbrt-v4's ``samplesPerPixel`` header attribute (which pbrt-v4 writes: its files
         load without ``spp``).  When the file has either, ``spp`` must agree with it or be
         omitted (or ``spp_if_missing`` be set).
+    layer : str, optional
+        Read the channels of this layer as if they had no prefix: ``layer="ViewLayer.Combined"``
+        reads Blender's ``ViewLayer.Combined.R`` as ``R`` (and a layer's ``Variance.R``,
+        ``SampleCount``, ...); channels outside the layer are left out.
     require_variance : bool, default True
         Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
         them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
@@ -487,6 +514,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
     p = _name(path)
     _check_policy(nonfinite, replace_value)
     header, arrays, types = _open(p)
+    arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
     mean = _group(p, arrays, color, "colour")
     var_names = tuple("Variance." + c for c in color)
@@ -560,7 +588,7 @@ def read_exr(path, *, spp=None, require_variance: bool = True, nonfinite: str = 
         "has_variance": bool(all(v in arrays for v in var_names)),
         "has_covariance": cov is not None,
         "data_window": data_window, "display_window": display_window,
-        "chromaticities": _chromaticities(header),
+        "chromaticities": _chromaticities(header), "layer": layer,
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -591,15 +619,18 @@ def _spp_map(spp, hw):
     return np.broadcast_to(af, tuple(hw))
 
 
-def read_image(path, *, nonfinite: str = "error", replace_value: float = 0.0) -> np.ndarray:
+def read_image(path, *, layer=None, nonfinite: str = "error",
+               replace_value: float = 0.0) -> np.ndarray:
     """Read the colour of an EXR file as an ``(H, W, 3)`` (or ``(H, W, 1)`` for ``Y``) float32 array.
 
-    For plain images such as references; variance and counts are ignored.  NaN/Inf follow
-    ``nonfinite`` as in :func:`read_exr`.
+    For plain images such as references; variance and counts are ignored.  ``layer``
+    (``"ViewLayer.Combined"``) reads that layer's ``R, G, B``; NaN/Inf follow ``nonfinite``
+    as in :func:`read_exr`.
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
     _, arrays, types = _open(p)
+    arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
     img = np.stack([arrays[c].astype(np.float32) for c in color], axis=-1)
     key = "+".join(color)

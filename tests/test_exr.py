@@ -1079,3 +1079,33 @@ def test_an_uncreatable_output_names_the_target_not_the_temporary_file(tmp_path,
             write(ro / "a.exr")
         assert ".statmc-" not in str(e.value)
     assert os.listdir(ro) == []
+
+
+def test_layer_reads_a_layers_channels_without_their_prefix(tmp_path):
+    rng = np.random.default_rng(22)
+    ch = {f"ViewLayer.Combined.{c}": rng.random((3, 4)) for c in "RGBA"}
+    ch.update({f"ViewLayer.Combined.Variance.{c}": rng.random((3, 4)) * 0.1 for c in "RGB"})
+    ch["ViewLayer.Combined.SampleCount"] = np.full((3, 4), 8.0)
+    ch.update({f"ViewLayer.Denoising Albedo.{c}": rng.random((3, 4)) for c in "RGB"})
+    ch["R"] = np.zeros((3, 4))                  # outside the layer: not read with layer=
+    p = tmp_path / "blender.exr"
+    _write_raw(p, ch)
+    f32 = {k: v.astype(np.float32).astype(np.float64) for k, v in ch.items()}
+    s = read_exr(p, layer="ViewLayer.Combined")
+    np.testing.assert_array_equal(s.mean[..., 2], f32["ViewLayer.Combined.B"])
+    np.testing.assert_array_equal(s.sample_var[..., 0], f32["ViewLayer.Combined.Variance.R"])
+    assert (s.n == 8).all() and s.meta["layer"] == "ViewLayer.Combined"
+    assert s.meta["extra_channels"] == ["A"]
+    img = read_image(p, layer="ViewLayer.Denoising Albedo")
+    np.testing.assert_array_equal(img[..., 1], f32["ViewLayer.Denoising Albedo.G"].astype(np.float32))
+    with pytest.raises(FileFormatError, match=r"no channels in layer 'Nope'.*its layers: "
+                       r"\['ViewLayer.Combined', 'ViewLayer.Combined.Variance', "
+                       r"'ViewLayer.Denoising Albedo'\]"):
+        read_image(p, layer="Nope")
+    for bad in ("", "ViewLayer.", 3):
+        with pytest.raises(InputError, match="`layer` must be a layer name"):
+            read_image(p, layer=bad)
+    q = tmp_path / "only_layer.exr"
+    _write_raw(q, {k: v for k, v in ch.items() if k.startswith("ViewLayer.Combined.")})
+    with pytest.raises(FileFormatError, match=r"read_image\(path, layer='ViewLayer.Combined'\)"):
+        read_image(q)
