@@ -12,6 +12,7 @@ import functools
 import json
 import numbers
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -328,36 +329,39 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
-def _alpha_of(path, hw, channels):
+def _alpha_of(path, hw, channels, name="A"):
     """The ``A`` (alpha) channel of an input file as float32, or None if it has none (among
     ``channels``): an image result keeps its input's coverage, as a compositor expects
     (denoisers pass alpha through).  Refused when it holds NaN/Inf, which no output may
     carry."""
     from .exr import read_channels
-    if "A" not in channels:
+    if name not in channels:
         return None
-    a = np.asarray(read_channels(path, ["A"])["A"], np.float32)
+    a = np.asarray(read_channels(path, [name])[name], np.float32)
     if a.shape != tuple(hw):
         return None
     bad = int((~np.isfinite(a)).sum())
     if bad:
-        raise InputError(f"{path}: its alpha channel A holds {bad} NaN/Inf values, which the "
+        raise InputError(f"{path}: its alpha channel {name} holds {bad} NaN/Inf values, which the "
                          "output would carry over; expected finite values (`statmc info FILE` "
                          "counts them).")
     return a
 
 
-def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None) -> None:
+def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None,
+                  layer=None) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
     beside it, both or neither, never onto one of ``inputs``.  ``place``: an input file
     whose data and display windows the output takes (a crop stays where it was), and its
-    chromaticities (an ACEScg render stays ACEScg) and alpha channel ``A`` if it has them."""
+    chromaticities (an ACEScg render stays ACEScg) and alpha channel ``A`` (``<layer>.A``
+    with ``layer``) if it has them."""
     from .exr import _header_summary, write_exr, write_png_preview
     keep = {}
     if place is not None:
         info = _header_summary(place)
         keep = {k: info[k] for k in ("data_window", "display_window", "chromaticities")}
-        alpha = _alpha_of(place, np.shape(image)[:2], info["channels"])
+        alpha = _alpha_of(place, np.shape(image)[:2], info["channels"],
+                          "A" if layer is None else f"{layer}.A")
         if alpha is not None and "A" not in (extra or {}):
             extra = dict(extra or {}, A=alpha)
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
@@ -621,7 +625,7 @@ def cmd_reconstruct(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
-    stats = read_exr(args.input, spp=args.spp)
+    stats = read_exr(args.input, spp=args.spp, layer=args.layer)
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     if args.method != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
@@ -634,7 +638,8 @@ def cmd_reconstruct(args) -> int:
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"{args.method}.{k}": v for k, v in maps.items()},
-                  place=args.input)
+                  place=args.input,
+                  layer=args.layer)
     return 0
 
 
@@ -728,24 +733,24 @@ def _render_gem_defaults(args) -> None:
     _fill_gem_defaults(args)
 
 
-def _read_statistics(path, spp, why: str):
+def _read_statistics(path, spp, why: str, layer=None):
     """``read_exr(path, spp=spp)``; a file without ``Variance.*`` or ``SampleCount`` is
     refused with ``why`` (what reads them, what would take a plain image) appended."""
     from .exr import read_exr
     try:
-        return read_exr(path, spp=spp)
+        return read_exr(path, spp=spp, layer=layer)
     except FileFormatError as e:
         if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
             raise
         raise FileFormatError(f"{str(e).rstrip('.')}. {why}") from None
 
 
-def _read_colour(path):
+def _read_colour(path, layer=None):
     """A file read for its colour and features only, as statistics (its channels listed in
     ``meta``): a plain RGB image needs neither ``Variance.*`` nor ``SampleCount`` (``n = 1``
     where it has none)."""
     from .exr import read_exr
-    return read_exr(path, spp=1, spp_if_missing=True, require_variance=False)
+    return read_exr(path, spp=1, spp_if_missing=True, require_variance=False, layer=layer)
 
 
 def cmd_denoise(args) -> int:
@@ -755,13 +760,13 @@ def cmd_denoise(args) -> int:
         what = "--variance" if args.variance else "--denoiser gem"
         stats = _read_statistics(args.input, args.spp, f"{what} reads the file's statistics; "
                                  "--denoiser oidn or gaussian without --variance denoises a "
-                                 "plain image.")
+                                 "plain image.", layer=args.layer)
     else:
         _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it is "
                        "the sample count of a file without SampleCount, which only --variance "
                        "and --denoiser gem read)")
         # plain denoising reads the colour and OIDN's features (albedo, normal) only
-        stats = _read_colour(args.input)
+        stats = _read_colour(args.input, args.layer)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -800,7 +805,8 @@ def cmd_denoise(args) -> int:
         result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
     _write_result(args.out, result, out, inputs=[args.input], quiet=args.quiet,
-                  place=args.input)
+                  place=args.input,
+                  layer=args.layer)
     return 0
 
 
@@ -808,7 +814,7 @@ def cmd_progressive(args) -> int:
     from .exr import read_exr
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
-    stats = read_exr(args.input, spp=args.spp)
+    stats = read_exr(args.input, spp=args.spp, layer=args.layer)
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
@@ -819,7 +825,8 @@ def cmd_progressive(args) -> int:
                                     seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"progressive.{k}": v for k, v in maps.items()},
-                  place=args.input)
+                  place=args.input,
+                  layer=args.layer)
     return 0
 
 
@@ -855,6 +862,9 @@ def _combine_bins_file(args) -> int:
     from .exr import read_bins
 
     _check_out_file(args.out, [args.y])
+    if args.layer is not None:
+        raise InputError(f"--layer selects a layer of Y and Z; a sample-bins file ({args.y}, "
+                         "without Z) is statmc's own and has none: leave --layer out.")
     bins = read_bins(args.y)
     if bins is None or bins[1] is None:
         what = "no sample bins" if bins is None else "bins but no Bin<b>.Denoised.* channels"
@@ -876,7 +886,8 @@ def _combine_bins_file(args) -> int:
                    else cb.gaussian_weights(h, w, B, args.size, args.sigma))
         out = cb.combine_multi(ys, zs, weights)
     _write_result(args.out, out, out, inputs=[args.y], quiet=args.quiet,
-                  place=args.y)
+                  place=args.y,
+                  layer=args.layer)
     return 0
 
 
@@ -918,12 +929,12 @@ def cmd_combine(args) -> int:
         if statistical:
             y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
                                        "statistics; --weights uniform or gaussian combine a "
-                                       "plain image.")
+                                       "plain image.", layer=args.layer)
         else:
             # Fixed weights read Y's colour only.  Read as statistics all the same, so that
             # a --crn render (SpatialCovariance.*) or a bins file is still recognised by its
             # channels.
-            y_stats = _read_colour(args.y)
+            y_stats = _read_colour(args.y, args.layer)
     except FileFormatError:
         _refuse_bins_as_y(args.y)
         raise
@@ -938,7 +949,7 @@ def cmd_combine(args) -> int:
     if statistical:
         try:
             # --spp (for a Y without SampleCount) applies to Z only if Z has none either
-            z_stats = read_exr(args.z, spp=args.spp, spp_if_missing=True)
+            z_stats = read_exr(args.z, spp=args.spp, spp_if_missing=True, layer=args.layer)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -949,7 +960,7 @@ def cmd_combine(args) -> int:
         for st, path in ((y_stats, args.y), (z_stats, args.z)):
             _need_variance(st, path, "--weights statistical")
     else:
-        z = read_image(args.z)
+        z = read_image(args.z, layer=args.layer)
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
@@ -975,7 +986,8 @@ def cmd_combine(args) -> int:
                                          args.size)
     out = cb.combine(y, z, weights)
     _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet,
-                  place=args.y)
+                  place=args.y,
+                  layer=args.layer)
     return 0
 
 
@@ -1016,8 +1028,8 @@ def cmd_metrics(args) -> int:
     from .metrics import all_metrics
     opts = {} if args.replace_nonfinite is None else {"nonfinite": "replace",
                                                       "replace_value": args.replace_nonfinite}
-    img = read_image(args.image, **opts)
-    ref = read_image(args.reference, **opts)
+    img = read_image(args.image, layer=args.layer, **opts)
+    ref = read_image(args.reference, layer=args.layer, **opts)
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
@@ -1045,6 +1057,15 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
+LAYER_HELP = ("read the channels of this EXR layer as if unprefixed, e.g. ViewLayer.Combined "
+              "for Blender's ViewLayer.Combined.R,G,B (and its Variance.*, SampleCount if any)")
+
+
+def _add_layer_option(parser, what: str = "the input") -> None:
+    parser.add_argument("--layer", default=None, metavar="NAME",
+                        help=LAYER_HELP.replace("EXR layer", f"layer of {what}"))
 
 
 SPP_HELP = ("samples per pixel of a file without SampleCount (a positive integer; pbrt-v4 "
@@ -1111,6 +1132,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "mix; needs R,G,B and 2 samples in every pixel; docs/combine.md)")
     rc.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     rc.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
+    _add_layer_option(rc, "the input")
     _add_gem_options(rc, "--method gem", refuse_unused=True)
     rc.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     rc.set_defaults(func=cmd_reconstruct)
@@ -1132,6 +1154,7 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("metrics", help="error metrics of an image against a reference (JSON)")
     m.add_argument("image", help="EXR image (R,G,B or Y)")
     m.add_argument("reference", help="EXR of the same size")
+    _add_layer_option(m, "both files")
     m.add_argument("--replace-nonfinite", type=FINITE, metavar="VALUE",
                    help="replace NaN/Inf pixels by VALUE (default: refuse such files)")
     m.set_defaults(func=cmd_metrics)
@@ -1150,6 +1173,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=SPP_HELP + "; read by --variance and --denoiser gem only")
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
+    _add_layer_option(d, "the input")
     _add_gem_options(d, "--denoiser gem", refuse_unused=True)
     d.add_argument("--sigma", type=POSITIVE, default=None,
                    help="standard deviation of --denoiser gaussian in pixels (default 1)")
@@ -1165,6 +1189,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="default oidn")
     pg.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     pg.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
+    _add_layer_option(pg, "the input")
     _add_gem_options(pg, "--denoiser gem", refuse_unused=True)
     pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
@@ -1184,6 +1209,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "for Z = Y denoised it is not, and the result can be worse than Z; use "
                         "`statmc reconstruct Y.exr --method oidn+combine` for that. Left out "
                         "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
+    _add_layer_option(c, "Y and Z")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=None,
@@ -1227,7 +1253,10 @@ def _cli_message(message: str, command: str) -> str:
         message = message.replace(old, new)
     fix = ("give --replace-nonfinite VALUE to replace them." if command == "metrics" else
            "expected finite values (`statmc info FILE` counts them per channel).")
-    return message.replace(_NONFINITE_HINT, fix)
+    message = message.replace(_NONFINITE_HINT, fix)
+    # the library's layer= is the command's --layer
+    return re.sub(r"or, in Python, read them with statmc\.exr\.read_exr/read_image\(path, "
+                  r"layer=('[^']*'|\"[^\"]*\")\)", r"or give --layer \1", message)
 
 
 def main(argv=None) -> int:

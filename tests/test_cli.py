@@ -1960,3 +1960,53 @@ def test_pbrt_v4_file_needs_no_spp_and_keeps_its_colour_space(tmp_path):
     assert code == 2 and err.count("\n") == 1, err
     assert "--spp disagrees with the samplesPerPixel header attribute" in err
     assert "omit --spp to use the file's counts" in err
+
+
+def _blender_file(path, rng, stats=False):
+    """A Blender-style multilayer file: the beauty in ViewLayer.Combined.R/G/B/A (with a
+    layer's own Variance.* and SampleCount when ``stats``), other passes beside it."""
+    ch = {f"ViewLayer.Combined.{c}": rng.random((8, 10)) for c in "RGB"}
+    ch["ViewLayer.Combined.A"] = np.ones((8, 10))
+    ch["ViewLayer.Depth.Z"] = rng.random((8, 10))
+    if stats:
+        ch.update({f"ViewLayer.Combined.Variance.{c}": rng.random((8, 10)) * 0.05 for c in "RGB"})
+        ch["ViewLayer.Combined.SampleCount"] = np.full((8, 10), 16.0)
+    _write_channels(path, ch)
+    return ch
+
+
+def test_layer_option_reads_a_blender_layer(tmp_path):
+    # before: no command could read a file whose colour is in a layer (ViewLayer.Combined.R)
+    from statmc.exr import read_channels, read_image
+    rng = np.random.default_rng(16)
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    ch = _blender_file(a, rng, stats=True)
+    _blender_file(b, rng, stats=True)
+    code, out, err = run_cli("metrics", a, a, "--layer", "ViewLayer.Combined")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    code, _, err = run_cli("metrics", a, b)                # without --layer: the hint says it
+    assert code == 2 and err.count("\n") == 1, err
+    assert "or give --layer 'ViewLayer.Combined'." in err and "Python" not in err
+    o = tmp_path / "o.exr"
+    for args in (["denoise", a, "--denoiser", "gaussian"], ["reconstruct", a],
+                 ["progressive", a, "--denoiser", "gaussian"],
+                 ["combine", a, b, "--weights", "uniform"], ["combine", a, b]):
+        code, _, err = run_cli(*args, "--layer", "ViewLayer.Combined", "--out", o, "-q")
+        assert code == 0, (args, err)
+        assert set(read_channels(o)) >= {"R", "G", "B", "A"}       # unprefixed, alpha kept
+    code, _, err = run_cli("denoise", a, "--denoiser", "gaussian", "--layer", "ViewLayer.Combined",
+                           "--out", o, "-q")
+    gauss = read_image(o)
+    assert gauss.shape == (8, 10, 3)
+    assert not np.array_equal(gauss[..., 0], ch["ViewLayer.Combined.R"].astype(np.float32))
+    code, _, err = run_cli("reconstruct", a, "--layer", "Nope", "--out", o)
+    assert code == 2 and "has no channels in layer 'Nope'" in err and err.count("\n") == 1, err
+
+
+def test_layer_option_is_refused_for_a_bins_file(tmp_path):
+    from statmc.exr import bin_channels, write_exr
+    ys = np.random.default_rng(17).random((2, 4, 5, 3))
+    p = tmp_path / "bins.exr"
+    write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
+    code, _, err = run_cli("combine", p, "--layer", "X", "--out", tmp_path / "o.exr")
+    assert code == 2 and "--layer selects a layer of Y and Z" in err and err.count("\n") == 1, err
