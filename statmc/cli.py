@@ -1063,6 +1063,10 @@ LAYER_HELP = ("read the channels of this EXR layer as if unprefixed, e.g. ViewLa
               "for Blender's ViewLayer.Combined.R,G,B (and its Variance.*, SampleCount if any)")
 
 
+#: The commands with --layer (the others read statmc's own files, or a --reference).
+_LAYER_COMMANDS = ("reconstruct", "denoise", "progressive", "combine", "metrics")
+
+
 def _add_layer_option(parser, what: str = "the input") -> None:
     parser.add_argument("--layer", default=None, metavar="NAME",
                         help=LAYER_HELP.replace("EXR layer", f"layer of {what}"))
@@ -1254,9 +1258,10 @@ def _cli_message(message: str, command: str) -> str:
     fix = ("give --replace-nonfinite VALUE to replace them." if command == "metrics" else
            "expected finite values (`statmc info FILE` counts them per channel).")
     message = message.replace(_NONFINITE_HINT, fix)
-    # the library's layer= is the command's --layer
-    return re.sub(r"or, in Python, read them with statmc\.exr\.read_exr/read_image\(path, "
-                  r"layer=('[^']*'|\"[^\"]*\")\)", r"or give --layer \1", message)
+    # the library's layer= is the command's --layer, where it has one
+    return re.sub(r", or, in Python, read them with statmc\.exr\.read_exr/read_image\(path, "
+                  r"layer=('[^']*'|\"[^\"]*\")\)",
+                  r", or give --layer \1" if command in _LAYER_COMMANDS else "", message)
 
 
 def main(argv=None) -> int:

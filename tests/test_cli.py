@@ -2010,3 +2010,14 @@ def test_layer_option_is_refused_for_a_bins_file(tmp_path):
     write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
     code, _, err = run_cli("combine", p, "--layer", "X", "--out", tmp_path / "o.exr")
     assert code == 2 and "--layer selects a layer of Y and Z" in err and err.count("\n") == 1, err
+
+
+def test_layer_hint_of_a_command_without_layer_names_no_option(tmp_path):
+    # render reads --reference without a --layer option: its hint must not offer one
+    p = tmp_path / "ref.exr"
+    _blender_file(p, np.random.default_rng(18))
+    code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",
+                           "--reference", p, "--out", tmp_path / "r")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "only inside layer(s) 'ViewLayer.Combined'" in err
+    assert "--layer" not in err and "Python" not in err and err.rstrip().endswith("-o OUT.exr`).")
