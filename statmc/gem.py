@@ -352,7 +352,12 @@ def _map_sigmas(sigmas, final, map_scale=None):
     """Outlier-removal filter of pair k: the coarse scale's Gaussian, doubled in the final
     reconstruction (§4.4 and §6 of [1]); ``map_scale`` overrides the factor."""
     f = _map_scale(final, map_scale)
-    return [sigmas[k + 1] * f for k in range(len(sigmas) - 1)]
+    out = [sigmas[k + 1] * f for k in range(len(sigmas) - 1)]
+    if not math.isfinite(out[-1]):      # 1e308 · 16: was "`sigma` must be a finite number"
+        raise InputError(f"`map_scale` times the coarsest scale must be a finite σ (the "
+                         f"outlier filter of the last pair); got map_scale {f!r} × σ "
+                         f"{sigmas[-1]!r}.")
+    return out
 
 
 def _map_scale(final, map_scale):
@@ -1087,7 +1092,8 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     batch : int, optional
         Samples per selected pixel (the paper's per-pixel ``n``).  Default
         ``ceil(8 · budget / (H·W))``, which selects about an eighth of the pixels per call
-        as in §6 (``m = N/n`` pixels with ``N = M(n − 4)/8``).
+        as in §6 (``m = N/n`` pixels with ``N = M(n − 4)/8``).  At most 2**53, as
+        ``budget``.
     eps : float
         ε of the relative MSE (0.001 in §5).
     rng : numpy Generator or int, optional
@@ -1096,7 +1102,9 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
         Greedy rounds within the call (default 4; the paper: 1).  Each hands out
         ``budget/rounds``; between rounds a pixel that received ``a`` samples has its
         relative MSE scaled by ``n/(n + a)`` and ``n ← n + a`` (§5's model), so gains are
-        re-evaluated without re-rendering.  The default ``batch`` is per round.
+        re-evaluated without re-rendering.  The default ``batch`` is per round.  More
+        rounds than ``budget`` act as ``budget`` rounds of one sample (those past it would
+        hand out nothing).
     var_prior : float
         Pseudo-degrees of freedom ``k`` of a pooled prior on each pixel's sample variance
         (default 2; the paper: 0).  The sampler uses the posterior mean
@@ -1146,7 +1154,10 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
     if not eps > 0 or not math.isfinite(eps):
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
     h, w = m.shape[:2]
-    rounds = as_whole("rounds", rounds, lo=1)
+    # rounds past the budget hand out nothing (each of the first ``budget`` rounds gets one
+    # sample either way): the same counts, but 1e18 rounds ran for years and 2**70 reached
+    # the kernel as a number too large for it
+    rounds = min(as_whole("rounds", rounds, lo=1), max(budget, 1))
     var_prior, var_prior_sigma = float(var_prior), float(var_prior_sigma)
     if not (var_prior >= 0 and math.isfinite(var_prior)):
         raise InputError(f"`var_prior` must be a finite number >= 0 (pseudo-samples); got {var_prior!r}.")
@@ -1154,9 +1165,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
         raise InputError(f"`var_prior_sigma` must be a finite number > 0; got {var_prior_sigma!r}.")
     if batch is None:
         batch = max(1, math.ceil(8 * math.ceil(budget / rounds) / (h * w)))
-    if isinstance(batch, bool) or not float(batch).is_integer() or batch < 1:
-        raise InputError(f"`batch` must be a whole number >= 1; got {batch!r}.")
-    batch = int(batch)
+    batch = as_whole("batch", batch, lo=1, hi=MAX_BUDGET)   # 2**63: the kernel's SystemError
     sig = list(ADAPTIVE_SIGMAS)
     if var_prior > 0:
         v = _variance_prior(v, nn, var_prior, var_prior_sigma)   # (vsum unused below)

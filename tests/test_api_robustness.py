@@ -676,6 +676,46 @@ def test_gem_on_cut_kernels_equals_gem_on_whole_ones(monkeypatch):
                                .reference(v), rtol=1e-12)
 
 
+def test_gem_map_scale_that_overflows_is_named():
+    """map_scale · σ beyond float64 was refused as "`sigma` must be a finite number >= 0;
+    got inf." (a parameter the caller never passed)."""
+    x, v, n, _ = _inputs(13)
+    for call in (lambda: gem.reconstruct(x, v, map_scale=1e308),
+                 lambda: gem.select(x, v, final=False, map_scale=1e307, sigmas=[0.0, 1.0, 100.0]),
+                 lambda: gem.postprocess_stop_maps(np.ones((2, H, W)), [0.0, 1.0, 1e300],
+                                                   final=True, map_scale=1e10)):
+        with pytest.raises(InputError, match=r"^`map_scale` times the coarsest scale must be "
+                                             r"a finite σ .*; got map_scale"):
+            call()
+
+
+def test_gem_sampler_rounds_beyond_the_budget():
+    """Rounds past the budget hand out nothing, but the kernel looped over them all:
+    rounds=10**15 would run for days and 2**70 was numba's TypingError ('Int value is too
+    large'); batch=2**63 its SystemError.  Rounds now stop at the budget (the same counts)
+    and batch is a whole number up to 2**53, as the budget."""
+    x, v, n, _ = _inputs(14)
+    seen = []
+    real = gem._allocate_rounds_fast
+
+    def spy(rel, nn, budget, batch, rounds):
+        seen.append(rounds)
+        assert rounds <= budget, "the kernel would loop over every round"
+        return real(rel, nn, budget, batch, rounds)
+
+    import unittest.mock
+    with unittest.mock.patch.object(gem, "_allocate_rounds_fast", spy):
+        big = gem.sampling_map(x, v, n, 50, rounds=10 ** 15, rng=4)
+    assert seen == [50]
+    np.testing.assert_array_equal(big, gem.sampling_map(x, v, n, 50, rounds=50, rng=4))
+    np.testing.assert_array_equal(gem.sampling_map(x, v, n, 50, rounds=2 ** 70, rng=4), big)
+    assert gem.sampling_map(x, v, n, 0, rounds=2 ** 70, rng=4).sum() == 0
+    with pytest.raises(InputError, match=r"`batch` must be a whole number <= 9007199254740992; "
+                                         r"got 9223372036854775808"):
+        gem.sampling_map(x, v, n, 50, batch=2 ** 63, rng=4)
+    assert gem.sampling_map(x, v, n, 50, batch=2 ** 53, rng=4).sum() == 50
+
+
 def test_all_metrics_takes_one_name_as_a_string():
     """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
     'l', 'm', 's', 'e']"."""
