@@ -293,6 +293,7 @@ def gaussian_filter(image, sigma: float, *, truncate: float = DEFAULT_TRUNCATE) 
     """
     img = _as_image("image", image)
     s = _check_sigma(sigma)
+    _check_truncate(truncate)               # also for σ = 0, which does not use it
     if s == 0.0 or img.size == 0:           # no pixels or no channels: nothing to filter
         return img.copy()
     x, c = _rows(img)
@@ -312,6 +313,7 @@ def gaussian_spread(amount, sigma: float, *, truncate: float = DEFAULT_TRUNCATE)
     """
     a = _as_image("amount", amount)
     s = _check_sigma(sigma)
+    _check_truncate(truncate)
     if s == 0.0 or a.size == 0:
         return a.copy()
     x, c = _rows(a)
@@ -344,9 +346,16 @@ def _check_pair(mean, mean_var):
     return m, v, vsum
 
 
+def _as_sigmas(sigmas) -> np.ndarray:
+    """``sigmas`` as a flat float64 array; an :class:`InputError` naming ``sigmas`` when it
+    is not real numbers (a string, a ragged list and complex values raised NumPy's
+    ValueError/TypeError)."""
+    return as_float_array("sigmas", sigmas).astype(np.float64, copy=False).ravel()
+
+
 def _check_bank_input(mean, mean_var, sigmas, truncate):
     m, v, _ = _check_pair(mean, mean_var)
-    sig = np.asarray(sigmas, dtype=np.float64).ravel()
+    sig = _as_sigmas(sigmas)
     if sig.size < 1 or not np.all(np.isfinite(sig)) or np.any(sig < 0):
         raise InputError(f"`sigmas` must be a non-empty sequence of finite numbers >= 0; got {sigmas!r}.")
     _check_truncate(truncate)

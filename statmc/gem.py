@@ -40,8 +40,9 @@ from . import _filter_kernels as _k
 from ._threads import serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
                      check_finite, check_nonnegative, real_or_nan)
-from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _check_pair, _rows, _run,
-                      _taps, _weight_matrix, border_scale, gaussian_kernel_1d, kernel_moment2)
+from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _as_sigmas, _check_pair,
+                      _rows, _run, _taps, _weight_matrix, border_scale, gaussian_kernel_1d,
+                      kernel_moment2)
 
 __all__ = [
     "error_rate_weight", "bias_factor", "bias_term", "selector", "postprocess_stop_maps",
@@ -105,10 +106,12 @@ def bias_factor(r2_fine, r2_coarse):
     filter (``r_f² = 0``, unbiased by definition) it is 1: the bias term is ``(c − f)²``
     (§6 of [1]).  ``r²`` is the kernel's second moment per axis (:func:`kernel_moment2`).
     """
-    rf = np.asarray(r2_fine, dtype=np.float64)
-    rc = np.asarray(r2_coarse, dtype=np.float64)
-    if np.any(rc <= rf) or np.any(rf < 0):
-        raise InputError(f"`r2_coarse` must exceed `r2_fine` >= 0; got {r2_coarse!r} and {r2_fine!r}.")
+    rf = as_float_array("r2_fine", r2_fine).astype(np.float64, copy=False)
+    rc = as_float_array("r2_coarse", r2_coarse).astype(np.float64, copy=False)
+    if np.any(rc <= rf) or np.any(rf < 0) or not (np.all(np.isfinite(rf))
+                                                   and np.all(np.isfinite(rc))):
+        raise InputError(f"`r2_coarse` must exceed `r2_fine` >= 0, both finite; got {r2_coarse!r} "
+                         f"and {r2_fine!r}.")
     out = (rc + rf) / (rc - rf)
     return float(out) if out.ndim == 0 else out
 
@@ -144,6 +147,7 @@ def _pair_factors(sigmas, truncate):
 def _channel_sum(name, a, shape, channels, ref):
     """``a`` as float64 of ``shape``, summed over channels if given per channel."""
     arr = as_float_array(name, a, ndim=(3, 4)).astype(np.float64, copy=False)
+    check_finite(name, arr)
     if arr.shape == shape + (channels,):
         return arr.sum(axis=3)
     if arr.shape != shape:
@@ -161,6 +165,7 @@ def _selector_inputs(values, variances, r2, weight, diff_variances=None):
     scalar or (H, W) array.
     """
     v = as_float_array("values", values, ndim=(3, 4)).astype(np.float64, copy=False)
+    check_finite("values", v)
     if v.ndim == 3:
         v = v[..., None]
     k, h, w, c = v.shape
@@ -171,6 +176,18 @@ def _selector_inputs(values, variances, r2, weight, diff_variances=None):
     dv = None
     if diff_variances is not None:
         dv = _channel_sum("diff_variances", diff_variances, (k - 1, h, w), c, ref)
+    r = _check_r2(r2, k, ref)
+    wt = as_float_array("weight", weight).astype(np.float64, copy=False)
+    if wt.shape not in ((), (h, w)):
+        raise InputError(f"`weight` must be a number or an (H, W) = {(h, w)} map; got shape "
+                         f"{wt.shape}.")
+    check_finite("weight", wt)                      # NaN: every decision silently 'go on'
+    check_nonnegative("weight", wt)                 # < 0 turns the bias term around
+    return v, var, dv, bias_factor(r[:-1], r[1:]), wt
+
+
+def _check_r2(r2, k, ref):
+    """``r2`` as a (K,) float64 array of finite, increasing second moments >= 0."""
     r = as_float_array("r2", r2, ndim=1).astype(np.float64, copy=False)
     if r.shape != (k,):
         raise InputError(f"`r2` must hold one second moment per scale, shape ({k},) to match "
@@ -178,11 +195,7 @@ def _selector_inputs(values, variances, r2, weight, diff_variances=None):
     if not (np.all(np.isfinite(r)) and r[0] >= 0 and np.all(np.diff(r) > 0)):
         raise InputError(f"`r2` must be increasing second moments >= 0, fine to coarse "
                          f"(statmc.filters.kernel_moment2); got {r.tolist()}.")
-    wt = as_float_array("weight", weight).astype(np.float64, copy=False)
-    if wt.shape not in ((), (h, w)):
-        raise InputError(f"`weight` must be a number or an (H, W) = {(h, w)} map; got shape "
-                         f"{wt.shape}.")
-    return v, var, dv, bias_factor(r[:-1], r[1:]), wt
+    return r
 
 
 def selector(values, variances, r2, *, weight=1.0) -> np.ndarray:
@@ -300,7 +313,7 @@ def _check_inputs(mean, mean_var, n=None):
 
 
 def _check_sigmas(sigmas):
-    sig = [float(s) for s in np.asarray(sigmas, dtype=np.float64).ravel()]
+    sig = [float(s) for s in _as_sigmas(sigmas)]
     if len(sig) < 2 or any(not math.isfinite(s) or s < 0 for s in sig) or \
             any(b <= a for a, b in zip(sig, sig[1:])):
         raise InputError(f"`sigmas` must be >= 2 increasing scales >= 0; got {sigmas!r}.")
@@ -388,7 +401,8 @@ def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAUL
     -------
     (K-1, H, W) bool ndarray
     """
-    raw = np.ascontiguousarray(np.asarray(stop), dtype=np.float32)
+    raw = np.ascontiguousarray(as_float_array("stop", stop, dtype=np.float32))
+    check_finite("stop", raw)                       # NaN: silently a 'go on' decision
     sig = _check_sigmas(sigmas)
     if raw.ndim != 3 or raw.shape[0] != len(sig) - 1:
         raise InputError(f"`stop` must be (K-1, H, W) = ({len(sig) - 1}, H, W); got {raw.shape}.")
@@ -462,10 +476,16 @@ def estimate_mse(values, variances, r2, scales) -> np.ndarray:
     if v.ndim != 4 or var.shape != v.shape or s.shape != v.shape[1:3]:
         raise InputError(f"`values`, `variances` must be (K, H, W, C) and `scales` (H, W); "
                          f"got {v.shape}, {var.shape}, {s.shape}.")
-    if s.min() < 0 or s.max() >= v.shape[0]:
+    if not np.issubdtype(s.dtype, np.integer):      # 0.5 and True were read as index 0
+        raise InputError(f"`scales` must be an (H, W) integer array of scale indices; got "
+                         f"dtype {s.dtype}.")
+    if s.size and (s.min() < 0 or s.max() >= v.shape[0]):
         raise InputError(f"`scales` must lie in [0, {v.shape[0] - 1}]; got [{s.min()}, {s.max()}].")
     k, h, w, c = v.shape
-    frac = bias_factor(np.asarray(r2)[:-1], np.asarray(r2)[1:]).astype(v.dtype)
+    check_finite("values", v)
+    check_finite("variances", var)
+    r = _check_r2(r2, k, f"`values` {v.shape}")   # short: the kernel read past its end
+    frac = np.asarray(bias_factor(r[:-1], r[1:]), dtype=v.dtype)
     out = np.empty((h, w * c), v.dtype)
     _k.estimate_mse(np.ascontiguousarray(v).reshape(k, h, w * c),
                     np.ascontiguousarray(var).reshape(k, h, w * c), c, frac,

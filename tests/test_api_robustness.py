@@ -716,6 +716,66 @@ def test_gem_sampler_rounds_beyond_the_budget():
     assert gem.sampling_map(x, v, n, 50, batch=2 ** 53, rng=4).sum() == 50
 
 
+def _bank3(seed=15):
+    x, v, _, _ = _inputs(seed)
+    sig = [0.0, 1.0, 2.0]
+    vals, vars_ = filters.filter_bank(x, v, sig)
+    return x, v, vals, vars_, [filters.kernel_moment2(s) for s in sig]
+
+
+@pytest.mark.parametrize("call,match", [
+    # estimate_mse read r2 unchecked: two moments for three scales had the kernel read a
+    # bias factor past the array's end (whatever memory held), four were silently cut
+    (lambda x, v, a, b, r: gem.estimate_mse(a, b, r[:2], np.zeros((H, W), int)),
+     r"`r2` must hold one second moment per scale, shape \(3,\)"),
+    (lambda x, v, a, b, r: gem.estimate_mse(a, b, r + [9.0], np.zeros((H, W), int)),
+     r"`r2` must hold one second moment per scale"),
+    # fractional and boolean scale indices were cast to intp (0.5 -> 0)
+    (lambda x, v, a, b, r: gem.estimate_mse(a, b, r, np.full((H, W), 0.5)),
+     r"`scales` must be an \(H, W\) integer array"),
+    (lambda x, v, a, b, r: gem.estimate_mse(a, b, r, np.ones((H, W), bool)),
+     r"`scales` must be an \(H, W\) integer array"),
+    # NaN values came out as a NaN MSE
+    (lambda x, v, a, b, r: gem.estimate_mse(a * np.nan, b, r, np.ones((H, W), int)),
+     r"`values` holds \d+ NaN"),
+    # a NaN weight made every decision 'go on', a negative one turned the bias around
+    (lambda x, v, a, b, r: gem.selector(a, b, r, weight=np.nan), r"`weight` holds 1 NaN"),
+    (lambda x, v, a, b, r: gem.selector(a, b, r, weight=-1.0), r"`weight` must be >= 0"),
+    (lambda x, v, a, b, r: gem.selector(a, np.inf * b, r), r"`variances` holds 0 NaN"),
+    (lambda x, v, a, b, r: gem.pooled_selector(a, b, np.full((2, H, W), np.nan), r),
+     r"`diff_variances` holds"),
+    # bias_factor(0, inf) warned and gave NaN; bias_factor(nan, 1) NaN quietly
+    (lambda x, v, a, b, r: gem.bias_factor(0.0, np.inf), r"`r2_coarse` must exceed .*finite"),
+    (lambda x, v, a, b, r: gem.bias_factor(np.nan, 1.0), r"`r2_coarse` must exceed .*finite"),
+    # a NaN stopping map was a 'go on' everywhere; a string NumPy's ValueError
+    (lambda x, v, a, b, r: gem.postprocess_stop_maps(np.full((1, H, W), np.nan), [0, 1],
+                                                     final=True), r"`stop` holds"),
+    (lambda x, v, a, b, r: gem.postprocess_stop_maps("x", [0, 1], final=True),
+     r"`stop` must be a real numeric array"),
+    # sigmas that are not numbers: NumPy's ValueError / TypeError, naming nothing
+    (lambda x, v, a, b, r: filters.filter_bank(x, v, "abc"), r"`sigmas` must be a real numeric"),
+    (lambda x, v, a, b, r: filters.filter_bank(x, v, [[0, 1], [2]]), r"`sigmas` must be an array"),
+    (lambda x, v, a, b, r: gem.reconstruct(x, v, sigmas=[0, 1 + 2j]), r"`sigmas` must be a real"),
+    (lambda x, v, a, b, r: gem.difference_variance(v, {0: 1}), r"`sigmas` must be a real"),
+    # σ = 0 skipped the truncate check (a negative truncate was accepted there only)
+    (lambda x, v, a, b, r: filters.gaussian_filter(x, 0.0, truncate=-1), r"`truncate` must be"),
+    (lambda x, v, a, b, r: filters.gaussian_spread(v, 0.0, truncate=0), r"`truncate` must be"),
+], ids=["r2-short", "r2-long", "scales-float", "scales-bool", "values-nan", "weight-nan",
+        "weight-negative", "variances-inf", "diff-variances-nan", "bias-factor-inf",
+        "bias-factor-nan", "stop-nan", "stop-str", "bank-sigmas-str", "bank-sigmas-ragged",
+        "gem-sigmas-complex", "dv-sigmas-dict", "filter-truncate", "spread-truncate"])
+def test_gem_helpers_refuse_what_they_misread(call, match):
+    with pytest.raises(InputError, match=match):
+        call(*_bank3())
+
+
+def test_estimate_mse_of_an_empty_image():
+    """An image of 0 rows raised NumPy's 'zero-size array to reduction operation minimum'."""
+    x, v, a, b, r = _bank3()
+    out = gem.estimate_mse(a[:, :0], b[:, :0], r, np.zeros((0, W), int))
+    assert out.shape == (0, W, C)
+
+
 def test_all_metrics_takes_one_name_as_a_string():
     """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
     'l', 'm', 's', 'e']"."""
