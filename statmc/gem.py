@@ -1170,19 +1170,20 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
         raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
     budget = as_whole("budget", budget, hi=MAX_BUDGET)
-    eps = float(eps)
+    given = eps, var_prior, var_prior_sigma          # '0.1', True, [1, 2]: float() took
+    eps, var_prior, var_prior_sigma = map(real_or_nan, given)   # or raised TypeError
     if not eps > 0 or not math.isfinite(eps):
-        raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
+        raise InputError(f"`eps` must be a finite number > 0; got {given[0]!r}.")
     h, w = m.shape[:2]
     # rounds past the budget hand out nothing (each of the first ``budget`` rounds gets one
     # sample either way): the same counts, but 1e18 rounds ran for years and 2**70 reached
     # the kernel as a number too large for it
     rounds = min(as_whole("rounds", rounds, lo=1), max(budget, 1))
-    var_prior, var_prior_sigma = float(var_prior), float(var_prior_sigma)
     if not (var_prior >= 0 and math.isfinite(var_prior)):
-        raise InputError(f"`var_prior` must be a finite number >= 0 (pseudo-samples); got {var_prior!r}.")
+        raise InputError(f"`var_prior` must be a finite number >= 0 (pseudo-samples); got "
+                         f"{given[1]!r}.")
     if not (var_prior_sigma > 0 and math.isfinite(var_prior_sigma)):
-        raise InputError(f"`var_prior_sigma` must be a finite number > 0; got {var_prior_sigma!r}.")
+        raise InputError(f"`var_prior_sigma` must be a finite number > 0; got {given[2]!r}.")
     if batch is None:
         batch = max(1, math.ceil(8 * math.ceil(budget / rounds) / (h * w)))
     batch = as_whole("batch", batch, lo=1, hi=MAX_BUDGET)   # 2**63: the kernel's SystemError

@@ -776,6 +776,41 @@ def test_estimate_mse_of_an_empty_image():
     assert out.shape == (0, W, C)
 
 
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(eps="0.1"), r"`eps` must be a finite number > 0; got '0.1'"),       # was read
+    (dict(eps=True), r"`eps` must be a finite number > 0; got True"),         # was 1.0
+    (dict(eps=[0.1, 0.2]), r"`eps` must be a finite number > 0"),            # TypeError
+    (dict(var_prior="2"), r"`var_prior` must be a finite number >= 0"),       # was read
+    (dict(var_prior_sigma=np.array([1.0, 2.0])), r"`var_prior_sigma` must be a finite"),
+])
+def test_gem_sampler_numbers_are_numbers(kwargs, match):
+    """sampling_map read eps, var_prior and var_prior_sigma with float(): a string was
+    parsed, True was 1 and a list or a 2-element array raised TypeError."""
+    x, v, n, _ = _inputs(16)
+    with pytest.raises(InputError, match=match):
+        gem.sampling_map(x, v, n, 100, rng=0, **kwargs)
+    np.testing.assert_array_equal(gem.sampling_map(x, v, n, 100, rng=0, eps=np.array(1e-3)),
+                                  gem.sampling_map(x, v, n, 100, rng=0))
+
+
+def test_huge_truncate_drops_only_zero_taps():
+    """Past 4096 taps a side the kernel also loses its taps beyond 40σ, exactly 0 in
+    float64 (σ = 0.1 with truncate = 1e5: 10000 taps a side, 4 of them non-zero): the bank
+    must be the dense reference's (built from the whole 20001-tap kernel) and the one of a
+    cut at 40σ, and GEM's second moment the whole kernel's."""
+    x, v, _, _ = _inputs(17)
+    assert len(filters._taps(0.1, 1e5, max(H, W))) == 9
+    got = filters.filter_bank(x, v, [0.0, 0.1, 0.7], truncate=1e5)
+    want = filters.filter_bank_reference(x, v, [0.0, 0.1, 0.7], truncate=1e5)
+    for g, w, c in zip(got, want, filters.filter_bank(x, v, [0.0, 0.1, 0.7], truncate=40.0)):
+        np.testing.assert_allclose(g, w, rtol=1e-12)
+        np.testing.assert_array_equal(g, c)
+    w = filters.gaussian_kernel_1d(0.7, truncate=1e4)
+    k = np.arange(len(w)) - len(w) // 2
+    assert filters.kernel_moment2(0.7, truncate=1e4) == pytest.approx(float(np.sum(w * k * k)),
+                                                                      rel=1e-15)
+
+
 def test_all_metrics_takes_one_name_as_a_string():
     """``include="relmse"`` was iterated letter by letter: "unknown metric(s) ['r', 'e',
     'l', 'm', 's', 'e']"."""
