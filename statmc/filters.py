@@ -89,7 +89,16 @@ def gaussian_kernel_1d(sigma: float, *, truncate: float = DEFAULT_TRUNCATE) -> n
     t = _check_truncate(truncate)
     if s == 0.0:
         return np.ones(1)
-    return _gauss(s, _radius(s, t))
+    r = _radius(s, t)
+    if r > _MAX_TAPS_A_SIDE:                # NumPy's 'Maximum allowed size exceeded'
+        raise InputError(f"`sigma` · `truncate` must be below {_MAX_TAPS_A_SIDE:.3g} taps a "
+                         f"side for a kernel array; got {s!r} · {t!r}. The filters take such "
+                         f"a σ as it is (they cut the kernel to the image).")
+    return _gauss(s, r)
+
+
+#: More taps a side than any array can hold (2r + 1 elements past the index range).
+_MAX_TAPS_A_SIDE = (np.iinfo(np.intp).max - 1) // 2
 
 
 def _radius(s: float, t: float) -> int:

@@ -82,6 +82,18 @@ def test_second_moment_of_huge_and_tiny_sigmas():
     assert F.kernel_moment2(1e-300, truncate=1e308) == 0.0    # the pixel filter itself
 
 
+def test_kernel_beyond_any_array_is_refused_by_name():
+    """σ = 1e300 asked NumPy for 6e300 taps ('Maximum allowed size exceeded', a bare
+    ValueError); the filters themselves take it (their kernel is cut to the image)."""
+    with pytest.raises(InputError, match=r"`sigma` · `truncate` must be below .* taps a side"):
+        F.gaussian_kernel_1d(1e300)
+    with pytest.raises(InputError, match=r"`sigma` · `truncate` must be below"):
+        F.gaussian_kernel_1d(1.0, truncate=1e308)
+    img = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_allclose(F.gaussian_filter(img, 1e300), np.full((3, 4), img.mean()),
+                               rtol=1e-12)
+
+
 def test_border_scale_renormalises():
     w = F.gaussian_kernel_1d(2.0)
     s = F.border_scale(9, w)
