@@ -494,14 +494,21 @@ def cmd_render(args) -> int:
                          f"{ref.shape[2]} channel(s) but the render is {renderer.width}x"
                          f"{renderer.height} R,G,B.")
     if ref is not None:
-        from .exr import exr_windows
-        ref_window = exr_windows(args.reference)[0]
+        from .exr import _describe_colour_space, _header_summary, _same_colour_space
+        ref_header = _header_summary(args.reference)
+        ref_window = ref_header["data_window"]
         if ref_window[:2] != [0, 0]:
             raise InputError(f"reference {args.reference} has the data window {ref_window} "
                              f"([x0, y0, x1, y1]) but the render lies at the origin, [0, 0, "
                              f"{renderer.width - 1}, {renderer.height - 1}]: pixel by pixel "
                              "they would pair different pixels; expected a reference whose "
                              "data window starts at 0, 0 (`statmc info` shows it).")
+        if not _same_colour_space(ref_header["chromaticities"], None):
+            raise InputError(f"reference {args.reference} has "
+                             f"{_describe_colour_space(ref_header['chromaticities'])} but "
+                             "statmc renders linear Rec. 709/sRGB (no chromaticities): pixel "
+                             "by pixel they would pair different colours; expected a Rec. "
+                             "709/sRGB reference (convert it first).")
     t0 = time.perf_counter()
     extra = {}
     bins = None
@@ -964,7 +971,7 @@ def cmd_combine(args) -> int:
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
-    _same_window(args.y, args.z, "Y", "Z")
+    _same_frame(args.y, args.z, "Y", "Z")
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -991,17 +998,27 @@ def cmd_combine(args) -> int:
     return 0
 
 
-def _same_window(a, b, name_a: str, name_b: str) -> None:
-    """Refuse two files of one size whose data windows lie in different places: pixel by
-    pixel they would pair different pixels of the image (say a crop and the full frame's
-    corner)."""
-    from .exr import exr_windows
-    wa, wb = exr_windows(a)[0], exr_windows(b)[0]
+def _same_frame(a, b, name_a: str, name_b: str) -> None:
+    """Refuse two files of one size that are not the same pixels in the same colours: data
+    windows in different places (say a crop and the full frame's corner) would pair
+    different pixels, different ``chromaticities`` (an ACEScg render and a Rec. 709
+    reference) different colours."""
+    from .exr import _describe_colour_space, _header_summary, _same_colour_space
+    ha, hb = _header_summary(a), _header_summary(b)
+    wa, wb = ha["data_window"], hb["data_window"]
     if wa != wb:
         raise InputError(f"{name_a} {a} has the data window {wa} but {name_b} {b} has {wb} "
                          "([x0, y0, x1, y1]): the same size in different places, so pixel by "
                          "pixel they pair different pixels; expected the same data window "
-                         "(`statmc info` shows it).")
+                         "(`statmc info` shows it; statmc outputs keep their input's, and "
+                         "statmc.exr.write_exr(..., data_window=) places an image).")
+    ca, cb = ha["chromaticities"], hb["chromaticities"]
+    if not _same_colour_space(ca, cb):
+        raise InputError(f"{name_a} {a} has {_describe_colour_space(ca)} but {name_b} {b} has "
+                         f"{_describe_colour_space(cb)}: their R, G, B are in different colour "
+                         "spaces, so pixel by pixel they pair different colours; expected the "
+                         "same primaries and white point (convert one file into the other's "
+                         "colour space first).")
 
 
 def cmd_reference(args) -> int:
@@ -1033,7 +1050,7 @@ def cmd_metrics(args) -> int:
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
-    _same_window(args.image, args.reference, "IMAGE", "REFERENCE")
+    _same_frame(args.image, args.reference, "IMAGE", "REFERENCE")
     print(json.dumps(all_metrics(img, ref), indent=2, default=_json_default))
     return 0
 

@@ -253,6 +253,24 @@ def _chromaticities(header):
     return None
 
 
+#: OpenEXR's default primaries and white point (Rec. 709/sRGB, D65): what a file without a
+#: ``chromaticities`` attribute is in.
+_REC709 = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+
+def _same_colour_space(a, b) -> bool:
+    """Whether two ``chromaticities`` (8 floats or None, which is Rec. 709) are the same
+    primaries and white point, to float32 precision (as the attribute stores them)."""
+    return bool(np.allclose(a or _REC709, b or _REC709, rtol=0, atol=1e-6))
+
+
+def _describe_colour_space(c) -> str:
+    """``"the chromaticities (0.713, 0.293, ...)"`` or ``"none (Rec. 709/sRGB)"``."""
+    if c is None:
+        return "none (Rec. 709/sRGB)"
+    return "the chromaticities (" + ", ".join(f"{v:.4g}" for v in c) + ")"
+
+
 def _header_summary(path) -> dict:
     """What an output takes from an input, from the header only: ``data_window``,
     ``display_window``, ``chromaticities`` and the ``channels`` names of part 0."""

@@ -2021,3 +2021,61 @@ def test_layer_hint_of_a_command_without_layer_names_no_option(tmp_path):
     assert code == 2 and err.count("\n") == 1, err
     assert "only inside layer(s) 'ViewLayer.Combined'" in err
     assert "--layer" not in err and "Python" not in err and err.rstrip().endswith("-o OUT.exr`).")
+
+
+# ------------------------------------------- session 11 review: colour spaces of paired files
+ACES_CG = (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)
+REC_709 = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)   # what no attribute means
+
+
+def _write_in_colour_space(path, channels, chromaticities, windows=None):
+    import OpenEXR
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if chromaticities is not None:
+        header["chromaticities"] = chromaticities
+    if windows is not None:
+        for key, (x0, y0, x1, y1) in zip(("dataWindow", "displayWindow"), windows):
+            header[key] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
+    OpenEXR.File(header, {k: np.ascontiguousarray(v, np.float32)
+                          for k, v in channels.items()}).write(str(path))
+
+
+@pytest.mark.parametrize("cmd", [["metrics"], ["combine", "--weights", "uniform", "--out", "{o}"],
+                                 ["combine", "--out", "{o}"]], ids=["metrics", "combine uniform",
+                                                                    "combine statistical"])
+def test_files_in_different_colour_spaces_are_refused(tmp_path, cmd):
+    # before: `statmc metrics` scored an ACEScg image (pbrt-v4 writes its chromaticities) against
+    # a Rec. 709 reference (no attribute) pixel by pixel, and `combine` mixed the two into an
+    # output labelled ACEScg: R, G, B of different primaries are different colours
+    rng = np.random.default_rng(19)
+    ch = _crop_stats(rng)
+    a, b, out = tmp_path / "a.exr", tmp_path / "b.exr", tmp_path / "o.exr"
+    _write_in_colour_space(a, ch, ACES_CG)
+    _write_in_colour_space(b, ch, None)
+    code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
+    assert code == 2 and stdout == "" and err.count("\n") == 1, err
+    assert "has the chromaticities (0.713, 0.293, 0.165, 0.83, 0.128, 0.044, 0.3217, 0.3377)" in err
+    assert f"{b} has none (Rec. 709/sRGB)" in err and "different colour spaces" in err
+    assert not out.exists()
+    # the same primaries, or Rec. 709 spelled out against none: compared as before
+    for ca, cb in ((ACES_CG, ACES_CG), (REC_709, None)):
+        _write_in_colour_space(a, ch, ca)
+        _write_in_colour_space(b, ch, cb)
+        code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
+        assert code == 0, err
+
+
+def test_render_refuses_a_reference_in_another_colour_space(tmp_path):
+    # statmc renders (Mitsuba's RGB variants, the toy scenes) are linear Rec. 709/sRGB
+    rng = np.random.default_rng(20)
+    ref = tmp_path / "ref.exr"
+    _write_in_colour_space(ref, {c: rng.random((8, 10)) for c in "RGB"}, ACES_CG)
+    args = ("render", "toy:constant", "--spp", 2, "--size", "10x8", "--reference", ref,
+            "--out", tmp_path / "r", "-q")
+    code, _, err = run_cli(*args)
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"reference {ref} has the chromaticities (0.713, " in err and "Rec. 709" in err
+    assert not (tmp_path / "r").exists()
+    _write_in_colour_space(ref, {c: rng.random((8, 10)) for c in "RGB"}, REC_709)
+    code, _, err = run_cli(*args)
+    assert code == 0, err
