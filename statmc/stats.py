@@ -206,11 +206,17 @@ class PixelStats:
         x = as_float_array("samples", samples, ndim=4, dtype=np.float64)
         check_finite("samples", x)
         s = x.shape[0]
-        mean = x.mean(axis=0) if s else np.zeros(x.shape[1:])
-        d = x - mean
-        cross = np.einsum("shwa,shwb->hwab", d, d)
-        m2 = (d * d).sum(axis=0)
-        return cls(np.full(x.shape[1:3], s, np.int64), mean, m2, m2_cross=cross)
+        with np.errstate(over="ignore", invalid="ignore"):   # refused below by name
+            mean = x.mean(axis=0) if s else np.zeros(x.shape[1:])
+            d = x - mean
+            cross = np.einsum("shwa,shwb->hwab", d, d)
+            m2 = (d * d).sum(axis=0)
+        try:
+            return cls(np.full(x.shape[1:3], s, np.int64), mean, m2, m2_cross=cross)
+        except InputError:
+            _refuse_overflow("samples", mean, m2, "their mean or their squared deviations "
+                             "from it (beyond ~1e154)")
+            raise
 
     @classmethod
     def from_pixel_samples(cls, pixel_index, values, shape: tuple[int, int]) -> "PixelStats":
@@ -248,16 +254,22 @@ class PixelStats:
         c = vals.shape[1]
         n = np.bincount(idx, minlength=h * w)
         safe = np.maximum(n, 1)[:, None]
-        mean = np.stack([np.bincount(idx, vals[:, k], minlength=h * w) for k in range(c)], 1) / safe
-        d = vals - mean[idx]
-        m2 = np.stack([np.bincount(idx, d[:, k] * d[:, k], minlength=h * w) for k in range(c)], 1)
-        ia, ib = _pair_index(c)
-        pairs = np.zeros((h * w, ia.size))
-        for p, (a, b) in enumerate(zip(ia, ib)):
-            pairs[:, p] = np.bincount(idx, d[:, a] * d[:, b], minlength=h * w)
+        with np.errstate(over="ignore", invalid="ignore"):   # refused below by name
+            mean = np.stack([np.bincount(idx, vals[:, k], minlength=h * w)
+                             for k in range(c)], 1) / safe
+            d = vals - mean[idx]
+            m2 = np.stack([np.bincount(idx, d[:, k] * d[:, k], minlength=h * w)
+                           for k in range(c)], 1)
+            ia, ib = _pair_index(c)
+            pairs = np.zeros((h * w, ia.size))
+            for p, (a, b) in enumerate(zip(ia, ib)):
+                pairs[:, p] = np.bincount(idx, d[:, a] * d[:, b], minlength=h * w)
         m2 = m2.reshape(h, w, c)
+        mean = mean.reshape(h, w, c)
+        _refuse_overflow("values", mean, m2, "their mean or their squared deviations from it "
+                         "(beyond ~1e154)")            # before the pairs' own message
         cross = _full_from_pairs("m2_cross", pairs.reshape(h, w, -1), m2)
-        return cls(n.reshape(h, w), mean.reshape(h, w, c), m2, m2_cross=cross)
+        return cls(n.reshape(h, w), mean, m2, m2_cross=cross)
 
     @classmethod
     def from_sums(cls, n, sum_x, sum_x2, sum_xy=None) -> "PixelStats":
@@ -315,13 +327,19 @@ class PixelStats:
         check_nonnegative("sample_var", var)
         n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
         check_same_shape("n", n_a, "mean[..., 0]", mean.shape[:2])
-        m2 = var * np.maximum(n_a - 1, 0)[..., None]
-        cross = None
-        if sample_cov is not None:
-            pairs = _as_pairs("sample_cov", sample_cov, mean.shape)
-            cross = _full_from_pairs("sample_cov", pairs * np.maximum(n_a - 1, 0)[..., None], m2)
-        return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross,
-                   **features)
+        with np.errstate(over="ignore"):                       # refused below by name
+            m2 = var * np.maximum(n_a - 1, 0)[..., None]
+        try:
+            cross = None
+            if sample_cov is not None:
+                pairs = _as_pairs("sample_cov", sample_cov, mean.shape)
+                cross = _full_from_pairs("sample_cov", pairs * np.maximum(n_a - 1, 0)[..., None],
+                                         m2)
+            return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross,
+                       **features)
+        except InputError:
+            _refuse_overflow("sample_var", mean, m2, "M2 = sample_var · (n − 1) (beyond ~1.8e308)")
+            raise
 
     # ------------------------------------------------------------------ shape
     @property
@@ -415,24 +433,30 @@ class PixelStats:
         nb = other.n.astype(np.float64)[..., None]
         n = na + nb
         safe = np.where(n > 0, n, 1.0)
-        delta = other.mean - self.mean
-        mean = self.mean + delta * (nb / safe)
-        wgt = na * nb / safe
-        m2 = self.m2 + other.m2 + delta * delta * wgt
-        cross = None
-        if self.m2_cross is not None and other.m2_cross is not None:
-            cross = (self.m2_cross + other.m2_cross
-                     + delta[..., :, None] * delta[..., None, :] * wgt[..., None])
-            k = np.arange(m2.shape[2])
-            cross[..., k, k] = m2
-        return PixelStats(
-            self.n + other.n, mean, m2,
-            albedo=self.albedo if self.albedo is not None else other.albedo,
-            normal=self.normal if self.normal is not None else other.normal,
-            depth=self.depth if self.depth is not None else other.depth,
-            meta=_merged_meta(self.meta, other.meta),
-            m2_cross=cross,
-        )
+        with np.errstate(over="ignore", invalid="ignore"):     # refused below by name
+            delta = other.mean - self.mean
+            mean = self.mean + delta * (nb / safe)
+            wgt = na * nb / safe
+            m2 = self.m2 + other.m2 + delta * delta * wgt
+            cross = None
+            if self.m2_cross is not None and other.m2_cross is not None:
+                cross = (self.m2_cross + other.m2_cross
+                         + delta[..., :, None] * delta[..., None, :] * wgt[..., None])
+                k = np.arange(m2.shape[2])
+                cross[..., k, k] = m2
+        try:
+            return PixelStats(
+                self.n + other.n, mean, m2,
+                albedo=self.albedo if self.albedo is not None else other.albedo,
+                normal=self.normal if self.normal is not None else other.normal,
+                depth=self.depth if self.depth is not None else other.depth,
+                meta=_merged_meta(self.meta, other.meta),
+                m2_cross=cross,
+            )
+        except InputError:
+            _refuse_overflow("other", mean, m2, "the merged M2 = M2_a + M2_b + δ² n_a n_b / n "
+                             "(means far apart, δ beyond ~1e154, or huge spreads)")
+            raise
 
     __add__ = merge
 
@@ -473,6 +497,17 @@ def _merged_meta(a: dict, b: dict) -> dict:
         out["samples_per_second"] = (out["samples"] / out["seconds"] if out["seconds"] > 0
                                      else float("nan"))
     return out
+
+
+def _refuse_overflow(name, mean, m2, what):
+    """:class:`InputError` naming ``name`` when the ``mean`` or ``m2`` computed from it
+    overflowed float64 (``PixelStats`` then refused them as "`m2` holds ... Inf values;
+    replace them first", naming an array the caller never passed)."""
+    bad = (~(np.isfinite(mean) & np.isfinite(m2))).any(axis=-1)
+    if bad.any():
+        raise InputError(f"`{name}` must give statistics within float64; got {int(bad.sum())} "
+                         f"pixels where {what} overflows. Rescale the data first (e.g. divide "
+                         f"by a power of 2).") from None
 
 
 def check_stats(stats, name: str = "stats") -> None:

@@ -1,5 +1,7 @@
 """PixelStats: exact merging (Chan et al.) against single-pass NumPy, and bad input."""
 
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -149,6 +151,29 @@ def test_merge_sums_the_render_counters_of_meta():
     f = stats(2, **z)
     g = stats(2, **z)
     assert np.isnan(f.merge(g).meta["samples_per_second"]) and f.merge(g).meta["samples"] == 8
+
+
+@pytest.mark.parametrize("make,name", [
+    (lambda x: PixelStats.from_samples(x[:, None, None, :] * 1e300), "samples"),
+    (lambda x: PixelStats.from_pixel_samples(np.zeros(4, int), x * 1e300, (1, 1)), "values"),
+    (lambda x: PixelStats.from_mean_var(np.ones((1, 1, 3)), np.full((1, 1, 3), 1e300),
+                                        np.full((1, 1), 2 ** 62)), "sample_var"),
+    (lambda x: PixelStats.from_mean_var(np.full((1, 1, 3), 1e300), np.ones((1, 1, 3)),
+                                        np.full((1, 1), 4)).merge(
+        PixelStats.from_mean_var(np.full((1, 1, 3), -1e300), np.ones((1, 1, 3)),
+                                 np.full((1, 1), 4))), "other"),
+], ids=["from_samples", "from_pixel_samples", "from_mean_var", "merge"])
+def test_statistics_that_overflow_float64_name_their_input(make, name):
+    """Samples whose squared deviations pass float64 (1e300 apart), a sample variance
+    times 2**62 samples, or two passes whose means are 2e300 apart gave an inf M2, which
+    PixelStats refused as "`m2` holds 0 NaN and 3 Inf values ... replace them first" (an
+    array the caller never passed, and no NaN/Inf to replace) after a RuntimeWarning."""
+    x = np.array([[1.0, -2.0, 0.5], [-1.0, 2.0, 0.25], [0.5, 0.0, -1.0], [2.0, 1.0, 3.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=rf"^`{name}` must give statistics within float64; "
+                                             r"got 1 pixels where .* overflows"):
+            make(x)
 
 
 def test_merge_shape_mismatch_and_bad_features():
