@@ -329,41 +329,38 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
-def _alpha_of(path, hw, channels, name="A"):
-    """The ``A`` (alpha) channel of an input file as float32, or None if it has none (among
-    ``channels``): an image result keeps its input's coverage, as a compositor expects
-    (denoisers pass alpha through).  Refused when it holds NaN/Inf, which no output may
-    carry."""
-    from .exr import read_channels
-    if name not in channels:
-        return None
-    a = np.asarray(read_channels(path, [name])[name], np.float32)
-    if a.shape != tuple(hw):
-        return None
-    bad = int((~np.isfinite(a)).sum())
-    if bad:
-        raise InputError(f"{path}: its alpha channel {name} holds {bad} NaN/Inf values, which the "
-                         "output would carry over; expected finite values (`statmc info FILE` "
-                         "counts them).")
-    return a
+def _placement(path, layer=None) -> dict:
+    """What an output keeps of its input ``path``, read (and checked) before the work: its
+    data and display windows (a crop stays where it was), ``chromaticities`` (an ACEScg
+    render stays ACEScg) and alpha channel ``A`` (``<layer>.A`` with ``layer``; None if it
+    has none), as denoisers pass alpha through for a compositor.  An alpha with NaN/Inf,
+    which the output would carry, is refused."""
+    from .exr import _header_summary, read_channels
+    info = _header_summary(path)
+    keep = {k: info[k] for k in ("data_window", "display_window", "chromaticities")}
+    name = "A" if layer is None else f"{layer}.A"
+    keep["alpha"] = None
+    if name in info["channels"]:
+        a = np.asarray(read_channels(path, [name])[name], np.float32)
+        bad = int((~np.isfinite(a)).sum())
+        if bad:
+            raise InputError(f"{path}: its alpha channel {name} holds {bad} NaN/Inf values, "
+                             "which the output would carry over; expected finite values "
+                             "(`statmc info FILE` counts them).")
+        keep["alpha"] = a
+    return keep
 
 
-def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None,
-                  layer=None) -> None:
+def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
-    beside it, both or neither, never onto one of ``inputs``.  ``place``: an input file
-    whose data and display windows the output takes (a crop stays where it was), and its
-    chromaticities (an ACEScg render stays ACEScg) and alpha channel ``A`` (``<layer>.A``
-    with ``layer``) if it has them."""
-    from .exr import _header_summary, write_exr, write_png_preview
+    beside it, both or neither, never onto one of ``inputs``.  ``place``: what the output
+    keeps of its input (:func:`_placement`): windows, chromaticities and alpha."""
+    from .exr import write_exr, write_png_preview
     keep = {}
     if place is not None:
-        info = _header_summary(place)
-        keep = {k: info[k] for k in ("data_window", "display_window", "chromaticities")}
-        alpha = _alpha_of(place, np.shape(image)[:2], info["channels"],
-                          "A" if layer is None else f"{layer}.A")
-        if alpha is not None and "A" not in (extra or {}):
-            extra = dict(extra or {}, A=alpha)
+        keep = {k: place[k] for k in ("data_window", "display_window", "chromaticities")}
+        if place["alpha"] is not None and "A" not in (extra or {}):
+            extra = dict(extra or {}, A=place["alpha"])
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
         write_exr(stage(path), data, protect=inputs, extra=extra, **keep)
         write_png_preview(stage(os.path.splitext(path)[0] + ".png"), image, protect=inputs)
@@ -633,6 +630,7 @@ def cmd_reconstruct(args) -> int:
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp, layer=args.layer)
+    place = _placement(args.input, args.layer)
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     if args.method != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
@@ -645,8 +643,7 @@ def cmd_reconstruct(args) -> int:
     image, maps = reconstruct_stats(stats, args.method, gamma=args.gamma, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"{args.method}.{k}": v for k, v in maps.items()},
-                  place=args.input,
-                  layer=args.layer)
+                  place=place)
     return 0
 
 
@@ -774,6 +771,7 @@ def cmd_denoise(args) -> int:
                        "and --denoiser gem read)")
         # plain denoising reads the colour and OIDN's features (albedo, normal) only
         stats = _read_colour(args.input, args.layer)
+    place = _placement(args.input, args.layer)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -812,8 +810,7 @@ def cmd_denoise(args) -> int:
         result = PixelStats(stats.n, out, np.maximum(var, 0) * n * np.maximum(n - 1, 0),
                             albedo=stats.albedo, normal=stats.normal, depth=stats.depth)
     _write_result(args.out, result, out, inputs=[args.input], quiet=args.quiet,
-                  place=args.input,
-                  layer=args.layer)
+                  place=place)
     return 0
 
 
@@ -822,6 +819,7 @@ def cmd_progressive(args) -> int:
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     stats = read_exr(args.input, spp=args.spp, layer=args.layer)
+    place = _placement(args.input, args.layer)
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
@@ -832,8 +830,7 @@ def cmd_progressive(args) -> int:
                                     seed=args.seed, gem_bias=args.gem_bias)
     _write_result(args.out, image, image, inputs=[args.input], quiet=args.quiet,
                   extra={f"progressive.{k}": v for k, v in maps.items()},
-                  place=args.input,
-                  layer=args.layer)
+                  place=place)
     return 0
 
 
@@ -873,6 +870,7 @@ def _combine_bins_file(args) -> int:
         raise InputError(f"--layer selects a layer of Y and Z; a sample-bins file ({args.y}, "
                          "without Z) is statmc's own and has none: leave --layer out.")
     bins = read_bins(args.y)
+    place = _placement(args.y)
     if bins is None or bins[1] is None:
         what = "no sample bins" if bins is None else "bins but no Bin<b>.Denoised.* channels"
         raise InputError(f"{args.y} has {what}; give the correlated image as Z, or pass the "
@@ -893,8 +891,7 @@ def _combine_bins_file(args) -> int:
                    else cb.gaussian_weights(h, w, B, args.size, args.sigma))
         out = cb.combine_multi(ys, zs, weights)
     _write_result(args.out, out, out, inputs=[args.y], quiet=args.quiet,
-                  place=args.y,
-                  layer=args.layer)
+                  place=place)
     return 0
 
 
@@ -972,6 +969,7 @@ def cmd_combine(args) -> int:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
     _same_frame(args.y, args.z, "Y", "Z")
+    place = _placement(args.y, args.layer)
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -993,8 +991,7 @@ def cmd_combine(args) -> int:
                                          args.size)
     out = cb.combine(y, z, weights)
     _write_result(args.out, out, out, inputs=[args.y, args.z], quiet=args.quiet,
-                  place=args.y,
-                  layer=args.layer)
+                  place=place)
     return 0
 
 

@@ -2079,3 +2079,30 @@ def test_render_refuses_a_reference_in_another_colour_space(tmp_path):
     _write_in_colour_space(ref, {c: rng.random((8, 10)) for c in "RGB"}, REC_709)
     code, _, err = run_cli(*args)
     assert code == 0, err
+
+
+@pytest.mark.parametrize("args", [
+    ["reconstruct", "{a}"],
+    ["denoise", "{a}", "--denoiser", "gaussian"],
+    ["progressive", "{a}", "--denoiser", "gaussian"],
+    ["combine", "{a}", "{b}", "--weights", "uniform"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_nonfinite_alpha_is_refused_before_the_work(tmp_path, monkeypatch, args):
+    # before: the alpha channel was read when the output was written, so a NaN in A was
+    # refused only after the whole reconstruction (minutes at 1080p)
+    from statmc import combine, pipeline, progressive
+    rng = np.random.default_rng(21)
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    alpha = np.ones((8, 10))
+    alpha[3, 4] = np.inf
+    _write_channels(a, dict(_crop_stats(rng), A=alpha))
+    _write_channels(b, _crop_stats(rng))
+
+    def reached(*a, **k):
+        raise AssertionError("the work started before the input's alpha was checked")
+    monkeypatch.setattr(pipeline, "reconstruct_stats", reached)
+    monkeypatch.setattr(progressive, "bind_denoiser", reached)
+    monkeypatch.setattr(combine, "uniform_weights", reached)
+    code, _, err = run_cli(*[x.format(a=a, b=b) for x in args], "--out", tmp_path / "o.exr")
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{a}: its alpha channel A holds 1 NaN/Inf values" in err
