@@ -384,7 +384,8 @@ def _colour_hint(arrays) -> str:
     # the beauty first (Blender's Combined), then by name
     layers = sorted({n[:-2] for n in arrays if n[-2:] in (".R", ".G", ".B")
                      and all(n[:-2] + "." + c in arrays for c in _RGB)
-                     and n[:-2].lower() not in _NOT_COLOUR_LAYERS and not _BIN_CHANNEL.match(n)},
+                     and n[:-2].rsplit(".", 1)[-1].lower() not in _NOT_COLOUR_LAYERS
+                     and not _BIN_CHANNEL.match(n)},
                     key=lambda x: (x.rsplit(".", 1)[-1].lower() not in _BEAUTY_LAYERS, x))
     if layers:
         which = ", ".join(repr(x) for x in layers[:4]) + (", ..." if len(layers) > 4 else "")

@@ -1109,3 +1109,14 @@ def test_layer_reads_a_layers_channels_without_their_prefix(tmp_path):
     _write_raw(q, {k: v for k, v in ch.items() if k.startswith("ViewLayer.Combined.")})
     with pytest.raises(FileFormatError, match=r"read_image\(path, layer='ViewLayer.Combined'\)"):
         read_image(q)
+
+
+def test_layer_hint_leaves_out_a_layers_own_variance_and_albedo(tmp_path):
+    # before: a layer with its statistics was offered twice, "layer(s) 'ViewLayer.Combined',
+    # 'ViewLayer.Combined.Variance'": the layers statmc reads as statistics were recognised
+    # only at the top level ('Variance.R'), not as the last part of a layer's name
+    names = [f"ViewLayer.Combined.{g}{c}" for g in ("", "Variance.", "Albedo.") for c in "RGB"]
+    p = tmp_path / "blender.exr"
+    _write_raw(p, {n: np.ones((2, 3)) for n in names})
+    with pytest.raises(FileFormatError, match=r"only inside layer\(s\) 'ViewLayer.Combined' \(e.g."):
+        read_image(p)
