@@ -25,8 +25,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
-                     check_same_shape)
+from .errors import (InputError, as_float_array, as_int, as_number, check_finite,
+                     check_nonnegative, check_same_shape)
 
 __all__ = ["PixelStats", "replace_nonfinite", "MERGED_META_SUMS"]
 
@@ -518,8 +518,21 @@ def check_stats(stats, name: str = "stats") -> None:
 
 
 def replace_nonfinite(a, value: float = 0.0):
-    """Return ``(copy of a with NaN/Inf replaced by value, number replaced)``."""
+    """Return ``(copy of a with NaN/Inf replaced by value, number replaced)``.
+
+    ``value`` must be a finite number that ``a``'s dtype holds (1e300 in a float32 array
+    was written as the Inf it replaced); integer arrays are copied as they are.
+    """
+    v = as_number("value", value)
     arr = np.array(a, copy=True)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise InputError(f"`a` must be a numeric array; got dtype {arr.dtype}.")
+    if not np.issubdtype(arr.dtype, np.inexact):     # nothing non-finite in integers
+        return arr, 0
+    with np.errstate(over="ignore"):
+        if not np.isfinite(arr.dtype.type(v)):
+            raise InputError(f"`value` must be finite in the array's dtype {arr.dtype}; got "
+                             f"{value!r}.")
     bad = ~np.isfinite(arr)
-    arr[bad] = value
+    arr[bad] = v
     return arr, int(bad.sum())

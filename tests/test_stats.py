@@ -176,6 +176,24 @@ def test_statistics_that_overflow_float64_name_their_input(make, name):
             make(x)
 
 
+def test_replace_nonfinite_writes_only_what_the_array_holds():
+    """A value beyond float32 (1e300) was written as the Inf it replaced, with an
+    'overflow encountered in cast' warning; NaN as the value into an integer array raised
+    NumPy's 'cannot convert float NaN to integer' (with nothing to replace); a string
+    array or value raised NumPy's errors."""
+    with pytest.raises(InputError, match=r"`value` must be finite in the array's dtype float32"):
+        replace_nonfinite(np.array([1.0, np.nan], np.float32), 1e300)
+    for bad in (np.nan, "x", None):
+        with pytest.raises(InputError, match=r"`value` must be a finite number"):
+            replace_nonfinite(np.array([1.0, np.inf]), bad)
+    with pytest.raises(InputError, match=r"`a` must be a numeric array; got dtype <U3"):
+        replace_nonfinite(np.array(["abc"]), 0.0)
+    y, k = replace_nonfinite(np.array([1, 2]), 5.0)
+    assert y.dtype.kind == "i" and k == 0 and y.tolist() == [1, 2]
+    y, k = replace_nonfinite(np.array([1.0, np.nan], np.float32), 3e38)
+    assert y.dtype == np.float32 and k == 1 and y[1] == np.float32(3e38)
+
+
 def test_merge_shape_mismatch_and_bad_features():
     a = PixelStats.empty(2, 2)
     with pytest.raises(InputError, match="cannot merge"):
