@@ -236,11 +236,21 @@ def _windows(header) -> tuple[list, list]:
 
 def _header_spp(header):
     """pbrt-v4's ``samplesPerPixel`` header attribute (the uniform count of the render it
-    wrote, partial images included), or None when absent or not a whole number >= 0."""
+    wrote, partial images included), or None when absent or not a whole number >= 0 (a
+    float such as 64.0 is taken)."""
     v = header.get("samplesPerPixel")
-    if isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0:
-        return int(v)
+    if isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
+        if np.isfinite(v) and v >= 0 and v == int(v):
+            return int(v)
     return None
+
+
+def _no_header_spp(header) -> str:
+    """``"no samplesPerPixel header attribute"``, or what is wrong with the file's."""
+    if "samplesPerPixel" in header:
+        return (f"its samplesPerPixel header attribute, {header['samplesPerPixel']!r}, is not "
+                "a whole number >= 0")
+    return "no samplesPerPixel header attribute"
 
 
 def _chromaticities(header):
@@ -487,8 +497,9 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
     replace_value : float, default 0.0
         Replacement for non-finite values.
     spp_if_missing : bool, default False
-        Use ``spp`` only for a file without ``SampleCount``; a file with one keeps its own
-        counts (e.g. the second input of a command whose ``--spp`` is for the first).
+        Use ``spp`` only for a file with neither ``SampleCount`` nor ``samplesPerPixel``; a
+        file with either keeps its own counts (e.g. the second input of a command whose
+        ``--spp`` is for the first).
 
     Returns
     -------
@@ -555,9 +566,9 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
     header_spp = _header_spp(header)
     if count is None and spp is None and header_spp is None:
         raise FileFormatError(
-            f"{p!r} has no {SAMPLE_COUNT} channel and no samplesPerPixel header attribute, so "
-            f"the samples per pixel are unknown: pass the render's uniform spp=. Channels "
-            f"present: {_present(arrays)}.")
+            f"{p!r} has no {SAMPLE_COUNT} channel and {_no_header_spp(header)}, so the "
+            f"samples per pixel are unknown: pass the render's uniform spp=. Channels present: "
+            f"{_present(arrays)}.")
 
     groups = {"+".join(color): mean, "Variance": var, "Covariance": cov, "Albedo": albedo,
               "N": normal,

@@ -1,6 +1,7 @@
 """EXR files: bit-exact round trips, pbrt-v4 gbuffer files, every bad input, atomic writes."""
 
 import os
+import re
 import struct
 import tempfile
 
@@ -1120,3 +1121,20 @@ def test_layer_hint_leaves_out_a_layers_own_variance_and_albedo(tmp_path):
     _write_raw(p, {n: np.ones((2, 3)) for n in names})
     with pytest.raises(FileFormatError, match=r"only inside layer\(s\) 'ViewLayer.Combined' \(e.g."):
         read_image(p)
+
+
+@pytest.mark.parametrize("value, n", [(64.0, 64), (-3, None), (2.5, None), ("64", None)])
+def test_a_samples_per_pixel_attribute_of_another_type(tmp_path, value, n):
+    # before: a float 64.0 (another tool's writer) was ignored, and every unusable value
+    # was reported as "no SampleCount channel and no samplesPerPixel header attribute",
+    # although the file has one
+    p = tmp_path / "a.exr"
+    _pbrt_file_with_header(p, spp=value)
+    if n is not None:
+        assert (read_exr(p).n == n).all() and exr_info(p)["samples_per_pixel"] == n
+        return
+    with pytest.raises(FileFormatError, match=rf"its samplesPerPixel header attribute, "
+                       rf"{re.escape(repr(value))}, is not a whole number >= 0.*pass the render's "
+                       "uniform spp="):
+        read_exr(p)
+    assert (read_exr(p, spp=8).n == 8).all() and exr_info(p)["samples_per_pixel"] is None
