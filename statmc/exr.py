@@ -214,9 +214,14 @@ def _parts_summary(f) -> list:
 _LOSSY = ("PXR24", "B44", "B44A", "DWAA", "DWAB")
 
 
+def _compression_name(header) -> str:
+    """The header's compression as OpenEXR names it: ``"ZIP_COMPRESSION"``."""
+    return str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0]
+
+
 def _compression(header) -> str:
-    """The header's compression as OpenEXR names it without ``_COMPRESSION``: ``"ZIP"``."""
-    name = str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0]
+    """The header's compression without ``_COMPRESSION``: ``"ZIP"``."""
+    name = _compression_name(header)
     return name[:-len("_COMPRESSION")] if name.endswith("_COMPRESSION") else name
 
 
@@ -789,7 +794,8 @@ def exr_info(path, *, families: bool = False) -> dict:
     """
     p = _name(path)
     header, arrays, types = _open(p)
-    (x0, y0), (x1, y1) = (np.asarray(v).tolist() for v in header["dataWindow"])
+    data_window, display_window = _windows(header)
+    x0, y0, x1, y1 = data_window
     groups: dict[str, list[str]] = {}
     for n in sorted(arrays):
         groups.setdefault(_group_of(n), []).append(n)
@@ -804,18 +810,15 @@ def exr_info(path, *, families: bool = False) -> dict:
         fin = a[np.isfinite(a)]
         sc = {"min": float(fin.min()), "mean": float(fin.mean()), "max": float(fin.max()),
               "total": float(fin.sum())} if fin.size else None
-    disp = header.get("displayWindow", header["dataWindow"])
     info = {
-        "path": p, "width": int(x1 - x0 + 1), "height": int(y1 - y0 + 1),
-        "data_window": [int(x0), int(y0), int(x1), int(y1)],
-        "display_window": [int(v) for v in np.concatenate([np.asarray(d) for d in disp])],
-        "compression": str(header.get("compression", "")).rsplit(".", 1)[-1].split(":")[0],
+        "path": p, "width": x1 - x0 + 1, "height": y1 - y0 + 1,
+        "data_window": data_window, "display_window": display_window,
+        "compression": _compression_name(header),
         "lossy_compression": _compression(header) in _LOSSY,
         "samples_per_pixel": _header_spp(header),
         "chromaticities": _chromaticities(header),
         "parts": int(header["_parts"]),
-        "other_parts": [{"part": q["part"], "name": q["name"], "channels": q["channels"]}
-                        for q in arrays.parts[1:]],
+        "other_parts": arrays.parts[1:],
         "channels": {n: types[n] for n in sorted(arrays)},
         "groups": groups,
         "layout": {
