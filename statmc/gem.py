@@ -486,6 +486,8 @@ def estimate_mse(values, variances, r2, scales) -> np.ndarray:
     check_finite("variances", var)
     r = _check_r2(r2, k, f"`values` {v.shape}")   # short: the kernel read past its end
     frac = np.asarray(bias_factor(r[:-1], r[1:]), dtype=v.dtype)
+    if v.size == 0:                          # no pixels or channels (C = 0 divided the kernel)
+        return np.zeros((h, w, c), v.dtype)
     out = np.empty((h, w * c), v.dtype)
     _k.estimate_mse(np.ascontiguousarray(v).reshape(k, h, w * c),
                     np.ascontiguousarray(var).reshape(k, h, w * c), c, frac,
@@ -923,6 +925,8 @@ class SelectedFilter:
         if x3.shape[:2] != self.scales.shape:
             raise InputError(f"`image` has {x3.shape[0]}x{x3.shape[1]} pixels but the filter "
                              f"was selected on {self.scales.shape[0]}x{self.scales.shape[1]}.")
+        if x3.size == 0:                    # no channels (or pixels): ZeroDivisionError
+            return x3.copy()
         x, c = _rows(x3)
         vals = np.empty((len(self._used),) + x.shape, dt)
         for j, k in enumerate(self._used):

@@ -770,10 +770,16 @@ def test_gem_helpers_refuse_what_they_misread(call, match):
 
 
 def test_estimate_mse_of_an_empty_image():
-    """An image of 0 rows raised NumPy's 'zero-size array to reduction operation minimum'."""
+    """An image of 0 rows raised NumPy's 'zero-size array to reduction operation minimum',
+    one of 0 channels ZeroDivisionError (in estimate_mse and a SelectedFilter's call)."""
     x, v, a, b, r = _bank3()
     out = gem.estimate_mse(a[:, :0], b[:, :0], r, np.zeros((0, W), int))
     assert out.shape == (0, W, C)
+    out = gem.estimate_mse(a[..., :0], b[..., :0], r, np.zeros((H, W), int))
+    assert out.shape == (H, W, 0)
+    for k in (0, 1):
+        f = gem.SelectedFilter(np.full((H, W), k), [0.0, 1.0])
+        assert f(x[..., :0]).shape == (H, W, 0)
 
 
 @pytest.mark.parametrize("kwargs,match", [
