@@ -1800,7 +1800,8 @@ def _crop_stats(rng, h=8, w=10):
 CROP = ([3, 2, 12, 9], [0, 0, 19, 15])     # a 10x8 crop at (3, 2) of a 20x16 frame
 
 
-@pytest.mark.parametrize("args", [
+# the commands whose output keeps its (first) input's windows, chromaticities and alpha
+_KEEPING_COMMANDS = pytest.mark.parametrize("args", [
     ["reconstruct", "{a}"],
     ["reconstruct", "{a}", "--method", "oidn+combine"],
     ["denoise", "{a}", "--denoiser", "gaussian"],
@@ -1809,6 +1810,9 @@ CROP = ([3, 2, 12, 9], [0, 0, 19, 15])     # a 10x8 crop at (3, 2) of a 20x16 fr
     ["combine", "{a}", "{b}", "--weights", "uniform"],
     ["combine", "{a}", "{b}", "--weights", "statistical"],
 ], ids=lambda a: " ".join(a[:1] + a[2:]))
+
+
+@_KEEPING_COMMANDS
 def test_outputs_keep_the_inputs_data_and_display_windows(tmp_path, args):
     # before: every output was written at the origin with display window = data window,
     # so the reconstruction of a crop (pbrt-v4 writes its cropwindow so) lost its place
@@ -1898,13 +1902,7 @@ def test_render_refuses_a_reference_lying_elsewhere_in_the_frame(tmp_path):
     assert code == 0, err
 
 
-@pytest.mark.parametrize("args", [
-    ["reconstruct", "{a}"],
-    ["denoise", "{a}", "--denoiser", "gaussian"],
-    ["denoise", "{a}", "--denoiser", "gaussian", "--variance"],
-    ["progressive", "{a}", "--denoiser", "gaussian"],
-    ["combine", "{a}", "{b}", "--weights", "uniform"],
-], ids=lambda a: " ".join(a[:1] + a[2:]))
+@_KEEPING_COMMANDS
 def test_outputs_keep_the_inputs_alpha(tmp_path, args):
     # before: an RGBA render lost its A channel in every output (a compositor then sees an
     # opaque frame); now the input's alpha passes through, as denoisers do
