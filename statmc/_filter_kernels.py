@@ -882,3 +882,155 @@ def place_points(cum, r, u, counts):  # pragma: no cover - compiled
             j += 1
             p = u + j
     counts[size - 1] += r - j
+
+
+# ---------------------------------------------------------------------------------------
+# Fused forms: several calls of one kernel in one parallel region.  numba's thread pool
+# waits passively (statmc._threads), so every parallel region pays for waking its
+# workers, ~0.1-0.2 ms on the 2-core machine this was measured on; a gem.reconstruct that
+# calls the per-scale kernels above scale by scale runs 73 regions.  Each job of a fused
+# kernel does exactly what the single kernel does on that job's arrays (the same compiled
+# helpers, or the same expressions), so the results are bit for bit the single kernels'.
+# NumPy reference of each: the single kernel called job by job (tests/test_threads.py).
+# ---------------------------------------------------------------------------------------
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):  # pragma: no cover
+    """:func:`sep_filter` for K jobs in one region: job k filters ``x[src[k]]`` (and
+    ``v[src[k]]``) with the taps ``taps[k, :ntaps[k]]`` and factors ``sy[k]``, ``sx[k]``
+    into ``out_x[k]`` (``out_v[k]``).
+
+    x : (S, H, W*C) inputs; v : (S, H, W*Cv), or (S, H, 0) to skip the variance;
+    src : (K,) int64; taps : (K, T) padded taps, ntaps : (K,) their odd lengths;
+    sy : (K, H); sx : (K, W); out_x : (K, H, W*C); out_v : (K, H, W*Cv) or (K, H, 0).
+    """
+    K = src.shape[0]
+    H = x.shape[1]
+    Lx = x.shape[2]
+    Lv = v.shape[2]
+    do_var = Lv > 0
+    W = Lx // C
+    sxx = np.empty((K, Lx), x.dtype)
+    sxv = np.empty((K, Lv), x.dtype)
+    for k in range(K):
+        for i in range(W):
+            for c in range(C):
+                sxx[k, i * C + c] = sx[k, i]
+        if do_var:
+            for i in range(W):
+                for c in range(Cv):
+                    sxv[k, i * Cv + c] = sx[k, i] * sx[k, i]
+    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
+    for t in prange(K * nblk):
+        # jobs round-robin: numba splits the range into one equal chunk per thread, and
+        # the coarse scales' long taps cost far more than the fine ones'
+        b = t // K
+        k = t - b * K
+        w = taps[k, :ntaps[k]].copy()
+        r = w.shape[0] // 2
+        syk = sy[k].copy()
+        y0 = b * _ROW_BLOCK
+        y1 = min(H, y0 + _ROW_BLOCK)
+        acc = np.empty(_STRIP, x.dtype)
+        T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
+        _block(x[src[k]], C, w, syk, sxx[k], y0, y1, out_x[k], T, acc, False)
+        if do_var:
+            w2 = w * w
+            sy2 = syk * syk
+            Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
+            _block(v[src[k]], Cv, w2, sy2, sxv[k], y0, y1, out_v[k], Tv, acc, False)
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def pooled_bias_input_many(f, v, cov, C, Cv, out):  # pragma: no cover - compiled
+    """:func:`pooled_bias_input` of every consecutive pair in one region: job k reads
+    ``f[k], f[k+1], v[k], v[k+1], cov[k]`` and writes ``out[k]``.
+
+    f : (K, H, W*C); v : (K, H, W*Cv); cov, out : (K−1, H, W).
+    """
+    Km1 = out.shape[0]
+    H = out.shape[1]
+    W = out.shape[2]
+    for t in prange(Km1 * H):
+        k = t // H
+        y = t - k * H
+        a = f[k, y]
+        b = f[k + 1, y]
+        va = v[k, y]
+        vb = v[k + 1, y]
+        cv = cov[k, y]
+        o = out[k, y]
+        if C == 3 and Cv == 1:
+            for i in range(W):
+                d0 = np.float64(b[3 * i]) - np.float64(a[3 * i])
+                d1 = np.float64(b[3 * i + 1]) - np.float64(a[3 * i + 1])
+                d2 = np.float64(b[3 * i + 2]) - np.float64(a[3 * i + 2])
+                vs = np.float64(va[i]) + np.float64(vb[i]) - 2.0 * np.float64(cv[i])
+                o[i] = d0 * d0 + d1 * d1 + d2 * d2 - max(vs, 0.0)
+            continue
+        for i in range(W):
+            d2 = 0.0
+            for c in range(C):
+                d = np.float64(b[i * C + c]) - np.float64(a[i * C + c])
+                d2 += d * d
+            vs = 0.0
+            for c in range(Cv):
+                vs += np.float64(va[i * Cv + c]) + np.float64(vb[i * Cv + c])
+            o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def stop_pooled_many(pooled, v, Cv, fk, weight, out):  # pragma: no cover - compiled
+    """:func:`stop_pooled` of every consecutive pair in one region: job k reads
+    ``pooled[k], v[k], v[k+1]`` with factor ``fk[k]`` and writes ``out[k]``.
+
+    pooled : (K−1, H, W); v : (K, H, W*Cv); fk : (K−1,) float64; out : (K−1, H, W).
+    """
+    Km1 = out.shape[0]
+    H = out.shape[1]
+    W = out.shape[2]
+    for t in prange(Km1 * H):
+        k = t // H
+        y = t - k * H
+        f = fk[k]
+        p = pooled[k, y]
+        va = v[k, y]
+        vb = v[k + 1, y]
+        o = out[k, y]
+        for i in range(W):
+            s = weight * f * max(np.float64(p[i]), 0.0)
+            for c in range(Cv):
+                s += np.float64(vb[i * Cv + c]) - np.float64(va[i * Cv + c])
+            o[i] = 1.0 if s > 0.0 else 0.0
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def finish_stop_map_many(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cover
+    """:func:`finish_stop_map` of K maps in one region: job k uses ``filt[k], raw[k]``,
+    centre tap ``wc[k]`` and factors ``sy[k]``, ``sx[k]``, and writes ``out[k]``.
+
+    filt, raw, out : (K, H, W); wc : (K,); sy : (K, H); sx : (K, W).
+    """
+    K = out.shape[0]
+    H = out.shape[1]
+    W = out.shape[2]
+    for t in prange(K * H):
+        k = t // H
+        y = t - k * H
+        c0 = wc[k]
+        a = c0 * sy[k, y]
+        fr = filt[k, y]
+        rr = raw[k, y]
+        sxk = sx[k]
+        o = out[k, y]
+        for i in range(W):
+            w0 = a * c0 * sxk[i]
+            b = rr[i]
+            den = 1.0 - w0
+            if den <= 1e-6:  # no neighbours (1x1 image): keep the raw decision
+                m = b
+            else:
+                m = 1.0 if (fr[i] - w0 * b) >= 0.5 * den else 0.0
+            if coarser_only and m > b:
+                m = b
+            o[i] = m

@@ -140,3 +140,66 @@ def test_oidn_loads_torchs_openmp_runtime_with_passive_waits():
         pytest.skip("pyoidn loads no libgomp here")
     assert gomp == [("0", "PASSIVE")] * len(gomp), gomp
     assert after == "None"
+
+
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+@pytest.mark.parametrize("C,Cv", [(3, 1), (3, 3), (1, 1), (2, 2)])
+def test_fused_kernels_equal_the_single_kernels_job_by_job(dt, C, Cv):
+    """The ``*_many`` kernels of ``statmc._filter_kernels`` run several calls of one
+    kernel in one parallel region (each region wakes the passively waiting pool); their
+    reference is the single kernel called job by job, which they must equal bit for bit
+    (rows not a multiple of the row block, taps of 1 to 27 values, padded tap rows)."""
+    from statmc import _filter_kernels as K
+
+    rng = np.random.default_rng(7 + C + Cv)
+    H, W, nk = 45, 23, 4
+    x = rng.standard_normal((2, H, W * C)).astype(dt)
+    v = rng.random((2, H, W * Cv)).astype(dt)
+    src = np.array([1, 0, 1, 0], np.int64)
+    lens = [1, 27, 9, 5]
+    taps = np.zeros((nk, max(lens)), dt)
+    for k, n in enumerate(lens):
+        taps[k, :n] = rng.random(n) + 0.1
+    sy, sx = (rng.random((nk, H)) + 0.5).astype(dt), (rng.random((nk, W)) + 0.5).astype(dt)
+    out_x, out_v = np.empty((nk, H, W * C), dt), np.empty((nk, H, W * Cv), dt)
+    K.sep_filter_many(x, C, v, Cv, src, taps, np.array(lens, np.int64), sy, sx, out_x, out_v)
+    for k in range(nk):
+        ex, ev = np.empty_like(out_x[k]), np.empty_like(out_v[k])
+        K.sep_filter(x[src[k]], C, v[src[k]], Cv, taps[k, :lens[k]].copy(), sy[k].copy(),
+                     sx[k].copy(), ex, ev)
+        np.testing.assert_array_equal(out_x[k], ex)
+        np.testing.assert_array_equal(out_v[k], ev)
+    none = np.empty((nk, H, 0), dt)
+    K.sep_filter_many(x, C, np.empty((2, H, 0), dt), 1, src, taps, np.array(lens, np.int64),
+                      sy, sx, out_x, none)                         # values only
+    K.sep_filter(x[0], C, none[0], 1, taps[1].copy(), sy[1].copy(), sx[1].copy(), ex, none[0])
+    np.testing.assert_array_equal(out_x[1], ex)
+
+    f = rng.standard_normal((nk, H, W * C)).astype(dt)
+    fv = rng.random((nk, H, W * Cv)).astype(dt)
+    cov = (0.3 * rng.random((nk - 1, H, W))).astype(dt)
+    d = np.empty((nk - 1, H, W), dt)
+    K.pooled_bias_input_many(f, fv, cov, C, Cv, d)
+    fk = rng.random(nk - 1) + 0.5
+    stop = np.empty((nk - 1, H, W), np.float32)
+    K.stop_pooled_many(d, fv, Cv, fk, 1.0, stop)
+    for k in range(nk - 1):
+        e = np.empty((H, W), dt)
+        K.pooled_bias_input(f[k], f[k + 1], fv[k], fv[k + 1], cov[k], C, Cv, e)
+        np.testing.assert_array_equal(d[k], e)
+        s = np.empty((H, W), np.float32)
+        K.stop_pooled(d[k], fv[k], fv[k + 1], Cv, float(fk[k]), 1.0, s)
+        np.testing.assert_array_equal(stop[k], s)
+    assert 0 < stop.mean() < 1                                     # both decisions occur
+
+    raw = (rng.random((nk, H, W)) < 0.5).astype(np.float32)
+    filt = rng.random((nk, H, W)).astype(np.float32)
+    wc = (0.2 + 0.5 * rng.random(nk)).astype(np.float32)
+    fy, fx = (rng.random((nk, H)) + 0.9).astype(np.float32), (rng.random((nk, W)) + 0.9).astype(np.float32)
+    for coarser_only in (False, True):
+        out = np.empty_like(raw)
+        K.finish_stop_map_many(filt, raw, wc, fy, fx, coarser_only, out)
+        for k in range(nk):
+            e = np.empty((H, W), np.float32)
+            K.finish_stop_map(filt[k], raw[k], wc[k], fy[k].copy(), fx[k].copy(), coarser_only, e)
+            np.testing.assert_array_equal(out[k], e)
