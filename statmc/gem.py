@@ -754,6 +754,11 @@ def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, 
         Override the scales (increasing; 0 = pixel filter).
     postprocess : bool
         Apply the outlier removal of §4.4 (default) or use the raw selector decisions.
+    truncate : float
+        Cut-off in σ of every Gaussian involved (the bank, its second moments ``r2``, the
+        outlier filters, the pooling of ``bias="pooled"``); default 3
+        (:data:`~statmc.filters.DEFAULT_TRUNCATE`).  Kernels longer than the image are cut
+        to it without changing the result (``docs/gem.md`` §1).
     map_scale : float, optional
         Outlier filter of pair k = ``map_scale · σ_{k+1}``; default 2 when ``final``, else 1
         (§6).
