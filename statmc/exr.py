@@ -471,7 +471,7 @@ def _select_layer(p, arrays, types, layer):
     if not out:
         layers = sorted({n.rsplit(".", 1)[0] for n in arrays if "." in n})
         raise FileFormatError(f"{p!r} has no channels in layer {layer!r} (named "
-                              f"'{prefix}<channel>'); its layers: {layers}.")
+                              f"'{prefix}<channel>'); its layers: {layers}{arrays.note}.")
     return out, kinds
 
 

@@ -1138,3 +1138,19 @@ def test_a_samples_per_pixel_attribute_of_another_type(tmp_path, value, n):
                        "uniform spp="):
         read_exr(p)
     assert (read_exr(p, spp=8).n == 8).all() and exr_info(p)["samples_per_pixel"] is None
+
+
+def test_a_layer_in_another_part_is_named(tmp_path):
+    # Nuke writes one part per layer ('diffuse' with diffuse.R, ...): before, layer='diffuse'
+    # said only "its layers: []" of part 0, not that part 1 holds them
+    def hdr():
+        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    ones = np.ones((2, 3), np.float32)
+    p = tmp_path / "parts.exr"
+    OpenEXR.File([OpenEXR.Part(hdr(), {c: ones.copy() for c in "RGB"}, name="rgba"),
+                  OpenEXR.Part(hdr(), {f"diffuse.{c}": ones.copy() for c in "RGB"},
+                               name="diffuse")]).write(str(p))
+    with pytest.raises(FileFormatError, match=r"no channels in layer 'diffuse'.*only part 0 "
+                       r"\('rgba'\) of this 2-part file is read; part 1 \('diffuse'\): "
+                       r"\['diffuse.B', 'diffuse.G', 'diffuse.R'\]"):
+        read_image(p, layer="diffuse")
