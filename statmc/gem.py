@@ -139,8 +139,9 @@ def _pair_factors(sigmas, truncate):
     if not (np.all(np.isfinite(r2)) and np.all(np.diff(r2) > 0)):
         raise InputError(f"`sigmas` must give finite, strictly increasing kernel second "
                          f"moments r² (statmc.filters.kernel_moment2; σ up to ~1e154, "
-                         f"scales more than a rounding error apart); got sigmas {sigmas} "
-                         f"with r² {r2.tolist()}.")
+                         f"scales more than a rounding error apart, σ > 0 above ~0.03, "
+                         f"below which the Gaussian is the pixel filter); got sigmas "
+                         f"{sigmas} with r² {r2.tolist()}.")
     return r2, bias_factor(r2[:-1], r2[1:])
 
 

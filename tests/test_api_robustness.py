@@ -647,6 +647,17 @@ def test_gem_with_absurd_scales_stays_small():
         gem.reconstruct(x, v, sigmas=[0.0, 1.0, 1e300])   # r² = inf: was a NaN bias factor
 
 
+def test_gem_scales_that_are_the_pixel_filter_are_named():
+    """σ = 0.02 (exp(−1/(2σ²)) underflows: the pixel filter again, r² = 0) was refused as
+    "`r2_coarse` must exceed `r2_fine` >= 0; got array([0. , 0.99...]) and array([0., 0.])",
+    two arrays the caller never passed; σ = 0.03 (r² ~ 1e-240) works."""
+    x, v, _, _ = _inputs(18)
+    with pytest.raises(InputError, match=r"^`sigmas` must give finite, strictly increasing "
+                                         r"kernel second moments .*got sigmas \[0.0, 0.02, 1.0\]"):
+        gem.reconstruct(x, v, sigmas=(0, 0.02, 1))
+    assert np.isfinite(gem.reconstruct(x, v, sigmas=(0, 0.03, 1))).all()
+
+
 def test_gem_on_cut_kernels_equals_gem_on_whole_ones(monkeypatch):
     """Every GEM kernel comes from filters._taps, cut where it cannot reach the image:
     with the cut lowered to 2 taps (σ = 4 and 6.5 on 7×9 pixels are cut to 8 a side, the
