@@ -751,7 +751,8 @@ def test_spp_if_missing_keeps_a_files_own_counts(tmp_path):
 
 
 # ------------------------------------------------- files as other tools write them (session 11)
-_LOSSLESS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ")
+_LOSSLESS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ") + tuple(    # and the newer ones (docs say so)
+    c for c in ("ZSTD", "HTJ2K32", "HTJ2K256") if hasattr(OpenEXR, c + "_COMPRESSION"))
 _LOSSY_CODECS = ("PXR24", "B44", "B44A", "DWAA", "DWAB")
 
 
