@@ -42,7 +42,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .errors import InputError, as_float_array, check_finite, check_nonempty, check_nonnegative
-from .filters import DEFAULT_TRUNCATE, border_scale, gaussian_filter, gaussian_kernel_1d
+from .filters import (DEFAULT_TRUNCATE, _check_sigma, _check_truncate, _taps, border_scale,
+                      gaussian_filter)
 
 __all__ = [
     "Denoiser", "identity", "gaussian", "gem", "oidn", "torch_module", "get", "as_denoiser",
@@ -129,10 +130,10 @@ class GaussianDenoiser:
     name = "gaussian"
 
     def __init__(self, sigma: float = 1.0, *, truncate: float = DEFAULT_TRUNCATE):
-        w = gaussian_kernel_1d(sigma, truncate=truncate)  # validates both
-        self.sigma = float(sigma)
-        self.truncate = float(truncate)
-        self._w = w
+        # checked as statmc.filters does; the taps are built for an image in kernels(),
+        # cut to what reaches it (σ = 1e6 built 6e6 taps, 137 MiB, here before)
+        self.sigma = _check_sigma(sigma)
+        self.truncate = _check_truncate(truncate)
 
     def __call__(self, color):
         return gaussian_filter(_color("color", color), self.sigma, truncate=self.truncate)
@@ -144,10 +145,13 @@ class GaussianDenoiser:
         image and 0 outside, with ``g`` the normalised 1-D Gaussian and ``N`` the sum of
         the in-image taps (border renormalisation), so that
         ``statmc.analytic.apply_kernels(K, x) == self(x)`` up to rounding.  Memory is
-        ``H·W·k²`` float64 (``k = 2·ceil(3σ) + 1``).
+        ``H·W·k²`` float64, ``k = 2·ceil(truncate·σ) + 1``; a kernel of more than 4096
+        taps a side is cut to the ``2·(max(H, W) − 1) + 1`` taps that can reach the image
+        (the taps of :func:`statmc.filters.gaussian_filter`, exact: the taps cut only ever
+        fall outside it), so a huge σ costs what the image does.
         """
         h, w = _shape_hw(shape)
-        g = self._w
+        g = _taps(self.sigma, self.truncate, max(h, w))
         k = g.size
         r = k // 2
         sy, sx = border_scale(h, g), border_scale(w, g)

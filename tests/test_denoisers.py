@@ -83,6 +83,54 @@ def test_gaussian_kernels_are_zero_outside_the_image():
     assert np.all(K[-1, -1, r + 1:, :] == 0)
 
 
+def test_gaussian_with_absurd_sigma_stays_small():
+    """GaussianDenoiser built the whole kernel at construction: σ = 1e6 took 137 MiB (and
+    1e300 was refused as 'a kernel array', though the filter it calls takes it), and
+    .kernels(shape) asked for an (H, W, 6e6, 6e6) array (MemoryError, 65.5 PiB).  The taps
+    are now built for the image in .kernels, cut to the 2(max(H, W) − 1) + 1 that reach
+    it: a few MiB whatever σ, and the kernels still reproduce the filter."""
+    import tracemalloc
+    x = np.random.default_rng(4).random((16, 12, 3))
+    D.gaussian(1.0).kernels(x.shape)                  # compile outside the measurement
+    D.gaussian(1.0)(x)
+    for sigma in (1e6, 1e8, 1e300):
+        tracemalloc.start()
+        try:
+            f = D.gaussian(sigma)
+            K = f.kernels(x.shape)
+            y = f(x)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 4 << 20, (sigma, peak)
+        assert K.shape == (16, 12, 31, 31)
+        np.testing.assert_allclose(apply_kernels(K, x), y, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(K.sum(axis=(2, 3)), 1.0, atol=1e-12)
+    for bad, name in ((np.nan, "sigma"), (-1.0, "sigma"), ("2", "sigma")):
+        with pytest.raises(InputError, match=f"`{name}` must be a finite number >= 0"):
+            D.gaussian(bad)
+    with pytest.raises(InputError, match="`truncate` must be a finite number > 0"):
+        D.gaussian(1.0, truncate=0.0)
+
+
+def test_gaussian_kernels_cut_to_the_image_equal_the_whole_ones(monkeypatch):
+    """With the cut lowered to 2 taps, σ = 4 on 7×9 pixels keeps the 8 taps a side that
+    reach the image: the kernels must be the whole kernels' central part, the rest of
+    which is 0 (outside the image for every pixel)."""
+    from statmc import filters
+    shape = (7, 9, 2)
+    whole = D.gaussian(4.0).kernels(shape)
+    monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
+    cut = D.gaussian(4.0).kernels(shape)
+    r, c = whole.shape[2] // 2, cut.shape[2] // 2
+    assert (r, c) == (12, 8)
+    np.testing.assert_allclose(cut, whole[:, :, r - c:r + c + 1, r - c:r + c + 1],
+                               rtol=1e-12, atol=0)
+    inner = np.zeros(whole.shape[2:], bool)
+    inner[r - c:r + c + 1, r - c:r + c + 1] = True
+    assert np.all(whole[:, :, ~inner] == 0)
+
+
 def test_gaussian_keeps_float32():
     x = np.random.default_rng(0).random((8, 8, 3)).astype(np.float32)
     assert D.gaussian(1.0)(x).dtype == np.float32
