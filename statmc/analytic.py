@@ -414,7 +414,10 @@ def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
         GEM's reconstruction (Rousselle et al. 2011, §4 and §6) for the selection given.
         Memory ``H·W·k²`` entries: ``k = 49`` for σ = 8 (the adaptive bank), 83 for
         σ = 13.6 (the default final bank, ``bias="pooled"``), 97 for σ = 16 (§6's final
-        bank, ``bias="paper"``).
+        bank, ``bias="paper"``).  A kernel of more than 4096 taps a side is cut to the
+        ``2·(max(H, W) − 1) + 1`` taps that can reach the image (exact: the taps cut fall
+        outside it for every pixel), so ``k <= 2·max(H, W) − 1`` for ``σ`` above
+        ``4096/truncate`` whatever σ.
 
     Notes
     -----
@@ -428,7 +431,7 @@ def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
     >>> k.shape, bool(np.allclose(k.sum(axis=(2, 3)), 1.0))
     ((2, 2, 7, 7), True)
     """
-    from .filters import DEFAULT_TRUNCATE, border_scale, gaussian_kernel_1d
+    from .filters import DEFAULT_TRUNCATE, _check_truncate, _taps, border_scale
     sc = np.asarray(scales)
     if sc.ndim != 2 or not np.issubdtype(sc.dtype, np.integer):
         raise InputError(f"`scales` must be an (H, W) integer map of scale indices; got "
@@ -446,10 +449,13 @@ def scale_kernels(scales, sigmas, *, truncate=None, dtype=np.float32):
                          f"got [{sc.min()}, {sc.max()}].")
     if np.dtype(dtype) not in (np.float32, np.float64):
         raise InputError(f"`dtype` must be float32 or float64; got {dtype!r}.")
-    t = DEFAULT_TRUNCATE if truncate is None else truncate
+    t = _check_truncate(DEFAULT_TRUNCATE if truncate is None else truncate)
     h, w = sc.shape
     used = np.unique(sc)
-    taps = {int(i): gaussian_kernel_1d(sig[int(i)], truncate=t) for i in used}
+    # the bank's taps on this image (statmc.filters._taps): a kernel of more than 4096
+    # taps a side is cut to the 2·(max(H, W) − 1) + 1 that can reach it; σ = 1e6 asked
+    # for an (H, W, 6e6, 6e6) array before (MemoryError)
+    taps = {int(i): _taps(sig[int(i)], t, max(h, w)) for i in used}
     k = max((g.size for g in taps.values()), default=1)
     r = k // 2
     out = np.zeros((h, w, k, k), dtype)
@@ -909,14 +915,14 @@ def _smooth_reference_estimate(mean, mean_var, sigma):
     """
     from scipy.ndimage import correlate1d
 
-    from .filters import border_scale, gaussian_filter, gaussian_kernel_1d
+    from .filters import DEFAULT_TRUNCATE, _taps, border_scale, gaussian_filter
     sig = as_number("weight_sigma", sigma, lo=0.0)
     m = np.asarray(mean, np.float64)
     mv = np.asarray(mean_var, np.float64)
     if sig == 0:
         d, vd = m, mv
-    else:
-        g = gaussian_kernel_1d(sig)
+    else:   # gaussian_filter's taps, cut to the image (σ = 1e6: 6e6 taps, 13 s before)
+        g = _taps(sig, DEFAULT_TRUNCATE, max(m.shape[:2]))
         d = gaussian_filter(m, sig)
         vd = correlate1d(correlate1d(mv, g * g, axis=0, mode="constant"), g * g, axis=1,
                          mode="constant")

@@ -891,6 +891,65 @@ def test_scale_kernels_single_scale_equals_gaussian_kernels():
         an.scale_kernels(np.zeros((3, 4), int), (-1.0,))
 
 
+def test_kernels_of_absurd_scales_stay_small():
+    """scale_kernels built each selected scale's whole kernel and padded every pixel to it:
+    σ = 1e6 asked for an (H, W, 6e6, 6e6) array (MemoryError, 32.7 PiB on 16×16), and
+    expected_error_sampler's weight_sigma = 1e6 filtered with 6e6 taps (154 MiB, 13 s).
+    Now the taps are cut to the 2(max(H, W) − 1) + 1 that reach the image (exact: the
+    rest fall outside it for every pixel); the kernels still give the bank's filter."""
+    import tracemalloc
+
+    from statmc.filters import gaussian_filter
+    from statmc.stats import PixelStats
+    rng = np.random.default_rng(8)
+    x = rng.random((16, 12, 3))
+    sc = rng.integers(0, 3, (16, 12))
+    st = PixelStats.from_samples(rng.random((4, 16, 12, 3)))
+    an.scale_kernels(sc, (0.0, 1.0, 2.0))                 # compile outside the measurement
+    an.expected_error_sampler(st, 500, rng=0)
+
+    def small(fn, *args, **options):
+        tracemalloc.start()
+        try:
+            out = fn(*args, **options)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 8 << 20, (fn.__name__, options, peak)
+        return out
+
+    for big in (1e6, 1e8, 1e300):
+        c1 = small(an.expected_error_sampler, st, 500, rng=0, weight_sigma=big)
+        K = small(an.scale_kernels, sc, (0.0, 1.0, big), dtype=np.float64)
+        c2 = small(an.expected_error_sampler, st, 500, rng=0, sigma=big)
+        assert K.shape == (16, 12, 31, 31)
+        want = np.choose(sc[..., None], [x, gaussian_filter(x, 1.0), gaussian_filter(x, big)])
+        np.testing.assert_allclose(apply_kernels(K, x), want, rtol=1e-12, atol=0)
+        assert c1.sum() == c2.sum() == 500
+
+
+def test_kernels_cut_to_the_image_equal_the_whole_ones(monkeypatch):
+    """With the cut lowered to 2 taps, σ = 4 on 7×9 pixels keeps the 8 taps a side that
+    reach the image: scale_kernels must be the whole kernels' central part (the rest is
+    0) and the relMSE weights' reference estimate that of the whole kernel."""
+    from statmc import filters
+    rng = np.random.default_rng(9)
+    sc = rng.integers(0, 3, (7, 9))
+    m, mv = rng.random((7, 9, 3)), 0.01 * rng.random((7, 9, 3))
+    whole = an.scale_kernels(sc, (0.0, 1.0, 4.0), dtype=np.float64)
+    ref = an._smooth_reference_estimate(m, mv, 4.0)
+    monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
+    cut = an.scale_kernels(sc, (0.0, 1.0, 4.0), dtype=np.float64)
+    r, c = whole.shape[2] // 2, cut.shape[2] // 2
+    assert (r, c) == (12, 8)
+    np.testing.assert_allclose(cut, whole[:, :, r - c:r + c + 1, r - c:r + c + 1],
+                               rtol=1e-12, atol=0)
+    inner = np.zeros(whole.shape[2:], bool)
+    inner[r - c:r + c + 1, r - c:r + c + 1] = True
+    assert np.all(whole[:, :, ~inner] == 0)
+    np.testing.assert_allclose(an._smooth_reference_estimate(m, mv, 4.0), ref, rtol=1e-12)
+
+
 def test_pilot_kernel_sampler_holds_kernels_fixed_and_mix():
     from statmc.adaptive import adaptive_render
     from statmc.toy import ToyRenderer
