@@ -1889,12 +1889,13 @@ def test_render_refuses_a_reference_lying_elsewhere_in_the_frame(tmp_path):
     # before: a 10x8 reference crop at (3, 2) was scored against the render at the origin
     rng = np.random.default_rng(12)
     ref = tmp_path / "ref.exr"
-    _write_windowed(ref, {c: rng.random((8, 10)) for c in "RGB"}, *CROP)
-    code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",
-                           "--reference", ref, "--out", tmp_path / "r", "-q")
-    assert code == 2 and err.count("\n") == 1, err
-    assert f"reference {ref} has the data window [3, 2, 12, 9]" in err
-    assert not (tmp_path / "r").exists()
+    for window in (CROP[0], [0, 2, 9, 9]):          # moved in x and y, or in y only
+        _write_windowed(ref, {c: rng.random((8, 10)) for c in "RGB"}, window, CROP[1])
+        code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",
+                               "--reference", ref, "--out", tmp_path / "r", "-q")
+        assert code == 2 and err.count("\n") == 1, err
+        assert f"reference {ref} has the data window {window}" in err
+        assert not (tmp_path / "r").exists()
     # at the origin, whatever the display window: taken
     _write_windowed(ref, {c: rng.random((8, 10)) for c in "RGB"}, [0, 0, 9, 7], [0, 0, 19, 15])
     code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",

@@ -976,12 +976,13 @@ def test_inf_in_half_channels_is_named_as_an_overflow(tmp_path):
 
 
 def test_layer_hint_puts_blenders_combined_first_and_quotes_spaces(tmp_path):
-    names = [f"ViewLayer.{layer}.{c}" for layer in ("Noisy Image", "DiffCol", "Combined",
+    # ViewLayer.AO sorts before ViewLayer.Combined: the beauty comes first all the same
+    names = [f"ViewLayer.{layer}.{c}" for layer in ("Noisy Image", "DiffCol", "Combined", "AO",
                                                     "Denoising Albedo") for c in "RGB"]
     p = tmp_path / "blender.exr"
     _write_raw(p, {n: np.ones((2, 3)) for n in names})
-    with pytest.raises(FileFormatError, match=r"layer\(s\) 'ViewLayer.Combined', "
-                       r"'ViewLayer.Denoising Albedo', 'ViewLayer.DiffCol', 'ViewLayer.Noisy Image' \(e.g. "
+    with pytest.raises(FileFormatError, match=r"layer\(s\) 'ViewLayer.Combined', 'ViewLayer.AO', "
+                       r"'ViewLayer.Denoising Albedo', 'ViewLayer.DiffCol', ... \(e.g. "
                        r"'ViewLayer.Combined.R'\)") as e:
         read_image(p)
     assert "--ch R=ViewLayer.Combined.R,G=ViewLayer.Combined.G,B=ViewLayer.Combined.B -o" in str(e.value)
@@ -1155,3 +1156,21 @@ def test_a_layer_in_another_part_is_named(tmp_path):
                        r"\('rgba'\) of this 2-part file is read; part 1 \('diffuse'\): "
                        r"\['diffuse.B', 'diffuse.G', 'diffuse.R'\]"):
         read_image(p, layer="diffuse")
+
+
+def test_layer_reads_keep_the_pixel_types_for_the_overflow_hint(tmp_path):
+    # the half-float overflow hint looks at the pixel types of the channels read, which a
+    # layer read renames ('ViewLayer.Combined.R' -> 'R')
+    ch = {f"ViewLayer.Combined.{c}": np.full((2, 3), 0.5, np.float16) for c in "RGB"}
+    ch["ViewLayer.Combined.G"][0, 1] = np.float16(np.inf)
+    p = tmp_path / "blender.exr"
+    _write_raw(p, ch, dtype=np.float16)
+    with pytest.raises(FileFormatError, match=r"the Inf of R\+G\+B is likely an overflow"):
+        read_image(p, layer="ViewLayer.Combined")
+
+
+def test_nonfinite_chromaticities_are_not_taken(tmp_path):
+    # an attribute with NaN is no colour space: reported as None, so no output carries it
+    p = tmp_path / "a.exr"
+    _pbrt_file_with_header(p, chromaticities=(0.64, 0.33, 0.3, 0.6, 0.15, np.nan, 0.3127, 0.329))
+    assert read_exr(p).meta["chromaticities"] is None and exr_info(p)["chromaticities"] is None
