@@ -366,9 +366,9 @@ def _smooth_k2(a, sigma):
     """``Σ_q k_pq² a_q`` for the border-renormalised Gaussian weights ``k`` of :func:`_smooth`."""
     from scipy.ndimage import correlate1d
 
-    from .filters import border_scale, gaussian_kernel_1d
+    from .filters import DEFAULT_TRUNCATE, _taps, border_scale
 
-    g = gaussian_kernel_1d(sigma)
+    g = _taps(sigma, DEFAULT_TRUNCATE, max(a.shape[:2]))   # _smooth's taps, cut to the image
     out = correlate1d(a, g * g, axis=0, mode="constant", cval=0.0)
     out = correlate1d(out, g * g, axis=1, mode="constant", cval=0.0)
     sy = border_scale(a.shape[0], g)

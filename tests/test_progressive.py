@@ -859,6 +859,52 @@ def test_convergence_light_progressive_follows_the_render_oidn_does_not():
     assert sst.ttest_1samp(o_texture, 1.0, alternative="greater").pvalue < 0.01   # 1024: ~6x
 
 
+def _mix_inputs(seed, shape):
+    rng = np.random.default_rng(seed)
+    x = rng.random(shape)
+    v = 0.01 * rng.random(shape)
+    y = x + 0.1 * rng.standard_normal(shape)
+    return x, y, v, (y - x) ** 2 - v, 0.3 * v
+
+
+def test_mixing_weights_with_an_absurd_smooth_stays_small():
+    """The standard error of ``shrink`` filtered with the squared taps of the whole kernel
+    (_smooth_k2): smooth = 1e6 took 137 MiB and ~8 s on 16×12 pixels (6e6 taps through
+    scipy's correlate1d), 1e300 raised as 'a kernel array'.  It now takes _smooth's taps,
+    cut to the image, like the averages it goes with: a few MiB whatever σ."""
+    import tracemalloc
+    x, y, v, sure, d = _mix_inputs(31, (16, 12, 3))
+    pg.mixing_weights(x, y, v, sure, d, smooth=2.0, shrink=1.0)   # warm up
+    for big in (1e6, 1e300):
+        tracemalloc.start()
+        try:
+            a, info = pg.mixing_weights(x, y, v, sure, d, smooth=big, shrink=1.0,
+                                        extra_output=True)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 4 << 20, (big, peak)
+        assert np.all(np.isfinite(info["se_model"])) and np.all((a >= 0) & (a <= 1))
+
+
+def test_shrink_on_kernels_cut_to_the_image_equals_the_whole_ones(monkeypatch):
+    """With the cut lowered to 2 taps, smooth = 4 on 7×9 pixels keeps the 8 taps a side
+    that reach the image: α and every standard error must be those of the whole kernel
+    (the cut kernel's squared taps and its border scales must go together)."""
+    from statmc import filters
+    x, y, v, sure, d = _mix_inputs(32, (7, 9, 3))
+    opts = dict(smooth=4.0, shrink=1.0, extra_output=True)
+    whole = pg.mixing_weights(x, y, v, sure, d, **opts)
+    k2 = pg._smooth_k2(v, 4.0)
+    monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
+    assert len(filters._taps(4.0, 3.0, 9)) == 17
+    cut = pg.mixing_weights(x, y, v, sure, d, **opts)
+    np.testing.assert_allclose(pg._smooth_k2(v, 4.0), k2, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(cut[0], whole[0], rtol=1e-12, atol=1e-15)
+    for key in whole[1]:
+        np.testing.assert_allclose(cut[1][key], whole[1][key], rtol=1e-12, atol=0, err_msg=key)
+
+
 # =========================================================================== bad input
 def test_bad_input_raises_input_error():
     x = np.ones((6, 7, 3))
