@@ -564,8 +564,10 @@ class MitsubaRenderer:
     scene_sample_count : int
         The ``sample_count`` of the sensor's sampler in the scene, which is not used.
     nonfinite_samples : int
-        NaN/Inf samples (counted as zeros) of all renders of this renderer so far: the
-        whole of an adaptive render's passes, whose merged ``meta`` holds the first's.
+        NaN/Inf samples (counted as zeros) of all renders of this renderer so far, every
+        pass of every render; an adaptive render's merged ``meta["nonfinite_samples"]``
+        holds the sum over its own passes (``PixelStats.merge`` adds the counters of
+        :data:`statmc.stats.MERGED_META_SUMS`).
     channels : int
         Always 3 (RGB).
     name : str
