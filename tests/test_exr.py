@@ -842,6 +842,7 @@ def test_data_and_display_windows_are_read_and_written_back(tmp_path, windows):
     ({"data_window": [0.5, 0, 4.5, 5]}, r"`data_window` must be \[x0, y0, x1, y1\], four whole"),
     ({"data_window": "abcd"}, r"`data_window` must be"),
     ({"display_window": [4, 0, 0, 5]}, r"`display_window` must have x1 >= x0"),
+    ({"display_window": [0, 5, 4, 0]}, r"`display_window` must have x1 >= x0 and y1 >= y0"),
     ({"display_window": [0, 0, 2 ** 31, 5]}, r"within \+-2\*\*30"),
 ])
 def test_write_exr_refuses_bad_windows_before_writing(tmp_path, kw, needle):
@@ -878,6 +879,13 @@ def test_multipart_file_errors_name_what_the_other_parts_hold(tmp_path):
         read_image(q)
     with pytest.raises(FileFormatError, match=r"lacks channel\(s\) \['B'\].*part 1 \('beauty'\)"):
         read_channels(q, ["B"])
+    r = tmp_path / "three.exr"                        # every other part is listed
+    OpenEXR.File([OpenEXR.Part(hdr(), {"Z": ch["R"]}, name="depth"),
+                  OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty"),
+                  OpenEXR.Part(hdr(), {"A": ch["G"]}, name="alpha")]).write(str(r))
+    with pytest.raises(FileFormatError, match=r"only part 0 \('depth'\) of this 3-part file is "
+                       r"read; part 1 \('beauty'\): \['B', 'G', 'R'\]; part 2 \('alpha'\): \['A'\]\)"):
+        read_image(r)
 
 
 @pytest.mark.parametrize("names, needle", [
