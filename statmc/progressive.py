@@ -477,7 +477,9 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     ``α' → 0``: the output converges to the render, hence to ``μ``.
 
     Cost: ``O(window)`` per pixel and channel (separable sums and window argmax) in a
-    numba kernel, :mod:`statmc._progressive_kernels`, which has a NumPy reference.
+    numba kernel, :mod:`statmc._progressive_kernels`, which has a NumPy reference.  A
+    window wider than ``2·max(H, W) − 1`` is the whole image: its half-width is cut to
+    ``max(H, W) − 1`` (bit for bit the same, the offsets cut never meet the image).
 
     Precision.  The inputs are noisy estimates and ``t`` is a test statistic of unit
     standard deviation under the null, so float32 suffices, and it halves the memory
@@ -547,8 +549,12 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
         raise InputError(f"`channels` must be 'shared' or 'separate'; got {channels!r}.")
     if cdf not in ("normal", "logistic"):
         raise InputError(f"`cdf` must be 'normal' or 'logistic'; got {cdf!r}.")
+    # a window offset of max(H, W) or more never meets the image (the kernel skips it):
+    # half-widths past that are cut, bit for bit the same; window = 1e9 + 1 built 30 GB
+    # of taps before, and the taps of 1e30 + 1 no array could hold
+    half = min(int(window) // 2, max(xx.shape[0], xx.shape[1], 1) - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        num, var, t, out = _pk.gate(u, vw, al, int(window) // 2, ss,
+        num, var, t, out = _pk.gate(u, vw, al, half, ss,
                                     shared=(channels == "shared"), a=aa, c=cc, eps=ee,
                                     logistic=(cdf == "logistic"), keep=bool(extra_output))
     if not extra_output:

@@ -905,6 +905,30 @@ def test_shrink_on_kernels_cut_to_the_image_equals_the_whole_ones(monkeypatch):
         np.testing.assert_allclose(cut[1][key], whole[1][key], rtol=1e-12, atol=0, err_msg=key)
 
 
+def test_confidence_gate_with_a_window_wider_than_the_image_stays_small():
+    """The gate built its window taps for the whole window: window = 2e6 + 1 took 61 MiB
+    on 16×12 pixels (1e9 + 1 some 30 GB) and 1e30 + 1 raised NumPy's 'Maximum allowed size
+    exceeded'.  Offsets of max(H, W) or more never meet the image, so the half-width is
+    cut there: bit for bit the window of the whole image, a few MiB whatever the window."""
+    import tracemalloc
+    x, y, v, _, _ = _mix_inputs(33, (16, 12, 3))
+    alpha = np.random.default_rng(34).random((16, 12, 3))
+    for dt in (np.float32, np.float64):
+        xd, yd = x.astype(dt), y.astype(dt)
+        whole = pg.confidence_gate(xd, yd, v, alpha, window=31, extra_output=True)  # 2·16 − 1
+        for window in (33, 41, 2 * 10**6 + 1, 10**30 + 1):
+            tracemalloc.start()
+            try:
+                got = pg.confidence_gate(xd, yd, v, alpha, window=window, extra_output=True)
+                peak = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+            assert peak < 4 << 20, (window, peak)
+            np.testing.assert_array_equal(got[0], whole[0])
+            for key in whole[1]:
+                np.testing.assert_array_equal(got[1][key], whole[1][key], err_msg=key)
+
+
 # =========================================================================== bad input
 def test_bad_input_raises_input_error():
     x = np.ones((6, 7, 3))
