@@ -1182,3 +1182,21 @@ def test_nonfinite_chromaticities_are_not_taken(tmp_path):
     p = tmp_path / "a.exr"
     _pbrt_file_with_header(p, chromaticities=(0.64, 0.33, 0.3, 0.6, 0.15, np.nan, 0.3127, 0.329))
     assert read_exr(p).meta["chromaticities"] is None and exr_info(p)["chromaticities"] is None
+
+
+def test_a_sample_count_channel_takes_precedence_over_the_attribute(tmp_path):
+    # a file with both (another tool's per-pixel counts under a copied pbrt-v4 header):
+    # the per-pixel channel is the more specific, and spp= is checked against it
+    ch = {c: np.full((3, 4), 0.5, np.float32) for c in ("R", "G", "B")}
+    ch.update({f"Variance.{c}": np.full((3, 4), 0.1, np.float32) for c in "RGB"})
+    counts = np.arange(12, dtype=np.float32).reshape(3, 4) + 2
+    ch["SampleCount"] = counts
+    p = tmp_path / "both.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "samplesPerPixel": 64}, ch).write(str(p))
+    s = read_exr(p)
+    np.testing.assert_array_equal(s.n, counts)
+    assert s.meta["sample_count_source"] == "file"
+    with pytest.raises(InputError, match="disagrees with the SampleCount channel"):
+        read_exr(p, spp=64)
+    assert exr_info(p)["samples_per_pixel"] == 64 and exr_info(p)["sample_count"]["max"] == 13
