@@ -251,10 +251,14 @@ def _need_variance(stats, path: str, what: str) -> None:
     if few:
         which = ("every pixel" if few == stats.n.size
                  else f"{few} of its {stats.n.size} pixels")
+        source = stats.meta.get("sample_count_source")
+        n = int(stats.n.min())
+        count = (f"SampleCount min {n}" if source not in ("header", "spp") else
+                 f"{n} sample{'s' if n != 1 else ''} per pixel, "
+                 + ("its samplesPerPixel header attribute" if source == "header" else "--spp"))
         raise InputError(f"{what} needs a variance in every pixel, but {which} of {path} "
                          f"{'has' if few == stats.n.size else 'have'} fewer than 2 samples "
-                         f"(SampleCount min {int(stats.n.min())}); render at least 2 samples "
-                         "in every pixel.")
+                         f"({count}); render at least 2 samples in every pixel.")
 
 
 def _need_rgb(stats, path: str, what: str, instead: str) -> None:

@@ -2105,3 +2105,24 @@ def test_nonfinite_alpha_is_refused_before_the_work(tmp_path, monkeypatch, args)
     code, _, err = run_cli(*[x.format(a=a, b=b) for x in args], "--out", tmp_path / "o.exr")
     assert code == 2 and err.count("\n") == 1, err
     assert f"{a}: its alpha channel A holds 1 NaN/Inf values" in err
+
+
+def test_too_few_samples_names_where_the_count_came_from(tmp_path):
+    # a 1-spp pbrt-v4 render has no SampleCount channel: before, the refusal said
+    # "(SampleCount min 1)" of a file without one
+    import OpenEXR
+    ch = {c: np.full((4, 5), 0.5, np.float32) for c in "RGB"}
+    ch.update({f"Variance.{c}": np.zeros((4, 5), np.float32) for c in "RGB"})
+    p = tmp_path / "pbrt1.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "samplesPerPixel": 1}, {k: v.copy() for k, v in ch.items()}).write(str(p))
+    code, _, err = run_cli("progressive", p, "--denoiser", "gaussian", "--out", tmp_path / "o.exr")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "(1 sample per pixel, its samplesPerPixel header attribute)" in err
+    code, _, err = run_cli("progressive", p, "--denoiser", "gaussian", "--out", tmp_path / "o.exr",
+                           "--spp", 1)
+    assert code == 2 and "(1 sample per pixel" in err, err
+    q = tmp_path / "counts.exr"
+    _write_channels(q, dict(ch, SampleCount=np.full((4, 5), 1.0)))
+    code, _, err = run_cli("progressive", q, "--denoiser", "gaussian", "--out", tmp_path / "o.exr")
+    assert code == 2 and "(SampleCount min 1)" in err, err
