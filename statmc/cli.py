@@ -1263,6 +1263,7 @@ _CLI_WORDING = (
     ("=VALUE` on the command line) or add <default", "=VALUE` or add <default"),
     ("`params`", "-D"),
     ("`sensor`", "--sensor"),
+    ("`layer` must be a layer name", "--layer must be a layer name"),
     ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
     ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),
 )

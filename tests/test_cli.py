@@ -2126,3 +2126,14 @@ def test_too_few_samples_names_where_the_count_came_from(tmp_path):
     _write_channels(q, dict(ch, SampleCount=np.full((4, 5), 1.0)))
     code, _, err = run_cli("progressive", q, "--denoiser", "gaussian", "--out", tmp_path / "o.exr")
     assert code == 2 and "(SampleCount min 1)" in err, err
+
+
+def test_a_bad_layer_is_named_as_the_option(tmp_path):
+    # before: "`layer` must be a layer name ..." named the Python keyword, not --layer
+    p = tmp_path / "a.exr"
+    _blender_file(p, np.random.default_rng(23))
+    for bad in ("", "ViewLayer."):
+        code, _, err = run_cli("reconstruct", p, "--layer", bad, "--out", tmp_path / "o.exr")
+        assert code == 2 and err.count("\n") == 1, err
+        assert f"--layer must be a layer name such as 'ViewLayer.Combined' (without the channel's " \
+               f"last part); got {bad!r}." in err and "`layer`" not in err
