@@ -275,8 +275,10 @@ _REC709 = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 def _same_colour_space(a, b) -> bool:
     """Whether two ``chromaticities`` (8 floats or None, which is Rec. 709) are the same
-    primaries and white point, to float32 precision (as the attribute stores them)."""
-    return bool(np.allclose(a or _REC709, b or _REC709, rtol=0, atol=1e-6))
+    primaries and white point: within 1e-3 in x and y, which takes D65 written as
+    (0.3127, 0.3290) or (0.31271, 0.32902) alike, while the spaces in use differ by more
+    (Rec. 709, P3, Rec. 2020 and ACES primaries by > 0.01, D60 from D65 by 0.009)."""
+    return bool(np.allclose(a or _REC709, b or _REC709, rtol=0, atol=1e-3))
 
 
 def _describe_colour_space(c) -> str:

@@ -2056,8 +2056,10 @@ def test_files_in_different_colour_spaces_are_refused(tmp_path, cmd):
     assert "has the chromaticities (0.713, 0.293, 0.165, 0.83, 0.128, 0.044, 0.3217, 0.3377)" in err
     assert f"{b} has none (Rec. 709/sRGB)" in err and "different colour spaces" in err
     assert not out.exists()
-    # the same primaries, or Rec. 709 spelled out against none: compared as before
-    for ca, cb in ((ACES_CG, ACES_CG), (REC_709, None)):
+    # the same primaries, or Rec. 709 spelled out against none (also with D65 to 5 digits,
+    # as some tools write it): compared as before
+    precise = REC_709[:6] + (0.31271, 0.32902)
+    for ca, cb in ((ACES_CG, ACES_CG), (REC_709, None), (precise, None)):
         _write_in_colour_space(a, ch, ca)
         _write_in_colour_space(b, ch, cb)
         code, stdout, err = run_cli(cmd[0], a, b, *[x.format(o=out) for x in cmd[1:]])
