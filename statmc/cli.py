@@ -565,7 +565,7 @@ def cmd_render(args) -> int:
         "seconds_reconstruct": seconds_rec,
         "renderer_info": {k: v for k, v in stats.meta.items() if np.isscalar(v) or isinstance(v, str)},
     }
-    if hasattr(renderer, "nonfinite_samples"):  # all passes (the merged meta has the first's)
+    if hasattr(renderer, "nonfinite_samples"):  # the renderer's count of all its passes
         report["renderer_info"]["nonfinite_samples"] = renderer.nonfinite_samples
     if ref is not None:
         report["reference"] = args.reference
