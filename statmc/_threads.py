@@ -125,7 +125,8 @@ def serial_below(work: int, threshold: int):
 #: a call pays for waking a sleeping worker: about 13 ms per ``gem.reconstruct`` on an
 #: idle 2-core machine, whatever the size.  Serially a 256x256 RGB reconstruction took
 #: 21 ms against 26 ms in parallel, a 384x384 one 47 against 40 ms (median of repeated
-#: calls, load average about 1).
+#: calls, load average about 1).  Re-measured in session 11 (docs/gem.md §7): the two
+#: cross between 320x320 (33 vs 34 ms) and 384x384.
 SERIAL_VALUES = 300_000
 
 
