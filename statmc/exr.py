@@ -40,7 +40,7 @@ import threading
 
 import numpy as np
 
-from .errors import FileFormatError, InputError, as_float_array, check_finite
+from .errors import FileFormatError, InputError, as_float_array, check_finite, real_or_nan
 from .stats import PixelStats
 
 __all__ = ["read_exr", "read_image", "read_channels", "exr_info", "exr_windows", "write_exr",
@@ -1205,11 +1205,22 @@ def to_display(image, *, exposure: float = 0.0, tonemap: str = "srgb") -> np.nda
         image = image.mean
     x = as_float_array("image", image, ndim=(2, 3))
     check_finite("image", x)
-    if not np.isfinite(exposure):
+    if not np.isfinite(real_or_nan(exposure)):
         raise InputError(f"`exposure` must be a finite number of stops; got {exposure!r}.")
     if tonemap not in _TONEMAPS:
         raise InputError(f"`tonemap` must be one of {_TONEMAPS}; got {tonemap!r}.")
-    x = np.maximum(x.astype(np.float64) * 2.0 ** exposure, 0.0)
+    try:
+        scale = 2.0 ** real_or_nan(exposure)
+    except OverflowError:                   # 2**1100: every positive value shows white
+        scale = None
+    if scale is None:
+        x = np.where(x > 0, np.inf, 0.0)
+    else:
+        with np.errstate(over="ignore"):    # 1e300 · 2**100: inf, white
+            x = np.maximum(x.astype(np.float64) * scale, 0.0)
+    # Above 1e150 every curve is at its limit to float64's precision (x/(1+x) = 1, ACES
+    # 2.51/2.43); capping there keeps x² finite and inf/inf from making NaN.
+    x = np.minimum(x, 1e150)
     if tonemap == "reinhard":
         x = x / (1.0 + x)
     elif tonemap == "aces":

@@ -474,6 +474,26 @@ def test_tonemaps():
         to_display(x, tonemap="filmic")
 
 
+@pytest.mark.parametrize("tonemap", ["srgb", "reinhard", "aces"])
+@pytest.mark.parametrize("exposure", [1000.0, 1100.0])
+def test_to_display_with_values_beyond_float_range(tonemap, exposure):
+    """An exposure or a value that takes x past float64 shows white where x > 0 and black
+    at 0, quietly: before, 2**1100 raised OverflowError, ACES squared x into inf (a
+    RuntimeWarning and NaN) and Reinhard made inf/inf = NaN."""
+    import warnings
+    x = np.array([[[0.0, 1e-3, 5.0], [1e300, 0.0, 2.0]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = to_display(x, tonemap=tonemap, exposure=exposure)
+        big = to_display(np.array([[1e300, 1e151, 0.0]]), tonemap=tonemap)
+    white = to_display(np.ones((1, 1)))[0, 0]          # the sRGB curve's 1, to rounding
+    np.testing.assert_array_equal(out, np.where(x > 0, white, 0.0))
+    np.testing.assert_array_equal(big, [[white, white, 0.0]])
+    for bad in ("2", True, [1.0]):
+        with pytest.raises(InputError, match="`exposure`"):
+            to_display(x, exposure=bad)
+
+
 # ---------------------------------------------------------------------------- channel covariance
 def _stats_with_cov(rng, h=5, w=4):
     """Statistics whose sample variances and covariances are float32-representable."""
