@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy import optimize, stats as sps
 
+from _memory import assert_central_part, traced_peak
 from statmc import InputError
 from statmc import _analytic_kernels as ak
 from statmc import analytic as an
@@ -897,8 +898,6 @@ def test_kernels_of_absurd_scales_stay_small():
     expected_error_sampler's weight_sigma = 1e6 filtered with 6e6 taps (154 MiB, 13 s).
     Now the taps are cut to the 2(max(H, W) − 1) + 1 that reach the image (exact: the
     rest fall outside it for every pixel); the kernels still give the bank's filter."""
-    import tracemalloc
-
     from statmc.filters import gaussian_filter
     from statmc.stats import PixelStats
     rng = np.random.default_rng(8)
@@ -909,12 +908,7 @@ def test_kernels_of_absurd_scales_stay_small():
     an.expected_error_sampler(st, 500, rng=0)
 
     def small(fn, *args, **options):
-        tracemalloc.start()
-        try:
-            out = fn(*args, **options)
-            peak = tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
+        out, peak = traced_peak(fn, *args, **options)
         assert peak < 8 << 20, (fn.__name__, options, peak)
         return out
 
@@ -940,13 +934,7 @@ def test_kernels_cut_to_the_image_equal_the_whole_ones(monkeypatch):
     ref = an._smooth_reference_estimate(m, mv, 4.0)
     monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
     cut = an.scale_kernels(sc, (0.0, 1.0, 4.0), dtype=np.float64)
-    r, c = whole.shape[2] // 2, cut.shape[2] // 2
-    assert (r, c) == (12, 8)
-    np.testing.assert_allclose(cut, whole[:, :, r - c:r + c + 1, r - c:r + c + 1],
-                               rtol=1e-12, atol=0)
-    inner = np.zeros(whole.shape[2:], bool)
-    inner[r - c:r + c + 1, r - c:r + c + 1] = True
-    assert np.all(whole[:, :, ~inner] == 0)
+    assert_central_part(cut, whole, (12, 8))
     np.testing.assert_allclose(an._smooth_reference_estimate(m, mv, 4.0), ref, rtol=1e-12)
 
 

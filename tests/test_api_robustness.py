@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
+from _memory import traced_peak
 from statmc import analytic, combine, denoisers, filters, gem, progressive, sampling, sure
 from statmc.errors import InputError
 from statmc.stats import PixelStats
@@ -627,18 +628,12 @@ def test_gem_with_absurd_scales_stays_small():
     variances built the whole kernel, so gem.reconstruct(sigmas=(0, 1, 1e8)) on 64×64
     ran 68 s into a MemoryError (13.7 GiB resident) and σ = 1e6 allocated ~275 MiB
     here (137 MiB in kernel_moment2 alone).  Now a few MiB whatever σ."""
-    import tracemalloc
     x, v, n, _ = _inputs(12)
     _gem_calls_at([0.0, 1.0, 3.0], x, v, n)              # compile outside the measurement
     for big in (1e6, 1e8, 1e150):
         sig = [0.0, 1.0, big]
-        tracemalloc.start()
-        try:
-            out = _gem_calls_at(sig, x, v, n)
-            filters.kernel_moment2(big)
-            peak = tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
+        out, peak = traced_peak(lambda: (_gem_calls_at(sig, x, v, n),
+                                         filters.kernel_moment2(big))[0])
         assert peak < 4 << 20, (big, peak)
         for key in ("recon", "dv", "sf"):
             assert np.all(np.isfinite(out[key])), key

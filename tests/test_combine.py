@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from _memory import traced_peak
 from statmc import _combine_kernels as ck
 from statmc.analytic import apply_kernels
 from statmc.combine import (buffer_moments, combine, combine_bias_variance, combine_boosting,
@@ -1914,7 +1915,6 @@ def test_combine_denoised_keeps_the_sure_terms_only_when_asked():
     thread: the parallel kernels' traced temporaries vary by ±0.4 MB with the scheduling
     (measured), one thread makes the peak repeat to within 0.2 kB."""
     import gc
-    import tracemalloc
 
     import numba
 
@@ -1928,13 +1928,11 @@ def test_combine_denoised_keeps_the_sure_terms_only_when_asked():
         gc.collect()
         threads = numba.get_num_threads()
         numba.set_num_threads(1)
-        tracemalloc.start()
         try:
-            out = combine_denoised(st.mean, st.mean_var, f, size=5, probes=2, stencil=3,
-                                   rng=1, extra_output=True, **kw)
-            return tracemalloc.get_traced_memory()[1], out
+            out, top = traced_peak(combine_denoised, st.mean, st.mean_var, f, size=5,
+                                   probes=2, stencil=3, rng=1, extra_output=True, **kw)
+            return top, out
         finally:
-            tracemalloc.stop()
             numba.set_num_threads(threads)
 
     peak()                                                   # compile the kernels first

@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 
+from _memory import assert_central_part, traced_peak
 from statmc import denoisers as D
 from statmc.analytic import apply_kernels
 from statmc.errors import InputError
@@ -89,19 +90,14 @@ def test_gaussian_with_absurd_sigma_stays_small():
     .kernels(shape) asked for an (H, W, 6e6, 6e6) array (MemoryError, 65.5 PiB).  The taps
     are now built for the image in .kernels, cut to the 2(max(H, W) − 1) + 1 that reach
     it: a few MiB whatever σ, and the kernels still reproduce the filter."""
-    import tracemalloc
     x = np.random.default_rng(4).random((16, 12, 3))
     D.gaussian(1.0).kernels(x.shape)                  # compile outside the measurement
     D.gaussian(1.0)(x)
     for sigma in (1e6, 1e8, 1e300):
-        tracemalloc.start()
-        try:
+        def build_and_apply(sigma):
             f = D.gaussian(sigma)
-            K = f.kernels(x.shape)
-            y = f(x)
-            peak = tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
+            return f, f.kernels(x.shape), f(x)
+        (f, K, y), peak = traced_peak(build_and_apply, sigma)
         assert peak < 4 << 20, (sigma, peak)
         assert K.shape == (16, 12, 31, 31)
         np.testing.assert_allclose(apply_kernels(K, x), y, rtol=1e-12, atol=0)
@@ -122,13 +118,7 @@ def test_gaussian_kernels_cut_to_the_image_equal_the_whole_ones(monkeypatch):
     whole = D.gaussian(4.0).kernels(shape)
     monkeypatch.setattr(filters, "_MAX_FULL_RADIUS", 2)
     cut = D.gaussian(4.0).kernels(shape)
-    r, c = whole.shape[2] // 2, cut.shape[2] // 2
-    assert (r, c) == (12, 8)
-    np.testing.assert_allclose(cut, whole[:, :, r - c:r + c + 1, r - c:r + c + 1],
-                               rtol=1e-12, atol=0)
-    inner = np.zeros(whole.shape[2:], bool)
-    inner[r - c:r + c + 1, r - c:r + c + 1] = True
-    assert np.all(whole[:, :, ~inner] == 0)
+    assert_central_part(cut, whole, (12, 8))
 
 
 def test_gaussian_keeps_float32():

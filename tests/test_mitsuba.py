@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
+from _memory import traced_peak
 from statmc import InputError
 from statmc.errors import FileFormatError
 from statmc import mitsuba_backend as mb
@@ -788,19 +789,12 @@ def test_crn_render_memory_is_the_two_arrays_it_checks(cornell):
     """The ``CRN_MAX_BYTES`` check counts two ``(H, W, m, m, 3)`` float64 arrays; the
     stencil is formed in place, so the peak NumPy allocation stays there (forming it by
     temporaries took twice as much: 4 arrays)."""
-    import tracemalloc
-
     if not cornell._jit:
         pytest.skip("CRN renders need a JIT variant")
     m = 15
     need = 2 * cornell.height * cornell.width * m * m * 3 * 8
     cornell.render_crn(2, seed=5, stencil=1, features=False)    # compile/load the kernel first
-    tracemalloc.start()
-    try:
-        cornell.render_crn(2, seed=5, stencil=m, features=False)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    _, peak = traced_peak(cornell.render_crn, 2, seed=5, stencil=m, features=False)
     assert peak < 1.25 * need, (peak, need)
 
 

@@ -16,6 +16,7 @@ from scipy import optimize
 from scipy import stats as sst
 from scipy.special import ndtr
 
+from _memory import traced_peak
 from statmc import _progressive_kernels as pk
 from statmc import denoisers
 from statmc import progressive as pg
@@ -872,17 +873,11 @@ def test_mixing_weights_with_an_absurd_smooth_stays_small():
     (_smooth_k2): smooth = 1e6 took 137 MiB and ~8 s on 16×12 pixels (6e6 taps through
     scipy's correlate1d), 1e300 raised as 'a kernel array'.  It now takes _smooth's taps,
     cut to the image, like the averages it goes with: a few MiB whatever σ."""
-    import tracemalloc
     x, y, v, sure, d = _mix_inputs(31, (16, 12, 3))
     pg.mixing_weights(x, y, v, sure, d, smooth=2.0, shrink=1.0)   # warm up
     for big in (1e6, 1e300):
-        tracemalloc.start()
-        try:
-            a, info = pg.mixing_weights(x, y, v, sure, d, smooth=big, shrink=1.0,
-                                        extra_output=True)
-            peak = tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
+        (a, info), peak = traced_peak(pg.mixing_weights, x, y, v, sure, d, smooth=big,
+                                      shrink=1.0, extra_output=True)
         assert peak < 4 << 20, (big, peak)
         assert np.all(np.isfinite(info["se_model"])) and np.all((a >= 0) & (a <= 1))
 
@@ -910,19 +905,14 @@ def test_confidence_gate_with_a_window_wider_than_the_image_stays_small():
     on 16×12 pixels (1e9 + 1 some 30 GB) and 1e30 + 1 raised NumPy's 'Maximum allowed size
     exceeded'.  Offsets of max(H, W) or more never meet the image, so the half-width is
     cut there: bit for bit the window of the whole image, a few MiB whatever the window."""
-    import tracemalloc
     x, y, v, _, _ = _mix_inputs(33, (16, 12, 3))
     alpha = np.random.default_rng(34).random((16, 12, 3))
     for dt in (np.float32, np.float64):
         xd, yd = x.astype(dt), y.astype(dt)
         whole = pg.confidence_gate(xd, yd, v, alpha, window=31, extra_output=True)  # 2·16 − 1
         for window in (33, 41, 2 * 10**6 + 1, 10**30 + 1):
-            tracemalloc.start()
-            try:
-                got = pg.confidence_gate(xd, yd, v, alpha, window=window, extra_output=True)
-                peak = tracemalloc.get_traced_memory()[1]
-            finally:
-                tracemalloc.stop()
+            got, peak = traced_peak(pg.confidence_gate, xd, yd, v, alpha, window=window,
+                                    extra_output=True)
             assert peak < 4 << 20, (window, peak)
             np.testing.assert_array_equal(got[0], whole[0])
             for key in whole[1]:
