@@ -494,3 +494,65 @@ def test_flip_runtime_waits_passively_and_environment_is_restored():
     assert all(policy == "ACTIVE" and spin != "0" for spin, policy in gomp_u), gomp_u
     assert after_u == "'ACTIVE'"
     assert value_u == value                                # the wait policy never changes FLIP
+
+
+# ---------------------------------------------------------------------------- wide windows (session 11)
+def _wide_pair(shape=(16, 16, 3), seed=31):
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(0.05, 2.0, size=shape)
+    return np.abs(r + 0.3 * rng.standard_normal(shape)), r
+
+
+def test_logloss_and_ssim_with_an_absurd_sigma_stay_small():
+    """Regression (session 11): logloss(sigma=1e6) on 16x16 built 2·int(4σ+0.5)+1 = 8e6
+    taps and ran them through correlate1d (28 s, 244 MiB); ssim_map's gaussian_filter the
+    same with 3.5σ.  The kernels are now folded onto the 32-pixel period of the reflected
+    image.  Both also have closed forms there: a window flat over the period blurs the
+    reflected image to its global mean (SSIM of the global moments), and the LoG of a
+    flat window is ~0 (logLoss = its first term); the taps differ from flat by
+    ~(32/σ)² ~ 1e-9."""
+    import tracemalloc
+    x, r = _wide_pair()
+    tracemalloc.start()
+    try:
+        ll = logloss(x, r, sigma=1e6)
+        s = ssim_map(x, r, sigma=1e6)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2 ** 20, f"peak {peak / 2 ** 20:.1f} MiB"
+    xl, rl = np.log1p(x), np.log1p(r)
+    assert ll == pytest.approx(np.mean(0.5 * np.abs(xl - rl) / (rl + 0.01)), rel=1e-7)
+    mx, my = x.mean((0, 1)), r.mean((0, 1))
+    vx, vy = x.var((0, 1)), r.var((0, 1))
+    cxy = ((x - mx) * (r - my)).mean((0, 1))
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    want = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2))
+    np.testing.assert_allclose(s, np.broadcast_to(want, s.shape), rtol=1e-7)
+
+
+@pytest.mark.parametrize("shape", [(16, 12, 3), (1, 7, 2), (5, 1, 1), (33, 20, 1)])
+def test_folded_kernels_equal_the_whole_ones(shape, monkeypatch):
+    """The folded path (taps summed modulo the reflection's period 2n, per axis) gives
+    what the whole kernel gives through scipy's reflect mode, up to rounding, for σ
+    below, near and far beyond the image size (forced on by a limit of 0 taps)."""
+    import statmc.metrics as m
+    x, r = _wide_pair(shape, seed=32)
+    for sigma in (0.6, 2.5, 7.0, 40.0):
+        ll, s = logloss(x, r, sigma=sigma, per_pixel=True), ssim_map(x, r, sigma=sigma)
+        monkeypatch.setattr(m, "_MAX_FULL_RADIUS", 0)
+        ll_f, s_f = logloss(x, r, sigma=sigma, per_pixel=True), ssim_map(x, r, sigma=sigma)
+        monkeypatch.undo()
+        np.testing.assert_allclose(ll_f, ll, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(s_f, s, rtol=1e-11, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma", [4.3e6, 1e300])
+def test_sigma_past_the_fold_limit_is_refused(sigma):
+    x, r = _wide_pair((4, 4, 1))
+    with pytest.raises(InputError, match=r"`sigma` must be at most 4.194e\+06 pixels for the "
+                                         r"logLoss LoG.*got"):
+        logloss(x, r, sigma=sigma)
+    with pytest.raises(InputError, match=r"`sigma` must be at most 4.793e\+06 pixels for "
+                                         r"SSIM's window.*got"):
+        one_minus_ssim(x, r, sigma=max(sigma, 4.8e6))
