@@ -997,6 +997,12 @@ def stop_pooled_many(pooled, v, Cv, fk, weight, out):  # pragma: no cover - comp
         va = v[k, y]
         vb = v[k + 1, y]
         o = out[k, y]
+        if Cv == 1:  # reconstruct's case, written out so that it vectorises (3x faster)
+            for i in range(W):
+                s = weight * f * max(np.float64(p[i]), 0.0)
+                s += np.float64(vb[i]) - np.float64(va[i])
+                o[i] = 1.0 if s > 0.0 else 0.0
+            continue
         for i in range(W):
             s = weight * f * max(np.float64(p[i]), 0.0)
             for c in range(Cv):
