@@ -292,32 +292,32 @@ def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover - co
     the channel-summed variance; out : (H, W).  Accumulates in float64.
     NumPy reference: ``statmc.gem.pooled_selector``.
     """
-    H, Lx = f0.shape
-    W = Lx // C
+    H = f0.shape[0]
     for y in prange(H):
-        a = f0[y]
-        b = f1[y]
-        va = v0[y]
-        vb = v1[y]
-        cv = cov[y]
-        o = out[y]
-        if C == 3 and Cv == 1:  # the fast path of reconstruct, unrolled so that it vectorises
-            for i in range(W):
-                d0 = np.float64(b[3 * i]) - np.float64(a[3 * i])
-                d1 = np.float64(b[3 * i + 1]) - np.float64(a[3 * i + 1])
-                d2 = np.float64(b[3 * i + 2]) - np.float64(a[3 * i + 2])
-                vs = np.float64(va[i]) + np.float64(vb[i]) - 2.0 * np.float64(cv[i])
-                o[i] = d0 * d0 + d1 * d1 + d2 * d2 - max(vs, 0.0)
-            continue
+        _pooled_bias_row(f0[y], f1[y], v0[y], v1[y], cov[y], C, Cv, out[y])
+
+
+@njit(fastmath=True, nogil=True, cache=True)
+def _pooled_bias_row(a, b, va, vb, cv, C, Cv, o):  # pragma: no cover - compiled
+    """One row of :func:`pooled_bias_input` (and of its fused form)."""
+    W = o.shape[0]
+    if C == 3 and Cv == 1:  # the fast path of reconstruct, unrolled so that it vectorises
         for i in range(W):
-            d2 = 0.0
-            for c in range(C):
-                d = np.float64(b[i * C + c]) - np.float64(a[i * C + c])
-                d2 += d * d
-            vs = 0.0
-            for c in range(Cv):
-                vs += np.float64(va[i * Cv + c]) + np.float64(vb[i * Cv + c])
-            o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
+            d0 = np.float64(b[3 * i]) - np.float64(a[3 * i])
+            d1 = np.float64(b[3 * i + 1]) - np.float64(a[3 * i + 1])
+            d2 = np.float64(b[3 * i + 2]) - np.float64(a[3 * i + 2])
+            vs = np.float64(va[i]) + np.float64(vb[i]) - 2.0 * np.float64(cv[i])
+            o[i] = d0 * d0 + d1 * d1 + d2 * d2 - max(vs, 0.0)
+        return
+    for i in range(W):
+        d2 = 0.0
+        for c in range(C):
+            d = np.float64(b[i * C + c]) - np.float64(a[i * C + c])
+            d2 += d * d
+        vs = 0.0
+        for c in range(Cv):
+            vs += np.float64(va[i * Cv + c]) + np.float64(vb[i * Cv + c])
+        o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -330,17 +330,26 @@ def stop_pooled(pooled, v0, v1, Cv, fk, weight, out):  # pragma: no cover - comp
     pooling).  pooled : (H, W); v0, v1 : (H, W*Cv); out : (H, W) float32.
     NumPy reference: ``statmc.gem.pooled_selector``.
     """
-    H, W = pooled.shape
+    H = pooled.shape[0]
     for y in prange(H):
-        p = pooled[y]
-        va = v0[y]
-        vb = v1[y]
-        o = out[y]
+        _stop_pooled_row(pooled[y], v0[y], v1[y], Cv, fk, weight, out[y])
+
+
+@njit(fastmath=True, nogil=True, cache=True)
+def _stop_pooled_row(p, va, vb, Cv, fk, weight, o):  # pragma: no cover - compiled
+    """One row of :func:`stop_pooled` (and of its fused form)."""
+    W = o.shape[0]
+    if Cv == 1:  # reconstruct's case, written out so that it vectorises (3x faster)
         for i in range(W):
             s = weight * fk * max(np.float64(p[i]), 0.0)
-            for c in range(Cv):
-                s += np.float64(vb[i * Cv + c]) - np.float64(va[i * Cv + c])
+            s += np.float64(vb[i]) - np.float64(va[i])
             o[i] = 1.0 if s > 0.0 else 0.0
+        return
+    for i in range(W):
+        s = weight * fk * max(np.float64(p[i]), 0.0)
+        for c in range(Cv):
+            s += np.float64(vb[i * Cv + c]) - np.float64(va[i * Cv + c])
+        o[i] = 1.0 if s > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -353,23 +362,26 @@ def finish_stop_map(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cov
     gives ``m = (filt − w0·raw)/(1 − w0)``; the result is 1 where ``m >= 1/2`` (ties keep
     the finer scale).  With ``coarser_only`` a 0 stays 0 (final reconstruction, §6).
     """
-    H, W = filt.shape
+    H = filt.shape[0]
     for y in prange(H):
-        a = wc * sy[y]
-        fr = filt[y]
-        rr = raw[y]
-        o = out[y]
-        for i in range(W):
-            w0 = a * wc * sx[i]
-            b = rr[i]
-            den = 1.0 - w0
-            if den <= 1e-6:  # no neighbours (1x1 image): keep the raw decision
-                m = b
-            else:
-                m = 1.0 if (fr[i] - w0 * b) >= 0.5 * den else 0.0
-            if coarser_only and m > b:
-                m = b
-            o[i] = m
+        _finish_stop_row(filt[y], raw[y], wc, sy[y], sx, coarser_only, out[y])
+
+
+@njit(fastmath=True, nogil=True, cache=True)
+def _finish_stop_row(fr, rr, wc, sy, sx, coarser_only, o):  # pragma: no cover - compiled
+    """One row of :func:`finish_stop_map` (and of its fused form); ``sy`` is the row's factor."""
+    a = wc * sy
+    for i in range(o.shape[0]):
+        w0 = a * wc * sx[i]
+        b = rr[i]
+        den = 1.0 - w0
+        if den <= 1e-6:  # no neighbours (1x1 image): keep the raw decision
+            m = b
+        else:
+            m = 1.0 if (fr[i] - w0 * b) >= 0.5 * den else 0.0
+        if coarser_only and m > b:
+            m = b
+        o[i] = m
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -950,33 +962,11 @@ def pooled_bias_input_many(f, v, cov, C, Cv, out):  # pragma: no cover - compile
     """
     Km1 = out.shape[0]
     H = out.shape[1]
-    W = out.shape[2]
     for t in prange(Km1 * H):
         k = t // H
         y = t - k * H
-        a = f[k, y]
-        b = f[k + 1, y]
-        va = v[k, y]
-        vb = v[k + 1, y]
-        cv = cov[k, y]
-        o = out[k, y]
-        if C == 3 and Cv == 1:
-            for i in range(W):
-                d0 = np.float64(b[3 * i]) - np.float64(a[3 * i])
-                d1 = np.float64(b[3 * i + 1]) - np.float64(a[3 * i + 1])
-                d2 = np.float64(b[3 * i + 2]) - np.float64(a[3 * i + 2])
-                vs = np.float64(va[i]) + np.float64(vb[i]) - 2.0 * np.float64(cv[i])
-                o[i] = d0 * d0 + d1 * d1 + d2 * d2 - max(vs, 0.0)
-            continue
-        for i in range(W):
-            d2 = 0.0
-            for c in range(C):
-                d = np.float64(b[i * C + c]) - np.float64(a[i * C + c])
-                d2 += d * d
-            vs = 0.0
-            for c in range(Cv):
-                vs += np.float64(va[i * Cv + c]) + np.float64(vb[i * Cv + c])
-            o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
+        _pooled_bias_row(f[k, y], f[k + 1, y], v[k, y], v[k + 1, y], cov[k, y], C, Cv,
+                         out[k, y])
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -988,26 +978,10 @@ def stop_pooled_many(pooled, v, Cv, fk, weight, out):  # pragma: no cover - comp
     """
     Km1 = out.shape[0]
     H = out.shape[1]
-    W = out.shape[2]
     for t in prange(Km1 * H):
         k = t // H
         y = t - k * H
-        f = fk[k]
-        p = pooled[k, y]
-        va = v[k, y]
-        vb = v[k + 1, y]
-        o = out[k, y]
-        if Cv == 1:  # reconstruct's case, written out so that it vectorises (3x faster)
-            for i in range(W):
-                s = weight * f * max(np.float64(p[i]), 0.0)
-                s += np.float64(vb[i]) - np.float64(va[i])
-                o[i] = 1.0 if s > 0.0 else 0.0
-            continue
-        for i in range(W):
-            s = weight * f * max(np.float64(p[i]), 0.0)
-            for c in range(Cv):
-                s += np.float64(vb[i * Cv + c]) - np.float64(va[i * Cv + c])
-            o[i] = 1.0 if s > 0.0 else 0.0
+        _stop_pooled_row(pooled[k, y], v[k, y], v[k + 1, y], Cv, fk[k], weight, out[k, y])
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -1019,24 +993,8 @@ def finish_stop_map_many(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: n
     """
     K = out.shape[0]
     H = out.shape[1]
-    W = out.shape[2]
     for t in prange(K * H):
         k = t // H
         y = t - k * H
-        c0 = wc[k]
-        a = c0 * sy[k, y]
-        fr = filt[k, y]
-        rr = raw[k, y]
-        sxk = sx[k]
-        o = out[k, y]
-        for i in range(W):
-            w0 = a * c0 * sxk[i]
-            b = rr[i]
-            den = 1.0 - w0
-            if den <= 1e-6:  # no neighbours (1x1 image): keep the raw decision
-                m = b
-            else:
-                m = 1.0 if (fr[i] - w0 * b) >= 0.5 * den else 0.0
-            if coarser_only and m > b:
-                m = b
-            o[i] = m
+        _finish_stop_row(filt[k, y], raw[k, y], wc[k], sy[k, y], sx[k], coarser_only,
+                         out[k, y])

@@ -130,20 +130,23 @@ def serial_below(work: int, threshold: int):
 SERIAL_VALUES = 300_000
 
 
-def serial_when_small(threshold: int = SERIAL_VALUES):
+def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
     """Decorator: run the function on one numba thread when its first argument holds fewer
     than ``threshold`` values (:func:`serial_below`) and numba's pool waits passively (the
-    user set no wait policy, see :func:`passive_omp`)."""
+    user set no wait policy, see :func:`passive_omp`).  ``threshold_of(kwargs)``, if
+    given, picks the threshold from the call's keyword arguments (a call that runs fewer
+    parallel regions pays fewer wake-ups, so it is parallel from a smaller size)."""
     def wrap(fn):
         @functools.wraps(fn)
         def run(first, *args, **kwargs):
+            limit = threshold if threshold_of is None else threshold_of(kwargs)
             try:
                 work = int(np.size(first))
             except Exception:                  # ragged input: the function will say why
-                work = threshold
+                work = limit
             if _user_chose_policy():
-                work = threshold               # spinning workers wake at once: stay parallel
-            with serial_below(work, threshold):
+                work = limit                   # spinning workers wake at once: stay parallel
+            with serial_below(work, limit):
                 return fn(first, *args, **kwargs)
         return run
     return wrap

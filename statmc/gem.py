@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from ._threads import serial_when_small
+from ._threads import SERIAL_VALUES, serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
                      check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _as_sigmas, _check_pair,
@@ -70,6 +70,19 @@ POOLED_FINAL_SIGMAS: tuple[float, ...] = (0.0,) + tuple(0.6 * 2.0 ** (k / 2) for
 #: (``bias="pooled"``); of 0.7, 1, 1.5 and 2 measured on the Mitsuba scenes, 1 was best
 #: or within 0.01 of it (docs/gem.md §5d).
 BIAS_POOL_SIGMA = 1.0
+#: Images of at most this many pixels run each stage of the pooled selection and of the
+#: stopping-map post-processing for all scales in one parallel region (the ``*_many``
+#: kernels of :mod:`statmc._filter_kernels`): numba's pool waits passively, so each region
+#: pays for waking it, and per scale a ``reconstruct`` ran 73 regions (11 fused).  Larger
+#: images keep the scale-by-scale loop, which holds two scales' variances instead of all
+#: (fused, 1080p took twice as long; 512x512 beside another job 1.07-1.18x).  Results are
+#: bit for bit the same either way (docs/gem.md §7).
+FUSED_PIXELS = 1 << 18
+#: ``select``/``reconstruct`` calls with the pooled selection run on numba's pool from this
+#: many values (about 128x128 RGB) instead of ``_threads.SERIAL_VALUES`` (about 320x320):
+#: fused, they wake the pool 11 times instead of 73, so parallel pays off sooner (one
+#: thread against the pool crossed between 96x96 and 128x128, docs/gem.md §7).
+FUSED_SERIAL_VALUES = 50_000
 
 
 # ---------------------------------------------------------------------------------------
@@ -410,9 +423,36 @@ def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAUL
     return _postprocess(raw, sig, final, truncate, map_scale) > 0.5
 
 
+def _filter_many(x, c, v, cv, src, taps, sy, sx, out_x, out_v=None):
+    """:func:`statmc.filters._run`'s filter for several jobs in one region: job k filters
+    ``x[src[k]]`` (and ``v[src[k]]``) with the 1-D taps ``taps[k]`` and per-output factors
+    ``sy[k]``, ``sx[k]`` into ``out_x[k]`` (``out_v[k]``)
+    (:func:`statmc._filter_kernels.sep_filter_many`)."""
+    dt = x.dtype
+    h = x.shape[1]
+    tt = np.zeros((len(taps), max(len(t) for t in taps)), dt)
+    for k, t in enumerate(taps):
+        tt[k, :len(t)] = t.astype(dt)
+    if v is None:
+        v, cv, out_v = np.empty((x.shape[0], h, 0), dt), 1, np.empty((len(taps), h, 0), dt)
+    _k.sep_filter_many(x, c, v, cv, np.asarray(src, np.int64), tt,
+                       np.array([len(t) for t in taps], np.int64),
+                       np.stack(sy).astype(dt), np.stack(sx).astype(dt), out_x, out_v)
+
+
 def _postprocess(raw, sig, final, truncate, map_scale=None):
     km1, h, w = raw.shape
     out = np.empty_like(raw)
+    if h * w <= FUSED_PIXELS:                     # all maps in two regions
+        taps = [_taps(s, truncate, max(h, w)) for s in _map_sigmas(sig, final, map_scale)]
+        sy = [border_scale(h, t) for t in taps]
+        sx = [border_scale(w, t) for t in taps]
+        filt = np.empty_like(raw)
+        _filter_many(raw, 1, None, 0, np.arange(km1), taps, sy, sx, filt)
+        _k.finish_stop_map_many(filt, raw, np.array([t[len(t) // 2] for t in taps], np.float32),
+                                np.stack(sy).astype(np.float32),
+                                np.stack(sx).astype(np.float32), bool(final), out)
+        return out
     filt = np.empty((h, w), np.float32)
     for k, s in enumerate(_map_sigmas(sig, final, map_scale)):
         wk = _taps(s, truncate, max(h, w))        # the kernel _run applies
@@ -636,6 +676,44 @@ def _variance_prior_reference(v, nn, weight, sigma, truncate=DEFAULT_TRUNCATE):
     return np.ascontiguousarray(((nb - 1) * s2 + k * pooled) / ((nb - 1 + k) * nb))
 
 
+def _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw):
+    """The bank and the pooled stopping maps of :func:`_core`, stage by stage for all
+    scales (one parallel region per stage): ``vals``, ``vars_`` (every scale's
+    variances) and ``raw`` are written."""
+    h, w = vsum.shape
+    nsc = len(sig)
+    dt = x.dtype
+    j0 = 0
+    while sig[j0] == 0.0:
+        vals[j0] = x
+        vars_[j0] = vr
+        j0 += 1
+    if j0 < nsc:                                  # the bank: one input, every σ
+        taps = [_taps(s, truncate, max(h, w)) for s in sig[j0:]]
+        _filter_many(x[None], c, vr[None], cv, np.zeros(nsc - j0), taps,
+                     [border_scale(h, t) for t in taps], [border_scale(w, t) for t in taps],
+                     vals[j0:], vars_[j0:])
+    cov = np.empty((nsc - 1, h, w), dt)           # pair covariances of the summed variance
+    p0 = 1 if sig[0] == 0.0 else 0
+    if p0:
+        _pair_covariance_rows(vsum, 1, sig[0], sig[1], truncate, out=cov[0])
+    if nsc - 1 > p0:
+        taps, sy, sx = [], [], []
+        for k in range(p0, nsc - 1):
+            t, ga, gb = _product_taps(sig[k], sig[k + 1], truncate, max(h, w))
+            taps.append(t)
+            sy.append(border_scale(h, ga) * border_scale(h, gb))
+            sx.append(border_scale(w, ga) * border_scale(w, gb))
+        _filter_many(vsum[None], 1, None, 0, np.zeros(len(taps)), taps, sy, sx, cov[p0:])
+    d = np.empty((nsc - 1, h, w), dt)
+    _k.pooled_bias_input_many(vals, vars_, cov, c, cv, d)
+    pool = _taps(BIAS_POOL_SIGMA, truncate, max(h, w))
+    _filter_many(d, 1, None, 0, np.arange(nsc - 1), [pool] * (nsc - 1),
+                 [border_scale(h, pool)] * (nsc - 1), [border_scale(w, pool)] * (nsc - 1),
+                 cov)                             # the pooled D, over the covariances
+    _k.stop_pooled_many(cov, vars_, cv, fr[:nsc - 1].astype(np.float64), 1.0, raw)
+
+
 def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
           debias=False, map_scale=None, bias="paper"):
     """Bank → stopping maps → post-processing → selection → image.
@@ -674,8 +752,15 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
         spare = [np.empty_like(vr), np.empty_like(vr)]
         slots = [spare[k % 2] for k in range(nsc)]
     raw = np.empty((nsc - 1, h, w), np.float32)
+    fused = pooled and h * w <= FUSED_PIXELS
+    if fused:
+        if vars_ is None:
+            vars_ = np.empty((nsc,) + vr.shape, dt)
+        _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw)
+        if not keep_bank:
+            vars_ = None
     prev = None
-    for k, s in enumerate(sig):
+    for k, s in enumerate(sig if not fused else ()):
         if s == 0.0:
             vals[k] = x
             if keep_bank:
@@ -725,7 +810,19 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
 # Public entry points
 # ---------------------------------------------------------------------------------------
 
-@serial_when_small()
+def _serial_threshold(kwargs) -> int:
+    """:func:`serial_when_small`'s threshold of a ``select``/``reconstruct`` call:
+    :data:`FUSED_SERIAL_VALUES` when its selection is the pooled one (``bias="pooled"``,
+    or the default of ``final=True``), whose stages run fused; else ``SERIAL_VALUES``."""
+    bias, final = kwargs.get("bias"), kwargs.get("final", True)
+    try:
+        pooled = bias == "pooled" if isinstance(bias, str) else (bias is None and bool(final))
+    except Exception:                          # an odd `final`: the call will say why
+        pooled = False
+    return FUSED_SERIAL_VALUES if pooled else SERIAL_VALUES
+
+
+@serial_when_small(threshold_of=_serial_threshold)
 def select(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
            sigmas=None, postprocess: bool = True, truncate: float = DEFAULT_TRUNCATE,
            map_scale=None, bias=None) -> dict:
@@ -806,7 +903,7 @@ def select_scales(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool =
                  keep_bank=False, map_scale=map_scale, bias=bias)["scales"]
 
 
-@serial_when_small()
+@serial_when_small(threshold_of=_serial_threshold)
 def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = True, n=None,
                 extra_output: bool = False, sigmas=None, map_scale=None, bias=None):
     """GEM reconstruction: each pixel takes the filter scale that minimises its MSE.

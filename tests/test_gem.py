@@ -1029,3 +1029,24 @@ def test_half_precision_inputs_are_read_as_float32():
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, want)
     gem.sampling_map(m, v, n, 4 * 120, rng=0)
+
+
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_fused_stages_equal_the_scale_by_scale_loop(monkeypatch, dt):
+    """Below ``FUSED_PIXELS`` the pooled selection and the map post-processing run stage by
+    stage for all scales (``_filter_kernels.*_many``); the results must be the loop's bit
+    for bit (select with its bank, reconstruct final and not, 1-channel and odd shapes)."""
+    rng = np.random.default_rng(11)
+    for h, w, c in [(37, 53, 3), (20, 9, 1), (1, 1, 3)]:
+        m = (rng.random((h, w, c)) ** 3).astype(dt)
+        v = (0.05 * rng.random((h, w, c))).astype(dt)
+        fused = [gem.reconstruct(m, v), gem.reconstruct(m, v, final=False, bias="pooled"),
+                 gem.select(m, v)]
+        monkeypatch.setattr(gem, "FUSED_PIXELS", -1)
+        loop = [gem.reconstruct(m, v), gem.reconstruct(m, v, final=False, bias="pooled"),
+                gem.select(m, v)]
+        monkeypatch.undo()
+        np.testing.assert_array_equal(fused[0], loop[0])
+        np.testing.assert_array_equal(fused[1], loop[1])
+        for key in ("image", "scales", "stop", "values", "variances", "est_mse"):
+            np.testing.assert_array_equal(fused[2][key], loop[2][key])

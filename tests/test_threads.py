@@ -116,6 +116,48 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
     assert numba.get_num_threads() == before
 
 
+def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monkeypatch):
+    """``threshold_of`` picks the threshold per call: gem.select/reconstruct with the pooled
+    selection (bias="pooled", or the default of final=True), whose stages run fused, use
+    the pool from ``gem.FUSED_SERIAL_VALUES`` values; the paper's selection
+    (final=False) keeps ``SERIAL_VALUES``."""
+    from statmc import _filter_kernels, _threads, gem
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread only")
+    for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
+        monkeypatch.delenv(k, raising=False)
+    seen = []
+
+    @_threads.serial_when_small(10, threshold_of=lambda kw: kw.get("limit", 10))
+    def probe(x, limit=10):
+        seen.append(numba.get_num_threads())
+
+    before = numba.get_num_threads()
+    probe(np.zeros(50), limit=100)
+    probe(np.zeros(50))
+    assert seen == [1, before]
+
+    threads = []
+    first_stop = _filter_kernels.first_stop           # every select/reconstruct calls it once
+
+    def spy(*args):
+        threads.append(numba.get_num_threads())
+        return first_stop(*args)
+
+    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    h = w = 136                                       # 55,488 values: between the thresholds
+    assert gem.FUSED_SERIAL_VALUES < h * w * 3 < _threads.SERIAL_VALUES
+    m = np.random.default_rng(1).random((h, w, 3))
+    v = np.full_like(m, 0.01)
+    gem.reconstruct(m, v)
+    gem.select(m, v, bias="pooled", final=False)
+    gem.reconstruct(m, v, final=False)
+    gem.reconstruct(m[:100, :100], v[:100, :100])
+    assert threads == [before, before, 1, 1]
+    assert numba.get_num_threads() == before
+
+
 _OIDN_PROBE = f"""
 import os, sys
 import numpy as np
