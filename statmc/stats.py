@@ -43,11 +43,13 @@ def _full_from_pairs(name, pairs, diag):
     if pairs.shape != (h, w, iu[0].size):
         raise InputError(f"`{name}` must be (H, W, C, C) = {(h, w, c, c)} or the channel pairs "
                          f"(H, W, C(C-1)/2) = {(h, w, iu[0].size)}; got {pairs.shape}.")
-    full = np.zeros((h, w, c, c))
-    full[..., iu[0], iu[1]] = pairs
-    full[..., iu[1], iu[0]] = pairs
-    k = np.arange(c)
-    full[..., k, k] = diag
+    # every entry written once by a slice assignment: faster than np.zeros + fancy indexing
+    full = np.empty((h, w, c, c))
+    for p, (a, b) in enumerate(zip(*iu)):
+        full[..., a, b] = pairs[..., p]
+        full[..., b, a] = pairs[..., p]
+    for k in range(c):
+        full[..., k, k] = diag[..., k]
     return full
 
 
@@ -188,6 +190,21 @@ class PixelStats:
         self.normal = _check_feature("normal", self.normal, hw)
         self.depth = _check_feature("depth", self.depth, hw)
 
+    @classmethod
+    def _with_built_cross(cls, n, mean, m2, cross, **features) -> "PixelStats":
+        """``cls(n, mean, m2, m2_cross=cross, **features)`` for a ``cross`` that
+        :func:`_full_from_pairs` built from pairs with the diagonal ``m2`` (this module's
+        constructors): exactly symmetric with that diagonal already, so
+        :func:`_check_cross` would return it unchanged (``0.5 (p + p) = p``) after a
+        symmetry check, a diagonal check and a rebuild (0.5 s and two more ``(H, W, C, C)``
+        arrays at 1920x1080).  Only finiteness is checked, with the same message.  Private:
+        ``PixelStats(...)`` given an ``m2_cross`` checks it all."""
+        stats = cls(n, mean, m2, **features)
+        if cross is not None:
+            check_finite("m2_cross", cross)
+            stats.m2_cross = cross
+        return stats
+
     # ------------------------------------------------------------------ constructors
     @classmethod
     def empty(cls, height: int, width: int, channels: int = 3) -> "PixelStats":
@@ -269,7 +286,7 @@ class PixelStats:
         _refuse_overflow("values", mean, m2, "their mean or their squared deviations from it "
                          "(beyond ~1e154)")            # before the pairs' own message
         cross = _full_from_pairs("m2_cross", pairs.reshape(h, w, -1), m2)
-        return cls(n.reshape(h, w), mean, m2, m2_cross=cross)
+        return cls._with_built_cross(n.reshape(h, w), mean, m2, cross)
 
     @classmethod
     def from_sums(cls, n, sum_x, sum_x2, sum_xy=None) -> "PixelStats":
@@ -310,7 +327,8 @@ class PixelStats:
             sxy = _as_pairs("sum_xy", sum_xy, s1.shape)
             pairs = np.where((n_a > 0)[..., None], sxy - s1[..., ia] * mean[..., ib], 0.0)
             cross = _full_from_pairs("sum_xy", pairs, m2)
-        return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross)
+        return cls._with_built_cross(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2,
+                                     cross)
 
     @classmethod
     def from_mean_var(cls, mean, sample_var, n, *, sample_cov=None, **features) -> "PixelStats":
@@ -335,8 +353,8 @@ class PixelStats:
                 pairs = _as_pairs("sample_cov", sample_cov, mean.shape)
                 cross = _full_from_pairs("sample_cov", pairs * np.maximum(n_a - 1, 0)[..., None],
                                          m2)
-            return cls(n if np.asarray(n).dtype.kind in "iu" else n_a, mean, m2, m2_cross=cross,
-                       **features)
+            return cls._with_built_cross(n if np.asarray(n).dtype.kind in "iu" else n_a, mean,
+                                         m2, cross, **features)
         except InputError:
             _refuse_overflow("sample_var", mean, m2, "M2 = sample_var · (n − 1) (beyond ~1.8e308)")
             raise
