@@ -479,7 +479,7 @@ def _select_layer(p, arrays, types, layer):
 
 def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
              nonfinite: str = "error", replace_value: float = 0.0,
-             spp_if_missing: bool = False) -> PixelStats:
+             spp_if_missing: bool = False, covariance: bool = True) -> PixelStats:
     """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
 
     Parameters
@@ -507,6 +507,12 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
         Use ``spp`` only for a file with neither ``SampleCount`` nor ``samplesPerPixel``; a
         file with either keeps its own counts (e.g. the second input of a command whose
         ``--spp`` is for the first).
+    covariance : bool, default True
+        Build the channel co-moment ``m2_cross`` from the ``Covariance.*`` channels.  With
+        ``False`` it is left None (``n``, ``mean``, ``m2``, the features and ``meta`` are the
+        same): a caller that never reads the channel covariance saves its ``(H, W, 3, 3)``
+        float64 matrix (143 MiB at 1920x1080) and its construction.  The channels are still
+        checked as with ``True`` (all three or none, NaN/Inf, ``Variance.*`` beside them).
 
     Returns
     -------
@@ -550,6 +556,8 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
+    if not isinstance(covariance, (bool, np.bool_)):
+        raise InputError(f"`covariance` must be True or False; got {covariance!r}.")
     header, arrays, types = _open(p)
     arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
@@ -562,6 +570,7 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
             f"as pbrt-v4's gbuffer film writes). Channels present: {_present(arrays)}. Pass "
             "require_variance=False to read it with zero variance, or use read_image().")
     cov = _group(p, arrays, _COV, "covariance") if color == _RGB else None
+    has_cov = cov is not None
     if cov is not None and var is None:
         raise FileFormatError(f"{p!r} has Covariance channels but no {', '.join(var_names)}: a "
                               "channel covariance needs the variances on its diagonal.")
@@ -586,6 +595,9 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
                SAMPLE_COUNT: (SAMPLE_COUNT,)}
     half = {k for k in groups if all(types.get(c) == "half" for c in members[k])}
     by_group = _handle_nonfinite(p, groups, nonfinite, replace_value, half)
+    if not covariance:                 # checked above, not kept
+        groups.pop("Covariance", None)
+        cov = None
 
     if var is not None and var.size and var.min() < 0:
         comp = _compression(header)
@@ -621,9 +633,9 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
         "source": p, "channels": sorted(arrays),
         "extra_channels": sorted(set(arrays) - set(color) - set(var_names) - set(_ALBEDO)
                                  - set(_NORMAL) - {depth_name, SAMPLE_COUNT}
-                                 - (set(_COV) if cov is not None else set())),
+                                 - (set(_COV) if has_cov else set())),
         "has_variance": bool(all(v in arrays for v in var_names)),
-        "has_covariance": cov is not None,
+        "has_covariance": has_cov,
         "data_window": data_window, "display_window": display_window,
         "chromaticities": _chromaticities(header), "layer": layer,
         "depth_channel": depth_name, "sample_count_source": source,
