@@ -1250,3 +1250,28 @@ def test_a_sample_count_channel_takes_precedence_over_the_attribute(tmp_path):
     with pytest.raises(InputError, match="disagrees with the SampleCount channel"):
         read_exr(p, spp=64)
     assert exr_info(p)["samples_per_pixel"] == 64 and exr_info(p)["sample_count"]["max"] == 13
+
+
+def test_srgb_encoding_in_place_equals_both_branches_formula():
+    """to_display's sRGB curve is computed in one array in place (session 11: 80 -> 47 ms
+    at 1920x1080); bit for bit the two-branch formula (IEC 61966-2-1) it replaced, at the
+    threshold, 0, 1, subnormals and beyond, for every tone curve; the caller's image is
+    not modified."""
+    rng = np.random.default_rng(2)
+    t = 0.0031308
+    edge = [0.0, t, np.nextafter(t, 1), np.nextafter(t, 0), 1.0, np.nextafter(1, 2), 5e-324,
+            1e-300, 1e150, 0.5, -1.0, 3.0]
+    img = np.concatenate([edge, np.abs(rng.standard_cauchy(300)) * 0.01]).reshape(-1, 4, 3)
+    keep = img.copy()
+    for tonemap in ("srgb", "reinhard", "aces"):
+        for exposure in (0.0, 3.0):
+            x = np.maximum(img * 2.0 ** exposure, 0.0)
+            if tonemap == "reinhard":
+                x = x / (1.0 + x)
+            elif tonemap == "aces":
+                x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)
+            x = np.clip(x, 0.0, 1.0)
+            want = np.where(x <= t, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+            got = exr.to_display(img, exposure=exposure, tonemap=tonemap)
+            assert got.tobytes() == want.tobytes(), (tonemap, exposure)
+    assert img.tobytes() == keep.tobytes()
