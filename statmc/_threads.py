@@ -10,8 +10,10 @@ import sys
 import threading
 from contextlib import contextmanager
 
-import numba
 import numpy as np
+
+# numba is imported where it is used, not here: `statmc metrics` imports this module (FLIP
+# through import_passively) and never runs a numba kernel; numba's import took 0.1 s of it.
 
 #: What statmc asks of an OpenMP runtime it loads: waiting threads sleep instead of spinning.
 PASSIVE_OMP_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
@@ -112,6 +114,8 @@ def serial_below(work: int, threshold: int):
     if work >= threshold:
         yield
         return
+    import numba
+
     before = numba.get_num_threads()
     numba.set_num_threads(1)
     try:

@@ -245,3 +245,29 @@ def test_fused_kernels_equal_the_single_kernels_job_by_job(dt, C, Cv):
             e = np.empty((H, W), np.float32)
             K.finish_stop_map(filt[k], raw[k], wc[k], fy[k].copy(), fx[k].copy(), coarser_only, e)
             np.testing.assert_array_equal(out[k], e)
+
+
+_METRICS_PROBE = """
+import sys
+import numpy as np
+from statmc.cli import main
+from statmc.exr import write_exr
+d = sys.argv[1]
+rng = np.random.default_rng(0)
+for name in ("a", "b"):
+    write_exr(f"{d}/{name}.exr", rng.random((8, 8, 3)).astype(np.float32))
+assert "numba" not in sys.modules, "numba imported before the command"
+code = main(["metrics", f"{d}/a.exr", f"{d}/b.exr"])
+print(code, "numba" in sys.modules, "flip_evaluator" in sys.modules)
+"""
+
+
+def test_metrics_does_not_import_numba(tmp_path):
+    """`statmc metrics` runs no numba kernel: _threads imports numba where it uses it
+    (serial_below, wait_passively_in_numba), so importing _threads for FLIP's passive
+    import no longer costs numba's import (0.1 s of the command).  Fails before: _threads
+    imported numba at its top."""
+    p = subprocess.run([sys.executable, "-c", _METRICS_PROBE, str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split()[-3:] == ["0", "False", "True"], p.stdout + p.stderr
