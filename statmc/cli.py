@@ -920,7 +920,7 @@ def _refuse_bins_as_y(path) -> None:
 
 def cmd_combine(args) -> int:
     from . import combine as cb
-    from .exr import read_exr, read_image
+    from .exr import read_image
     if args.weights != "gaussian":
         _refuse_unused(args, ["sigma"], f"with --weights {args.weights} (it is the width of "
                        "--weights gaussian)")
@@ -960,10 +960,12 @@ def cmd_combine(args) -> int:
     size_given = args.size is not None
     args.size = _window_size(args, h, w, args.y)
     if statistical:
+        from .exr import _read_exr_and_stencil
         try:
-            # --spp (for a Y without SampleCount) applies to Z only if Z has none either
-            z_stats = read_exr(args.z, spp=args.spp, spp_if_missing=True, layer=args.layer,
-                               covariance=False)
+            # --spp (for a Y without SampleCount) applies to Z only if Z has none either;
+            # a --crn Z's stencil comes from the same read of the file (below)
+            z_stats, z_stencil = _read_exr_and_stencil(args.z, spp=args.spp, spp_if_missing=True,
+                                                       layer=args.layer, covariance=False)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -985,11 +987,10 @@ def cmd_combine(args) -> int:
     elif args.weights == "gaussian":
         weights = cb.gaussian_weights(h, w, 1, args.size, args.sigma)
     else:
-        from .exr import read_spatial_covariance
-
         cov_z = z_stats.mean_var.astype(np.float32)
-        if _is_crn(z_stats):                       # a CRN render's stencil (a second read)
-            cov_z = read_spatial_covariance(args.z, z_stats.n)
+        if _is_crn(z_stats):                       # a CRN render's stencil
+            cov_z = z_stencil()
+        z_stencil = None                           # Z's channels freed
         if cov_z.ndim == 5 and not size_given:
             # the default window, no wider than the stencil (render --crn --stencil 5 at 1080p)
             args.size = min(args.size, cov_z.shape[2])
