@@ -113,13 +113,20 @@ def _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t=None, *, names=("x_t", "s_bar
     return xt, sb, sm, xg, vg, mvt, ndim
 
 
-def _check_kernels(kernels, hw):
+def _numeric_kernels(kernels) -> np.ndarray:
+    """``kernels`` as an array, refused unless numeric (a kernel denoiser given in place of
+    its ``kernels(shape)`` is named)."""
     K = np.asarray(kernels)
     if K.dtype == object or not np.issubdtype(K.dtype, np.number):
         hint = (" (for a kernel denoiser pass its `kernels(shape)`)"
                 if callable(getattr(kernels, "kernels", None)) else "")
         raise InputError(f"`kernels` must be a numeric (H, W, k, k) array; got "
                          f"{type(kernels).__name__ if K.ndim == 0 else K.dtype}{hint}.")
+    return K
+
+
+def _check_kernels(kernels, hw):
+    K = _numeric_kernels(kernels)
     if K.dtype not in (np.float32, np.float64):
         K = K.astype(np.float64)
     if K.ndim != 4 or K.shape[2] != K.shape[3]:

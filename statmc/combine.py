@@ -1040,12 +1040,9 @@ def filter_covariance(kernels, var, *, size=None, cross=False):
     cross_cov : (H, W, m, m, C) float64 ndarray
         Only with ``cross=True``.
     """
-    K = np.asarray(kernels)
-    if K.dtype == object or not np.issubdtype(K.dtype, np.number):
-        hint = (" (for a kernel denoiser pass its `kernels(shape)`)"
-                if callable(getattr(kernels, "kernels", None)) else "")
-        raise InputError(f"`kernels` must be a numeric (H, W, k, k) array; got "
-                         f"{type(kernels).__name__ if K.ndim == 0 else K.dtype}{hint}.")
+    from .analytic import _numeric_kernels
+
+    K = _numeric_kernels(kernels)
     if K.ndim != 4 or K.shape[2] != K.shape[3] or K.shape[2] % 2 == 0:
         raise InputError(f"`kernels` must have shape (H, W, k, k) with odd k; got {K.shape}.")
     K = K.astype(np.float64)
