@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from statmc.errors import InputError, as_float_array, check_finite
-from statmc.stats import PixelStats
+from statmc.stats import PixelStats, check_stats
 
 __all__ = ["pixel_features", "feature_channels", "REL_EPS", "VAR_FLOOR", "DIST_EPS"]
 
@@ -106,8 +106,7 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
     (1, F, H, W) tensor
         ``F = feature_channels(C, extra=E, budget=budget is not None)``.
     """
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    check_stats(stats)
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
     # mean_var is 0 where n < 2: such a pixel would look noise-free (the floor of plane 2)

@@ -37,7 +37,7 @@ import torch
 
 from statmc.errors import InputError, as_float_array, as_number, check_finite
 from statmc.sampling import counts_from_density
-from statmc.stats import PixelStats
+from statmc.stats import check_stats
 
 from .features import feature_channels, pixel_features
 from .layout import kernels_to_numpy, weights_to_numpy
@@ -68,8 +68,7 @@ def _int(name, v, lo, odd=False):
 def _images(name, a, stats, count=None):
     """``a`` as a float64 ``(E, H, W, C)`` stack of images shaped like ``stats.mean``:
     ``count=None`` takes one ``(H, W, C)`` image (or a stack of one), else exactly ``count``."""
-    if not isinstance(stats, PixelStats):
-        raise InputError(f"`stats` must be a statmc.PixelStats; got {type(stats).__name__}.")
+    check_stats(stats)
     shape = stats.mean.shape
     arr = as_float_array(name, a, ndim=(3, 4) if count is None else 4, dtype=np.float64)
     stack = arr if arr.ndim == 4 else arr[None]
