@@ -215,6 +215,12 @@ def border_scale(n: int, w: np.ndarray) -> np.ndarray:
     w = as_float_array("w", w, ndim=1)
     if len(w) % 2 == 0:
         raise InputError(f"`w` must be a centred kernel of odd length; got length {len(w)}.")
+    return _border_scale(n, w)
+
+
+def _border_scale(n: int, w: np.ndarray) -> np.ndarray:
+    """:func:`border_scale` without its checks, for this package's callers, which pass an
+    image side and taps of :func:`_taps` (a ``gem.reconstruct`` makes ~80 such calls)."""
     r = len(w) // 2
     c = np.concatenate([[0.0], np.cumsum(w)])
     pos = np.arange(n)
@@ -271,7 +277,7 @@ def _run(x, c, v, cv, sigma, truncate, *, normalize=True, out_x=None, out_v=None
     wd = L // c
     w = _taps(sigma, truncate, max(h, wd))
     if normalize:
-        sy, sx = border_scale(h, w), border_scale(wd, w)
+        sy, sx = _border_scale(h, w), _border_scale(wd, w)
     else:
         sy, sx = np.ones(h), np.ones(wd)
     dt = x.dtype
@@ -328,7 +334,7 @@ def gaussian_spread(amount, sigma: float, *, truncate: float = DEFAULT_TRUNCATE)
     x, c = _rows(a)
     h, wd = a.shape[:2]
     w = _taps(s, truncate, max(h, wd))          # the kernel _run uses below
-    pre = (border_scale(h, w)[:, None] * border_scale(wd, w)[None, :]).astype(x.dtype)
+    pre = (_border_scale(h, w)[:, None] * _border_scale(wd, w)[None, :]).astype(x.dtype)
     x = (x.reshape(h, wd, c) * pre[:, :, None]).reshape(h, wd * c)
     out, _ = _run(x, c, None, 0, s, truncate, normalize=False)
     return out.reshape(a.shape)

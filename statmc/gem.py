@@ -41,7 +41,7 @@ from ._threads import SERIAL_VALUES, serial_when_small
 from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
                      check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _as_sigmas, _check_pair,
-                      _rows, _run, _taps, _weight_matrix, border_scale, gaussian_kernel_1d,
+                      _border_scale, _rows, _run, _taps, _weight_matrix, gaussian_kernel_1d,
                       kernel_moment2)
 
 __all__ = [
@@ -445,8 +445,8 @@ def _postprocess(raw, sig, final, truncate, map_scale=None):
     out = np.empty_like(raw)
     if h * w <= FUSED_PIXELS:                     # all maps in two regions
         taps = [_taps(s, truncate, max(h, w)) for s in _map_sigmas(sig, final, map_scale)]
-        sy = [border_scale(h, t) for t in taps]
-        sx = [border_scale(w, t) for t in taps]
+        sy = [_border_scale(h, t) for t in taps]
+        sx = [_border_scale(w, t) for t in taps]
         filt = np.empty_like(raw)
         _filter_many(raw, 1, None, 0, np.arange(km1), taps, sy, sx, filt)
         _k.finish_stop_map_many(filt, raw, np.array([t[len(t) // 2] for t in taps], np.float32),
@@ -459,8 +459,8 @@ def _postprocess(raw, sig, final, truncate, map_scale=None):
         _run(raw[k], 1, None, 0, s, truncate, out_x=filt)
         r = len(wk) // 2
         _k.finish_stop_map(filt, raw[k], np.float32(wk[r]),
-                           border_scale(h, wk).astype(np.float32),
-                           border_scale(w, wk).astype(np.float32), bool(final), out[k])
+                           _border_scale(h, wk).astype(np.float32),
+                           _border_scale(w, wk).astype(np.float32), bool(final), out[k])
     return out
 
 
@@ -568,12 +568,12 @@ def _pair_covariance_rows(vr, cv, sa, sb, truncate, out=None):
     if sa == 0.0:  # pixel filter: w_a(p, q) = [p = q], so Cov = w_b(p, p) mean_var(p)
         gb = _taps(sb, truncate, max(h, wd))
         g0 = gb[len(gb) // 2]
-        _k.scale_rows(vr, cv, (g0 * border_scale(h, gb)).astype(dt),
-                      (g0 * border_scale(wd, gb)).astype(dt), out)
+        _k.scale_rows(vr, cv, (g0 * _border_scale(h, gb)).astype(dt),
+                      (g0 * _border_scale(wd, gb)).astype(dt), out)
         return out
     taps, ga, gb = _product_taps(sa, sb, truncate, max(h, wd))
-    sy = border_scale(h, ga) * border_scale(h, gb)
-    sx = border_scale(wd, ga) * border_scale(wd, gb)
+    sy = _border_scale(h, ga) * _border_scale(h, gb)
+    sx = _border_scale(wd, ga) * _border_scale(wd, gb)
     _k.sep_filter(vr, cv, np.empty((h, 0), dt), 1, taps.astype(dt), sy.astype(dt),
                   sx.astype(dt), out, np.empty((h, 0), dt))
     return out
@@ -691,7 +691,7 @@ def _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw)
     if j0 < nsc:                                  # the bank: one input, every σ
         taps = [_taps(s, truncate, max(h, w)) for s in sig[j0:]]
         _filter_many(x[None], c, vr[None], cv, np.zeros(nsc - j0), taps,
-                     [border_scale(h, t) for t in taps], [border_scale(w, t) for t in taps],
+                     [_border_scale(h, t) for t in taps], [_border_scale(w, t) for t in taps],
                      vals[j0:], vars_[j0:])
     cov = np.empty((nsc - 1, h, w), dt)           # pair covariances of the summed variance
     p0 = 1 if sig[0] == 0.0 else 0
@@ -702,14 +702,14 @@ def _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw)
         for k in range(p0, nsc - 1):
             t, ga, gb = _product_taps(sig[k], sig[k + 1], truncate, max(h, w))
             taps.append(t)
-            sy.append(border_scale(h, ga) * border_scale(h, gb))
-            sx.append(border_scale(w, ga) * border_scale(w, gb))
+            sy.append(_border_scale(h, ga) * _border_scale(h, gb))
+            sx.append(_border_scale(w, ga) * _border_scale(w, gb))
         _filter_many(vsum[None], 1, None, 0, np.zeros(len(taps)), taps, sy, sx, cov[p0:])
     d = np.empty((nsc - 1, h, w), dt)
     _k.pooled_bias_input_many(vals, vars_, cov, c, cv, d)
     pool = _taps(BIAS_POOL_SIGMA, truncate, max(h, w))
     _filter_many(d, 1, None, 0, np.arange(nsc - 1), [pool] * (nsc - 1),
-                 [border_scale(h, pool)] * (nsc - 1), [border_scale(w, pool)] * (nsc - 1),
+                 [_border_scale(h, pool)] * (nsc - 1), [_border_scale(w, pool)] * (nsc - 1),
                  cov)                             # the pooled D, over the covariances
     _k.stop_pooled_many(cov, vars_, cv, fr[:nsc - 1].astype(np.float64), 1.0, raw)
 
@@ -793,8 +793,8 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
                 _pair_covariance_rows(vr, cv, sig[k], sig[k + 1], truncate, out=cov[k - p0])
             if p0:
                 g1 = _taps(sig[1], truncate, max(h, w))
-                fy0 = (g1[len(g1) // 2] * border_scale(h, g1)).astype(dt)
-                fx0 = (g1[len(g1) // 2] * border_scale(w, g1)).astype(dt)
+                fy0 = (g1[len(g1) // 2] * _border_scale(h, g1)).astype(dt)
+                fx0 = (g1[len(g1) // 2] * _border_scale(w, g1)).astype(dt)
             else:
                 fy0 = fx0 = np.empty(0, dt)
             _k.estimate_mse_debiased(vals, vars_, cov, c, fr, scales, fy0, fx0, est)
@@ -1168,7 +1168,7 @@ def _spread(amount, scales, sig, truncate=DEFAULT_TRUNCATE):
     fx = np.ones((len(sig) - 1, w))
     taps = [_taps(sigma, truncate, max(h, w)) for sigma in sig[1:]]   # the bank's kernels
     for s, wk in enumerate(taps):
-        fy[s], fx[s] = border_scale(h, wk), border_scale(w, wk)
+        fy[s], fx[s] = _border_scale(h, wk), _border_scale(w, wk)
     density = np.empty((h, w))
     parts = np.empty((len(sig) - 1, h, w))
     per_scale = _k.spread_parts(amount, scales, fy, fx, density, parts)
