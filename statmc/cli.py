@@ -363,7 +363,7 @@ def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=N
     keep = {}
     if place is not None:
         keep = {k: place[k] for k in ("data_window", "display_window", "chromaticities")}
-        if place["alpha"] is not None and "A" not in (extra or {}):
+        if place["alpha"] is not None:
             extra = dict(extra or {}, A=place["alpha"])
     with _staged_outputs(os.path.dirname(os.path.abspath(path)), inputs) as stage:
         write_exr(stage(path), data, protect=inputs, extra=extra, **keep)
