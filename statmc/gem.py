@@ -550,8 +550,13 @@ def _product_taps(sa, sb, truncate, n):
     (outside it the product is 0); ``g`` the bank's taps on an image of longer side ``n``
     (:func:`statmc.filters._taps`), returned too."""
     ga, gb = _taps(sa, truncate, n), _taps(sb, truncate, n)
+    return _taps_product(ga, gb), ga, gb
+
+
+def _taps_product(ga, gb):
+    """:func:`_product_taps` of the taps ``ga``, ``gb`` themselves."""
     r = min(len(ga), len(gb)) // 2
-    return ga[len(ga) // 2 - r:len(ga) // 2 + r + 1] * gb[len(gb) // 2 - r:len(gb) // 2 + r + 1], ga, gb
+    return ga[len(ga) // 2 - r:len(ga) // 2 + r + 1] * gb[len(gb) // 2 - r:len(gb) // 2 + r + 1]
 
 
 def _pair_covariance_rows(vr, cv, sa, sb, truncate, out=None):
@@ -683,28 +688,25 @@ def _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw)
     h, w = vsum.shape
     nsc = len(sig)
     dt = x.dtype
-    j0 = 0
-    while sig[j0] == 0.0:
-        vals[j0] = x
-        vars_[j0] = vr
-        j0 += 1
-    if j0 < nsc:                                  # the bank: one input, every σ
-        taps = [_taps(s, truncate, max(h, w)) for s in sig[j0:]]
-        _filter_many(x[None], c, vr[None], cv, np.zeros(nsc - j0), taps,
-                     [_border_scale(h, t) for t in taps], [_border_scale(w, t) for t in taps],
-                     vals[j0:], vars_[j0:])
+    p0 = 1 if sig[0] == 0.0 else 0                # the pixel filter (increasing: only sig[0])
+    if p0:
+        vals[0] = x
+        vars_[0] = vr
+    # the bank: one input, every σ; taps[j] and its border scales are those of sig[p0 + j]
+    taps = [_taps(s, truncate, max(h, w)) for s in sig[p0:]]
+    by = [_border_scale(h, t) for t in taps]
+    bx = [_border_scale(w, t) for t in taps]
+    _filter_many(x[None], c, vr[None], cv, np.zeros(nsc - p0), taps, by, bx,
+                 vals[p0:], vars_[p0:])
     cov = np.empty((nsc - 1, h, w), dt)           # pair covariances of the summed variance
-    p0 = 1 if sig[0] == 0.0 else 0
     if p0:
         _pair_covariance_rows(vsum, 1, sig[0], sig[1], truncate, out=cov[0])
-    if nsc - 1 > p0:
-        taps, sy, sx = [], [], []
-        for k in range(p0, nsc - 1):
-            t, ga, gb = _product_taps(sig[k], sig[k + 1], truncate, max(h, w))
-            taps.append(t)
-            sy.append(_border_scale(h, ga) * _border_scale(h, gb))
-            sx.append(_border_scale(w, ga) * _border_scale(w, gb))
-        _filter_many(vsum[None], 1, None, 0, np.zeros(len(taps)), taps, sy, sx, cov[p0:])
+    if nsc - 1 > p0:                              # pair (k, k + 1) = bank taps (j, j + 1)
+        pairs = range(nsc - 1 - p0)
+        _filter_many(vsum[None], 1, None, 0, np.zeros(len(pairs)),
+                     [_taps_product(taps[j], taps[j + 1]) for j in pairs],
+                     [by[j] * by[j + 1] for j in pairs], [bx[j] * bx[j + 1] for j in pairs],
+                     cov[p0:])
     d = np.empty((nsc - 1, h, w), dt)
     _k.pooled_bias_input_many(vals, vars_, cov, c, cv, d)
     pool = _taps(BIAS_POOL_SIGMA, truncate, max(h, w))
