@@ -630,12 +630,13 @@ def _refuse_crn(stats, path, what: str) -> None:
 
 
 def cmd_reconstruct(args) -> int:
-    from .exr import read_exr
+    from .exr import _reading_once, read_exr
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     # no method reads the channel covariance (m2_cross): not built (1080p: 0.3-0.5 s, 143 MiB)
-    stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
-    place = _placement(args.input, args.layer)
+    with _reading_once(args.input):            # an alpha channel: from the same decoding
+        stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
+        place = _placement(args.input, args.layer)
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     if args.method != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
@@ -766,21 +767,23 @@ def _read_colour(path, layer=None):
 
 
 def cmd_denoise(args) -> int:
+    from .exr import _reading_once
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
-    if args.variance or args.denoiser == "gem":
-        what = "--variance" if args.variance else "--denoiser gem"
-        stats = _read_statistics(args.input, args.spp, f"{what} reads the file's statistics; "
-                                 "--denoiser oidn or gaussian without --variance denoises a "
-                                 "plain image.", layer=args.layer,
-                                 covariance=bool(args.variance and args.denoiser == "oidn"))
-    else:
-        _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it is "
-                       "the sample count of a file without SampleCount, which only --variance "
-                       "and --denoiser gem read)")
-        # plain denoising reads the colour and OIDN's features (albedo, normal) only
-        stats = _read_colour(args.input, args.layer)
-    place = _placement(args.input, args.layer)
+    with _reading_once(args.input):            # an alpha channel: from the same decoding
+        if args.variance or args.denoiser == "gem":
+            what = "--variance" if args.variance else "--denoiser gem"
+            stats = _read_statistics(args.input, args.spp, f"{what} reads the file's "
+                                     "statistics; --denoiser oidn or gaussian without --variance "
+                                     "denoises a plain image.", layer=args.layer,
+                                     covariance=bool(args.variance and args.denoiser == "oidn"))
+        else:
+            _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it "
+                           "is the sample count of a file without SampleCount, which only "
+                           "--variance and --denoiser gem read)")
+            # plain denoising reads the colour and OIDN's features (albedo, normal) only
+            stats = _read_colour(args.input, args.layer)
+        place = _placement(args.input, args.layer)
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -824,11 +827,12 @@ def cmd_denoise(args) -> int:
 
 
 def cmd_progressive(args) -> int:
-    from .exr import read_exr
+    from .exr import _reading_once, read_exr
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
-    stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
-    place = _placement(args.input, args.layer)
+    with _reading_once(args.input):            # an alpha channel: from the same decoding
+        stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
+        place = _placement(args.input, args.layer)
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
@@ -872,14 +876,15 @@ def _window_size(args, h: int, w: int, path: str) -> int:
 def _combine_bins_file(args) -> int:
     """`statmc combine BINS.exr`: Eq. 14 on the file's bins and their denoised images."""
     from . import combine as cb
-    from .exr import read_bins
+    from .exr import _reading_once, read_bins
 
     _check_out_file(args.out, [args.y])
     if args.layer is not None:
         raise InputError(f"--layer selects a layer of Y and Z; a sample-bins file ({args.y}, "
                          "without Z) is statmc's own and has none: leave --layer out.")
-    bins = read_bins(args.y)
-    place = _placement(args.y)
+    with _reading_once(args.y):                # an alpha channel: from the same decoding
+        bins = read_bins(args.y)
+        place = _placement(args.y)
     if bins is None or bins[1] is None:
         what = "no sample bins" if bins is None else "bins but no Bin<b>.Denoised.* channels"
         raise InputError(f"{args.y} has {what}; give the correlated image as Z, or pass the "

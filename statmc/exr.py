@@ -310,22 +310,43 @@ def exr_windows(path) -> tuple[list, list]:
 
 
 # Files already read, by path, that _open takes instead of reading them again (this thread,
-# inside _read_exr_and_stencil only).
+# inside _reading_once blocks only).
 _OPENED = threading.local()
+
+
+@contextlib.contextmanager
+def _reading_once(path, opened=None):
+    """Inside the block, every :func:`_open` of ``path`` in this thread (``read_exr``,
+    ``read_channels``, ...) takes one decoding of the file: ``opened`` (an :func:`_open`
+    result), or else the block's first read of it.  Nothing is kept after the block."""
+    p = _name(path)
+    before = getattr(_OPENED, "files", {})
+    _OPENED.files = {**before, p: opened}
+    try:
+        yield
+    finally:
+        _OPENED.files = before
 
 
 def _open(path, *, header_only: bool = False):
     """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``
     (the arrays and types empty with ``header_only``)."""
+    p = _name(path)
+    files = getattr(_OPENED, "files", {})
+    if p not in files or header_only:
+        return _decode(p, header_only)
+    if files[p] is None:
+        files[p] = _decode(p, False)
+    header, arrays, types = files[p]
+    same = _Channels(arrays)
+    same.parts = arrays.parts
+    return dict(header), same, dict(types)
+
+
+def _decode(p: str, header_only: bool):
+    """:func:`_open` of the file ``p``, read from disk."""
     import OpenEXR
 
-    p = _name(path)
-    opened = getattr(_OPENED, "files", {}).get(p)
-    if opened is not None and not header_only:
-        header, arrays, types = opened
-        same = _Channels(arrays)
-        same.parts = arrays.parts
-        return dict(header), same, dict(types)
     if not os.path.exists(p):
         raise FileFormatError(f"EXR file {p!r} does not exist.")
     if os.path.isdir(p):
@@ -1152,12 +1173,8 @@ def _read_exr_and_stencil(path, **read_options):
     opened = _open(p)
 
     def reading_opened(fn, *args, **kwargs):
-        before = getattr(_OPENED, "files", {})
-        _OPENED.files = {**before, p: opened}
-        try:
+        with _reading_once(p, opened):
             return fn(*args, **kwargs)
-        finally:
-            _OPENED.files = before
 
     stats = reading_opened(read_exr, p, **read_options)
     return stats, lambda: reading_opened(read_spatial_covariance, p, stats.n)

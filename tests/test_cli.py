@@ -1956,6 +1956,44 @@ def test_outputs_keep_the_inputs_alpha(tmp_path, args):
     assert "A" not in read_channels(out)
 
 
+@pytest.mark.parametrize("args", [
+    ["reconstruct", "{a}"],
+    ["denoise", "{a}", "--denoiser", "gaussian"],
+    ["denoise", "{a}", "--denoiser", "gaussian", "--variance"],
+    ["progressive", "{a}", "--denoiser", "gaussian"],
+    ["combine", "{bins}"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_an_input_with_alpha_is_decoded_once(tmp_path, monkeypatch, args):
+    # before: _placement read the alpha with read_channels, a second decoding of the whole
+    # file (1080p with 16 channels: ~0.4 s beside read_exr's ~0.8 s); header-only reads of
+    # the windows and chromaticities are not counted
+    import OpenEXR
+
+    from statmc.exr import bin_channels
+    rng = np.random.default_rng(15)
+    a, bins = tmp_path / "a.exr", tmp_path / "bins.exr"
+    alpha = rng.random((8, 10))
+    _write_channels(a, dict(_crop_stats(rng), A=alpha))
+    ys = rng.random((2, 8, 10, 3))
+    _write_channels(bins, dict(R=ys[..., 0].mean(0), G=ys[..., 1].mean(0), B=ys[..., 2].mean(0),
+                               A=alpha, **bin_channels(ys, ys * 0.9)))
+    real, reads = OpenEXR.File, []
+
+    def counting(*x, **k):
+        if isinstance(x[0], str) and not k.get("header_only", False):
+            reads.append(x[0])
+        return real(*x, **k)
+
+    monkeypatch.setattr(OpenEXR, "File", counting)
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli(*[x.format(a=a, bins=bins) for x in args], "--out", out, "-q")
+    assert code == 0, err
+    assert reads == [str(a if args[1] == "{a}" else bins)]
+    monkeypatch.undo()
+    from statmc.exr import read_channels
+    np.testing.assert_array_equal(read_channels(out, ["A"])["A"], alpha.astype(np.float32))
+
+
 def test_nonfinite_alpha_is_refused_before_writing(tmp_path):
     rng = np.random.default_rng(14)
     a = tmp_path / "a.exr"
