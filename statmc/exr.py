@@ -1069,9 +1069,9 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
         attrs["chromaticities"] = c
     windows = None
     if data_window is not None or display_window is not None:
-        data = _check_window("data_window", data_window if data_window is not None
-                             else [0, 0, hw[1] - 1, hw[0] - 1], hw)
-        windows = (data, data if display_window is None
+        box = _check_window("data_window", data_window if data_window is not None
+                            else [0, 0, hw[1] - 1, hw[0] - 1], hw)
+        windows = (box, box if display_window is None
                    else _check_window("display_window", display_window))
 
     def write(tmp):
