@@ -78,10 +78,11 @@ BIAS_POOL_SIGMA = 1.0
 #: (fused, 1080p took twice as long; 512x512 beside another job 1.07-1.18x).  Results are
 #: bit for bit the same either way (docs/gem.md §7).
 FUSED_PIXELS = 1 << 18
-#: ``select``/``reconstruct`` calls with the pooled selection run on numba's pool from this
-#: many values (about 128x128 RGB) instead of ``_threads.SERIAL_VALUES`` (about 320x320):
-#: fused, they wake the pool 11 times instead of 73, so parallel pays off sooner (one
-#: thread against the pool crossed between 96x96 and 128x128, docs/gem.md §7).
+#: ``select``/``reconstruct``/``selected_filter`` calls with the pooled selection run on
+#: numba's pool from this many values (about 128x128 RGB) instead of
+#: ``_threads.SERIAL_VALUES`` (about 320x320): fused, they wake the pool 11 times instead
+#: of 73, so parallel pays off sooner (one thread against the pool crossed between 96x96
+#: and 128x128, docs/gem.md §7).
 FUSED_SERIAL_VALUES = 50_000
 
 
@@ -813,9 +814,10 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
 # ---------------------------------------------------------------------------------------
 
 def _serial_threshold(kwargs) -> int:
-    """:func:`serial_when_small`'s threshold of a ``select``/``reconstruct`` call:
-    :data:`FUSED_SERIAL_VALUES` when its selection is the pooled one (``bias="pooled"``,
-    or the default of ``final=True``), whose stages run fused; else ``SERIAL_VALUES``."""
+    """:func:`serial_when_small`'s threshold of a ``select``/``reconstruct``/
+    ``selected_filter`` call: :data:`FUSED_SERIAL_VALUES` when its selection is the pooled
+    one (``bias="pooled"``, or the default of ``final=True``), whose stages run fused; else
+    ``SERIAL_VALUES``."""
     bias, final = kwargs.get("bias"), kwargs.get("final", True)
     try:
         pooled = bias == "pooled" if isinstance(bias, str) else (bias is None and bool(final))
@@ -1068,7 +1070,7 @@ class SelectedFilter:
         return out
 
 
-@serial_when_small()
+@serial_when_small(threshold_of=_serial_threshold)
 def selected_filter(mean, mean_var, **options):
     """GEM on the render and the kernel it selected: ``(image, SelectedFilter)``.
 

@@ -117,9 +117,9 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
 
 
 def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monkeypatch):
-    """``threshold_of`` picks the threshold per call: gem.select/reconstruct with the pooled
-    selection (bias="pooled", or the default of final=True), whose stages run fused, use
-    the pool from ``gem.FUSED_SERIAL_VALUES`` values; the paper's selection
+    """``threshold_of`` picks the threshold per call: gem.select/reconstruct/selected_filter
+    with the pooled selection (bias="pooled", or the default of final=True), whose stages
+    run fused, use the pool from ``gem.FUSED_SERIAL_VALUES`` values; the paper's selection
     (final=False) keeps ``SERIAL_VALUES``."""
     from statmc import _filter_kernels, _threads, gem
 
@@ -154,7 +154,9 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
     gem.select(m, v, bias="pooled", final=False)
     gem.reconstruct(m, v, final=False)
     gem.reconstruct(m[:100, :100], v[:100, :100])
-    assert threads == [before, before, 1, 1]
+    gem.selected_filter(m, v)                         # the same _core, the same thresholds
+    gem.selected_filter(m, v, final=False)
+    assert threads == [before, before, 1, 1, before, 1]
     assert numba.get_num_threads() == before
 
 
