@@ -394,6 +394,12 @@ def _load_string(mi, root, path: Path, params: dict):
             resolver.append(folder)
 
 
+def _no_such_sensor(sensor: int, count: int, where: str) -> InputError:
+    """The refusal of a ``sensor`` index beyond the ``count`` sensors of ``where``."""
+    return InputError(f"`sensor` must be the index of one of the {count} sensors of {where} "
+                      f"(0 to {count - 1}); got {sensor}.")
+
+
 def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
     """The ``<sensor>`` element of the XML tree ``root`` (of file ``path``) that becomes
     the scene's sensor number ``sensor``."""
@@ -405,8 +411,7 @@ def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
             raise InputError(f"scene file {str(path)!r} has no <sensor> element, so its film "
                              "size cannot be set; add a <sensor> with a <film> to it or leave "
                              "`width`/`height` unset.")
-        raise InputError(f"`sensor` must be the index of one of the {len(sensors)} sensors of "
-                         f"scene file {str(path)!r} (0 to {len(sensors) - 1}); got {sensor}.")
+        raise _no_such_sensor(sensor, len(sensors), f"scene file {str(path)!r}")
     # <include>d files and shapes add sensors where they stand: tag the file's own and
     # see which one the scene's sensor is
     tags = {}
@@ -416,8 +421,7 @@ def _file_sensor(mi, root, path: Path, params: dict, sensor: int):
         tags[el.get("id")] = el
     found = _load_string(mi, root, path, params).sensors()
     if sensor >= len(found):
-        raise InputError(f"`sensor` must be the index of one of the {len(found)} sensors of "
-                         f"scene file {str(path)!r} (0 to {len(found) - 1}); got {sensor}.")
+        raise _no_such_sensor(sensor, len(found), f"scene file {str(path)!r}")
     element = tags.get(found[sensor].id())
     if element is None:
         raise InputError(f"sensor {sensor} of scene file {str(path)!r} is not a <sensor> "
@@ -653,8 +657,7 @@ class MitsubaRenderer:
         if not n_sensors:
             raise InputError(f"scene {self.name!r} has no sensor.")
         if sensor >= n_sensors:
-            raise InputError(f"`sensor` must be the index of one of the {n_sensors} sensors of "
-                             f"scene {self.name!r} (0 to {n_sensors - 1}); got {sensor}.")
+            raise _no_such_sensor(sensor, n_sensors, f"scene {self.name!r}")
         self._sensor = self._scene.sensors()[sensor]
         # not used (the counts passed to render are), kept to tell users so
         self.scene_sample_count = int(self._sensor.sampler().sample_count())
