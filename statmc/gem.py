@@ -343,6 +343,14 @@ def _check_bias(bias):
     return bias
 
 
+def _default_bias(bias, final):
+    """``bias``, or its default when None: ``"pooled"`` for the final reconstruction,
+    ``"paper"`` for the adaptive iterations."""
+    if bias is None:
+        return "pooled" if final else "paper"
+    return bias
+
+
 def _resolve_mode(final, bias, sigmas, map_scale):
     """Bias mode, scales and outlier-filter factor from the arguments, checked.
 
@@ -353,8 +361,7 @@ def _resolve_mode(final, bias, sigmas, map_scale):
     else 1).  Returns ``(bias, sigmas, map_scale)`` with ``map_scale`` that factor as a
     float.
     """
-    if _check_bias(bias) is None:
-        bias = "pooled" if final else "paper"
+    bias = _default_bias(_check_bias(bias), final)
     pooled_final = bias == "pooled" and final
     if sigmas is None:
         sigmas = POOLED_FINAL_SIGMAS if pooled_final else (FINAL_SIGMAS if final else ADAPTIVE_SIGMAS)
@@ -741,24 +748,23 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     dt = x.dtype
     fr = frac.astype(dt)
     pooled = bias == "pooled"
+    fused = pooled and h * w <= FUSED_PIXELS      # every stage over all scales at once
     if pooled:
         error_rate_weight(gamma)                      # validates γ; unused by this mode
-        work = np.empty((3, h, w), dt)                # covariance, D, pooled D
+        if not fused:
+            work = np.empty((3, h, w), dt)            # covariance, D, pooled D
     else:
         weight = _weight_map(n, gamma, (h, w), dt)
     vals = np.empty((nsc,) + x.shape, dt)
-    if keep_bank:
+    raw = np.empty((nsc - 1, h, w), np.float32)
+    if keep_bank or fused:                            # every scale's variance is held
         vars_ = np.empty((nsc,) + vr.shape, dt)
         slots = [vars_[k] for k in range(nsc)]
-    else:
+    else:                                             # two scales of it at a time
         vars_ = None
         spare = [np.empty_like(vr), np.empty_like(vr)]
         slots = [spare[k % 2] for k in range(nsc)]
-    raw = np.empty((nsc - 1, h, w), np.float32)
-    fused = pooled and h * w <= FUSED_PIXELS
     if fused:
-        if vars_ is None:
-            vars_ = np.empty((nsc,) + vr.shape, dt)
         _pooled_stops_fused(x, c, vr, cv, vsum, sig, fr, truncate, vals, vars_, raw)
         if not keep_bank:
             vars_ = None
@@ -818,9 +824,10 @@ def _serial_threshold(kwargs) -> int:
     ``selected_filter`` call: :data:`FUSED_SERIAL_VALUES` when its selection is the pooled
     one (``bias="pooled"``, or the default of ``final=True``), whose stages run fused; else
     ``SERIAL_VALUES``."""
-    bias, final = kwargs.get("bias"), kwargs.get("final", True)
+    bias = kwargs.get("bias")
     try:
-        pooled = bias == "pooled" if isinstance(bias, str) else (bias is None and bool(final))
+        pooled = isinstance(bias, (str, type(None))) and \
+            _default_bias(bias, kwargs.get("final", True)) == "pooled"
     except Exception:                          # an odd `final`: the call will say why
         pooled = False
     return FUSED_SERIAL_VALUES if pooled else SERIAL_VALUES
