@@ -1,9 +1,13 @@
-"""The networks' per-pixel inputs, built from :class:`statmc.PixelStats` by one function.
+"""The networks' per-pixel inputs: :func:`pixel_features` (from a :class:`statmc.PixelStats`)
+and :func:`mix_features` (the mixing network's, Firmino 2022 §4.3).
 
-:func:`pixel_features` is the only input builder of :mod:`statmc.nn.nets`; every network
-takes its ``(1, F, H, W)`` output, with ``F = feature_channels(...)``.  The planes, in
-order (``x = stats.mean``, ``σ² = stats.mean_var``, the **variance of the mean**, ``C``
-channels):
+:func:`pixel_features` is the input builder of :mod:`statmc.nn.nets`; every network takes
+its ``(1, F, H, W)`` output, with ``F = feature_channels(...)``, except
+``MixNet(inputs="mix")``, which reads :func:`mix_features` (the inputs of Firmino 2022
+§4.3: HDR, VAR, DEN, SURE, ``σ² f'(x)``, ``‖y − x‖²``, ordered so that the paper's random
+swap is the plane permutation :func:`swap_mix_planes`).  The planes of
+:func:`pixel_features`, in order (``x = stats.mean``, ``σ² = stats.mean_var``, the
+**variance of the mean**, ``C`` channels):
 
 ======================================  ======  ===================================================
 plane                                   count   why
@@ -33,10 +37,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import InputError, as_float_array, check_finite
+from statmc.errors import (InputError, as_float_array, as_number, check_finite, check_nonempty,
+                           check_nonnegative)
 from statmc.stats import PixelStats, check_stats
 
-__all__ = ["pixel_features", "feature_channels", "REL_EPS", "VAR_FLOOR", "DIST_EPS"]
+__all__ = ["pixel_features", "feature_channels", "REL_EPS", "VAR_FLOOR", "DIST_EPS",
+           "mix_features", "mix_features_of", "mix_feature_channels", "mix_inputs",
+           "swap_mix_planes", "MIX_PLANES", "MIX_SWAP", "MIX_REL_EPS", "MIX_GAIN"]
 
 #: ε of the relative variance ``σ²/(x² + ε)``: 0.01, the ε of relMSE (Rousselle 2011 §7).
 REL_EPS = 0.01
@@ -132,3 +139,183 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
     a = np.concatenate(planes, axis=2)
     check_finite("features", a)
     return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)[None])).to(dtype)
+
+
+# =========================================================================== mixing network
+#: Names of the six plane groups of :func:`mix_features` (``C`` planes each), in order:
+#: Firmino 2022 §4.3's HDR, VAR, DEN, SURE, then the two by-products of SURE,
+#: ``σ² f'(x)`` (DIV) and ``‖y − x‖²`` (DIST).
+MIX_PLANES = ("HDR", "VAR", "DEN", "SURE", "DIV", "DIST")
+#: The random swap of Firmino 2022 §4.3 as a permutation of the groups of
+#: :data:`MIX_PLANES`: (HDR, VAR) ↔ (DEN, SURE); DIV and DIST stay (see :func:`mix_features`).
+MIX_SWAP = (2, 3, 0, 1, 4, 5)
+#: ε of the relative normalisation ``(x² + y²)/2 + ε`` of :func:`mix_features`: 0.01, the ε
+#: of relMSE (Rousselle 2011 §7).
+MIX_REL_EPS = 0.01
+#: Gain before the arctan of :func:`mix_features` (``relative=True``).  Measured on 32×32
+#: OIDN-denoised toy renders ("mixed", "edges", "texture"; session 12): the relative VAR,
+#: SURE, DIV and DIST have medians 3e-4 to 6e-2 and 95th percentiles 2e-3 to 1.7 from 512
+#: to 8 spp, so a gain of 100 puts typical values in arctan's responsive range (|·| ≲ 1.5)
+#: instead of next to 0, where the first layer could barely see them.
+MIX_GAIN = 100.0
+
+
+def mix_feature_channels(channels: int = 3) -> int:
+    """Number of planes ``F = 6C`` that :func:`mix_features` returns for ``C`` channels."""
+    if isinstance(channels, bool) or not isinstance(channels, (int, np.integer)) or channels < 1:
+        raise InputError(f"`channels` must be an int >= 1; got {channels!r}.")
+    return 6 * int(channels)
+
+
+def _mix_map(name, a, shape):
+    arr = as_float_array(name, a, ndim=3, dtype=np.float64)
+    if arr.shape != shape:
+        raise InputError(f"`{name}` must have the shape of `x` {shape}; got {arr.shape}.")
+    check_finite(name, arr)
+    return arr
+
+
+def mix_features(x, mean_var, y, sure_y, divergence, *, relative: bool = True,
+                 gain: float = MIX_GAIN, dtype=torch.float32) -> torch.Tensor:
+    """The inputs of the mixing network of Firmino 2022 §4.3, in swappable order.
+
+    Parameters
+    ----------
+    x : (H, W, C) ndarray
+        The render (pixel means), "HDR".
+    mean_var : (H, W, C) or (H, W, C, C) ndarray
+        ``σ²``, the **variance of the mean** of ``x`` ("VAR", the estimate of the squared
+        error of ``x``; of a covariance only the diagonal is used).
+    y : (H, W, C) ndarray
+        The denoised image ``f(x)``, "DEN".
+    sure_y : (H, W, C) ndarray
+        Per-pixel SURE of ``y`` (:func:`statmc.sure.mc_sure` or :func:`statmc.sure.sure`),
+        the estimate of its squared error; may be negative.
+    divergence : (H, W, C) ndarray
+        ``σ² f'(x) = (J_f Σ)_ii``, the divergence term computed with SURE
+        (``extra_output["divergence"]`` of those functions).
+    relative : bool
+        ``True`` (default): divide the four non-radiance quantities by
+        ``(x² + y²)/2 + 0.01`` before the arctan (a departure from the paper, see Notes).
+        ``False``: the paper's literal ``arctan(gain · q)``.
+    gain : float
+        Factor inside the arctan (> 0; default :data:`MIX_GAIN` = 100).  ``relative=False,
+        gain=1`` is the paper's transform.
+    dtype : torch.float32 or torch.float64
+
+    Returns
+    -------
+    (1, 6C, H, W) tensor
+        Six groups of ``C`` planes, in the order of :data:`MIX_PLANES`:
+        ``log(1 + max(x, 0))``, ``arctan(g σ²/s)``, ``log(1 + max(y, 0))``,
+        ``arctan(g SURE/s)``, ``arctan(g D/s)``, ``arctan(g (y − x)²/s)``, with
+        ``s = (x² + y²)/2 + 0.01`` (``s = 1`` when ``relative=False``) and ``g = gain``.
+
+    Notes
+    -----
+    §4.3 of Firmino 2022 feeds HDR, DEN, VAR, SURE, ``σ² f'(x)`` and ``‖y − x‖²``;
+    radiances go through ``log(1 + x)`` and "the non-radiance quantities are transformed
+    by ``arctan(x)``, rather than ``log(1 + x)`` as x may be negative" (SURE and the
+    divergence can be).  The order makes the paper's random swap of (HDR, VAR) with
+    (DEN, SURE) an exact permutation of planes, :func:`swap_mix_planes`.
+
+    **The divergence under a swap** (the paper is silent).  It stays where it is.  In
+    Eq. 8 ``σ² E[f'(x)]`` enters as the covariance ``E[(x − μ)(y − μ)]`` of the two
+    estimates' errors (Eq. 6, Stein's lemma), which is symmetric in ``x`` and ``y``: the
+    expected error of the swapped mix ``y + β(x − y)`` is Eq. 8 with ``σ²`` and SURE
+    exchanged and the same cross term, and its minimiser is Eq. 10, ``β = (SURE − σ²
+    f'(x))/‖y − x‖²`` — Eq. 9 with ``σ² ↔ SURE`` and the same ``σ² f'(x)`` and
+    ``‖y − x‖²``.  So a network that learns Eq. 9 on the unswapped planes computes Eq. 10
+    on the swapped ones.  ``‖y − x‖²`` is symmetric too, and so is the normaliser ``s``,
+    so the swap stays an exact permutation with ``relative=True``.
+
+    **Relative, with a gain** (departure).  The paper applies ``arctan`` to the absolute
+    quantities.  Here they are divided by the symmetric ``s`` (the ε of relMSE) and
+    multiplied by :data:`MIX_GAIN`: the ratios of Eq. 9 and 10 do not change under a common
+    per-pixel factor, inputs of renders of any brightness land on one scale, and at 64–512
+    spp the absolute (and relative) values are so close to 0 that ``arctan`` leaves them
+    about 1e-4 to 1e-2 (measurements at :data:`MIX_GAIN`).
+
+    References
+    ----------
+    A. Firmino, J. R. Frisvad, H. W. Jensen. "Progressive Denoising of Monte Carlo Rendered
+    Images". Computer Graphics Forum 41(2), 2022. https://doi.org/10.1111/cgf.14454
+    """
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
+    if not isinstance(relative, (bool, np.bool_)):
+        raise InputError(f"`relative` must be a bool; got {relative!r}.")
+    gain = as_number("gain", gain, lo=0.0, lo_open=True)
+    xx = as_float_array("x", x, ndim=3, dtype=np.float64)
+    check_nonempty("x", xx)
+    check_finite("x", xx)
+    shape = xx.shape
+    v = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=np.float64)
+    if v.ndim == 4 and v.shape == shape + (shape[2],):
+        v = np.diagonal(v, axis1=-2, axis2=-1)
+    if v.shape != shape:
+        raise InputError(f"`mean_var` must be the variance of the mean with the shape of `x` "
+                         f"{shape} (or a covariance {shape + (shape[2],)}); got {np.shape(mean_var)}.")
+    check_finite("mean_var", v)
+    check_nonnegative("mean_var", v)
+    yy = _mix_map("y", y, shape)
+    sy = _mix_map("sure_y", sure_y, shape)
+    d = _mix_map("divergence", divergence, shape)
+    scale = gain / ((xx * xx + yy * yy) / 2.0 + MIX_REL_EPS) if relative else gain
+    planes = [np.log1p(np.maximum(xx, 0.0)), np.arctan(scale * v),
+              np.log1p(np.maximum(yy, 0.0)), np.arctan(scale * sy),
+              np.arctan(scale * d), np.arctan(scale * (yy - xx) ** 2)]
+    a = np.concatenate(planes, axis=2)
+    check_finite("features", a)
+    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)[None])).to(dtype)
+
+
+def swap_mix_planes(features: torch.Tensor) -> torch.Tensor:
+    """The random swap of Firmino 2022 §4.3 on :func:`mix_features` planes: (HDR, VAR) ↔
+    (DEN, SURE), DIV and DIST in place (:data:`MIX_SWAP`; an involution).
+
+    ``features`` is ``(N, 6C, H, W)`` (or ``(6C, H, W)``); the result is the same planes
+    permuted, exactly the features of the swapped inputs (``mix_features(y, SURE, x, σ²,
+    D)``, see :func:`mix_features` for why the divergence ``D`` stays).
+    """
+    if not isinstance(features, torch.Tensor) or features.ndim not in (3, 4) \
+            or features.shape[-3] % 6 != 0 or features.shape[-3] == 0:
+        got = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
+        raise InputError(f"`features` must be an (N, 6C, H, W) tensor of mix_features planes; "
+                         f"got {got}.")
+    groups = features.unflatten(-3, (6, features.shape[-3] // 6))
+    return groups[..., list(MIX_SWAP), :, :, :].flatten(-4, -3)
+
+
+def mix_inputs(stats: PixelStats, denoiser, *, k: int = 4, eps: float = 1e-4, rng=None) -> dict:
+    """Denoise a render and compute its MC-SURE: the inputs of :func:`mix_features`.
+
+    Returns the dict that :func:`statmc.progressive.progressive_denoise` hands to a callable
+    ``alpha``: ``x`` (``stats.mean``), ``y`` (the denoised image), ``mean_var`` (σ²),
+    ``sure`` (per-pixel MC-SURE of ``y``, Eq. 1 with Eq. 2 of Firmino 2022) and
+    ``divergence`` (``σ² f'(x)``), from :func:`statmc.sure.mc_sure` with ``k``, ``eps``,
+    ``rng``.  ``denoiser`` is a callable or a name bound to ``stats`` by
+    :func:`statmc.progressive.bind_denoiser` (e.g. ``"oidn"``).
+    """
+    from statmc.progressive import bind_denoiser
+    from statmc.sure import mc_sure
+
+    check_stats(stats)
+    stats.require_variance(why="for VAR and MC-SURE of the mixing network's inputs",
+                           hint=" Render a uniform pass of >= 2 spp first.")
+    f = bind_denoiser(denoiser, stats) if isinstance(denoiser, str) else denoiser
+    s, info = mc_sure(f, stats.mean, stats.mean_var, k=k, eps=eps, rng=rng, extra_output=True)
+    return {"x": np.asarray(stats.mean, np.float64), "y": info["denoised"],
+            "mean_var": np.asarray(stats.mean_var, np.float64), "sure": s,
+            "divergence": info["divergence"]}
+
+
+def mix_features_of(inputs: dict, **options) -> torch.Tensor:
+    """:func:`mix_features` of a :func:`mix_inputs` dict (the ``alpha`` callable's dict of
+    :func:`statmc.progressive.progressive_denoise`); ``options`` as there."""
+    if not isinstance(inputs, dict) or not {"x", "y", "mean_var", "sure", "divergence"} <= set(inputs):
+        raise InputError("`inputs` must be a dict with x, y, mean_var, sure and divergence "
+                         f"(statmc.nn.mix_inputs); got {type(inputs).__name__}"
+                         + (f" with keys {sorted(inputs)}" if isinstance(inputs, dict) else "") + ".")
+    return mix_features(inputs["x"], inputs["mean_var"], inputs["y"], inputs["sure"],
+                        inputs["divergence"], **options)

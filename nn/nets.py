@@ -14,12 +14,14 @@ network                output (torch, NCHW)        plugs into (NumPy, channel-la
                        positive weights             :func:`~statmc.combine.combine_multi`
                                                     (``(H, W, B, k, k)``; Back 2020 Eq. 8, 14, §4.2)
 :class:`MixNet`        ``(N, 1, H, W)`` α ∈ [0, 1]  :func:`statmc.progressive.progressive_denoise`
-                                                    ``(alpha=...)`` (``(H, W)``; Firmino 2022 §4.3)
+                                                    ``(alpha=...)`` (``(H, W)``; Firmino 2022 §4.3;
+                                                    ``inputs="mix"``: :func:`~statmc.nn.mix_features`)
 :class:`SamplingNet`   ``(N, 1, H, W)`` logits      :func:`statmc.sampling.counts_from_density`
                                                     (``(H, W)`` counts; Salehi 2022 Eq. 11)
 =====================  ==========================  ==================================================
 
-Every network reads the planes of :func:`statmc.nn.features.pixel_features` (its
+Every network reads the planes of :func:`statmc.nn.features.pixel_features` (``MixNet(inputs="mix")``
+those of :func:`statmc.nn.features.mix_features` instead; its
 ``channels`` argument is the ``C`` of the render), so ``net(pixel_features(stats, ...))``
 is the torch path used in training, and one method per network (``kernels``, ``weights``,
 ``alpha``, ``counts``) is the NumPy path that hands statmc a channel-last array.
@@ -39,7 +41,8 @@ from statmc.errors import InputError, as_float_array, as_number, check_finite
 from statmc.sampling import counts_from_density
 from statmc.stats import check_stats
 
-from .features import feature_channels, pixel_features
+from .features import (feature_channels, mix_feature_channels, mix_features_of, pixel_features,
+                       swap_mix_planes)
 from .layout import kernels_to_numpy, weights_to_numpy
 from .ops import apply_kernels, check_finite_tensor, check_tensor
 
@@ -276,12 +279,23 @@ class MixNet(_Net):
         :data:`F_ACT_INIT_BIAS` and weights scaled by :data:`F_ACT_INIT_SCALE`, so a fresh
         network gives α ≈ 0.5 with ``x3`` well above ε at every pixel (with torch's default
         initialisation most seeds start clamped everywhere, with no gradient at all).
+    inputs : {"pixel", "mix"}
+        ``"pixel"`` (default): ``pixel_features(stats, extra=y)``.  ``"mix"``: the inputs
+        of Firmino 2022 §4.3, :func:`statmc.nn.mix_features` (HDR, VAR, DEN, SURE,
+        ``σ² f'(x)``, ``‖y − x‖²``; ``6C`` planes), whose swap (HDR, VAR) ↔ (DEN, SURE) is
+        a permutation of planes, for training with the paper's random swapping
+        (:func:`statmc.nn.swap_mix_loss`).
+    mix_options : dict, optional
+        ``relative`` and ``gain`` of :func:`statmc.nn.mix_features`, used by the NumPy
+        methods (:meth:`alpha`, :meth:`alpha_from`); build training features with the same.
     seed : int or None
 
     Notes
     -----
     One α per pixel, shared by the channels (the paper's network predicts one per pixel
-    and channel; ``progressive_denoise`` accepts either).
+    and channel; ``progressive_denoise`` accepts either).  The swap turns the pair round:
+    on swapped inputs the network's output is the β of ``y + β(x − y)`` (Eq. 10); a
+    swap-consistent network has ``α(x, y) = 1 − α(y, x)`` (:meth:`swap_consistency`).
     ``z = x + α (y − x)`` (§4 of Firmino 2022; the network is their ``h`` of Eq. 3).  Pass the α of :meth:`alpha` to
     :func:`statmc.progressive.progressive_denoise` ``(alpha=...)``: it goes through the
     same Student-t confidence gate (Eq. 12–18) as the classical α of Eq. 9, which keeps
@@ -289,14 +303,25 @@ class MixNet(_Net):
     """
 
     _ACTIVATIONS = ("sigmoid", "f_act")
+    _INPUTS = ("pixel", "mix")
 
     def __init__(self, channels: int = 3, *, width: int = 16, activation: str = "sigmoid",
-                 seed=0):
+                 inputs: str = "pixel", mix_options=None, seed=0):
         if activation not in self._ACTIVATIONS:
             raise InputError(f"`activation` must be 'sigmoid' or 'f_act'; got {activation!r}.")
+        if inputs not in self._INPUTS:
+            raise InputError(f"`inputs` must be 'pixel' (pixel_features(stats, extra=y)) or "
+                             f"'mix' (mix_features, Firmino 2022 §4.3); got {inputs!r}.")
+        if mix_options is not None and (inputs != "mix" or not isinstance(mix_options, dict)
+                                        or not set(mix_options) <= {"relative", "gain"}):
+            raise InputError(f"`mix_options` must be None or, with inputs='mix', a dict of "
+                             f"mix_features options (relative, gain); got {mix_options!r}.")
         self.activation = activation
-        super().__init__(feature_channels(_int("channels", channels, 1), extra=1),
-                         1 if activation == "sigmoid" else 3, width, seed)
+        self.inputs = inputs
+        self.mix_options = dict(mix_options or {})
+        C = _int("channels", channels, 1)
+        F = feature_channels(C, extra=1) if inputs == "pixel" else mix_feature_channels(C)
+        super().__init__(F, 1 if activation == "sigmoid" else 3, width, seed)
         if activation == "f_act":          # start inside the clamp, x3 > ε (F_ACT_INIT_BIAS)
             head = self.body[-1]
             with torch.no_grad():
@@ -328,11 +353,45 @@ class MixNet(_Net):
                              f"batch size and (H, W) of `features` {tuple(features.shape)}.")
         return x + a * (y - x)
 
-    def alpha(self, stats, y) -> np.ndarray:
-        """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map."""
+    def alpha(self, stats, y, *, sure=None, divergence=None) -> np.ndarray:
+        """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map.
+
+        With ``inputs="mix"``, ``sure`` and ``divergence`` (``(H, W, C)``, from
+        :func:`statmc.sure.mc_sure`) are needed too; :meth:`alpha_from` takes them in a
+        :func:`statmc.nn.mix_inputs` dict.
+        """
+        if self.inputs == "pixel":
+            if sure is not None or divergence is not None:
+                raise InputError("`sure` and `divergence` are inputs of MixNet(inputs='mix'); "
+                                 "this network reads pixel_features(stats, extra=y) only.")
+            with torch.no_grad():
+                a = self(self._features(stats, extra=_images("y", y, stats)))
+            return a[0, 0].cpu().numpy().astype(np.float64)
+        if sure is None or divergence is None:
+            raise InputError("MixNet(inputs='mix') needs `sure` and `divergence` of `y` "
+                             "(statmc.sure.mc_sure(..., extra_output=True)); got None.")
+        check_stats(stats)
+        return self.alpha_from({"x": stats.mean, "y": y, "mean_var": stats.mean_var,
+                                "sure": sure, "divergence": divergence})
+
+    def alpha_from(self, inputs) -> np.ndarray:
+        """α ``(H, W)`` from a dict of ``x``, ``y``, ``mean_var``, ``sure``, ``divergence``
+        (``inputs="mix"``): pass ``alpha=net.alpha_from`` to
+        :func:`statmc.progressive.progressive_denoise`, which calls it with exactly that
+        dict, so the network sees the ``y`` and MC-SURE that the gate and the mix use."""
+        if self.inputs != "mix":
+            raise InputError("`alpha_from` is for MixNet(inputs='mix'); use alpha(stats, y).")
         with torch.no_grad():
-            a = self(self._features(stats, extra=_images("y", y, stats)))
+            f = mix_features_of(inputs, dtype=self._dtype, **self.mix_options).to(self._device)
+            a = self(f)
         return a[0, 0].cpu().numpy().astype(np.float64)
+
+    def swap_consistency(self, features) -> torch.Tensor:
+        """``α(x, y) + α(y, x) − 1`` per pixel (``inputs="mix"``; 0 for a swap-consistent
+        network, Firmino 2022 §4.3: swapping the inputs should turn α into β = 1 − α)."""
+        if self.inputs != "mix":
+            raise InputError("`swap_consistency` is for MixNet(inputs='mix').")
+        return self(features) + self(swap_mix_planes(features)) - 1.0
 
 
 class SamplingNet(_Net):

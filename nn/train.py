@@ -1,4 +1,4 @@
-"""A small training helper: relMSE loss, Adam, fixed seed.
+"""A small training helper: relMSE loss, Adam, fixed seed, and the mixing network's swap.
 
 Enough to fit the tiny networks of :mod:`statmc.nn.nets` for a few dozen steps on the
 toy renderer's exact truth (:mod:`statmc.toy`), on the CPU in seconds.  It is not a
@@ -14,9 +14,10 @@ import torch
 
 from statmc.errors import InputError, as_number
 
-from .ops import check_finite_tensor, check_like
+from .features import swap_mix_planes
+from .ops import check_finite_tensor, check_like, check_tensor
 
-__all__ = ["relmse_loss", "train", "RELMSE_EPS"]
+__all__ = ["relmse_loss", "train", "random_swap", "swap_mix_loss", "RELMSE_EPS"]
 
 #: ε of relMSE: 0.01 (Rousselle et al. 2011 §7), as in :func:`statmc.metrics.relmse`.
 RELMSE_EPS = 0.01
@@ -130,3 +131,86 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
         model.eval()
     return {"losses": losses, "steps": int(steps), "lr": lr, "seed": int(seed),
             "optimizer": "Adam", "seconds": time.perf_counter() - t0}
+
+
+def random_swap(features, x, y, *, p: float = 0.5, generator=None):
+    """The random swapping of Firmino 2022 §4.3 on a batch, per sample with probability ``p``.
+
+    A swapped sample exchanges the render and the denoised image *with their error
+    estimates*: its :func:`~statmc.nn.mix_features` planes go through
+    :func:`~statmc.nn.swap_mix_planes` ((HDR, VAR) ↔ (DEN, SURE); ``σ² f'(x)`` and
+    ``‖y − x‖²`` stay), and ``(x, y)`` becomes ``(y, x)``.  ``MixNet.mix`` of the result is
+    then ``y + β (x − y)`` on swapped samples: the network predicts β = 1 − α of Eq. 10
+    there, and Eq. 9's α elsewhere, for the same target ``z``.
+
+    Parameters
+    ----------
+    features : (N, 6C, H, W) tensor
+        :func:`~statmc.nn.mix_features` planes (batched with ``torch.cat``).
+    x, y : (N, C, H, W) tensors
+        Renders and their denoised images.
+    p : float
+        Probability of a swap, in [0, 1] (the paper: "randomly", 1/2 here by default).
+    generator : torch.Generator, optional
+        Source of the draws; default torch's global generator, which :func:`train` seeds.
+
+    Returns
+    -------
+    features, x, y : tensors
+        The batch with the swapped samples swapped (new tensors; the inputs are untouched).
+    swapped : (N,) bool tensor
+    """
+    check_tensor("features", features, 4, "(N, 6C, H, W)")
+    check_tensor("x", x, 4, "(N, C, H, W)")
+    check_tensor("y", y, 4, "(N, C, H, W)")
+    if y.shape != x.shape:
+        raise InputError(f"`y` must have the shape of `x` {tuple(x.shape)}; got {tuple(y.shape)}.")
+    N, C, H, W = x.shape
+    if features.shape != (N, 6 * C, H, W):
+        raise InputError(f"`features` must be (N, 6C, H, W) = {(N, 6 * C, H, W)} for images "
+                         f"{tuple(x.shape)} (mix_features planes); got {tuple(features.shape)}.")
+    check_like("y", y, "x", x)
+    check_like("features", features, "x", x)
+    p = as_number("p", p, lo=0.0)
+    if p > 1.0:
+        raise InputError(f"`p` must be a probability in [0, 1]; got {p!r}.")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise InputError(f"`generator` must be a torch.Generator or None; got {generator!r}.")
+    swapped = torch.rand(N, generator=generator) < p
+    m = swapped.to(x.device).view(N, 1, 1, 1)
+    return (torch.where(m, swap_mix_planes(features), features), torch.where(m, y, x),
+            torch.where(m, x, y), swapped)
+
+
+def swap_mix_loss(model, features, x, y, ref, *, p: float = 0.5, loss=relmse_loss,
+                  generator=None):
+    """The mixing network's training loss with the random swapping of Firmino 2022 §4.3.
+
+    ``loss(model.mix(f', x', y'), ref)`` with ``(f', x', y')`` from :func:`random_swap`:
+    on a swapped sample the network sees (DEN, SURE) in the render's slot and (HDR, VAR)
+    in the denoised one, and the loss is that of ``y + β (x − y)``, β its output.  Without
+    the swap (``p=0``) this is the plain loss of ``x + α (y − x)``, whose minimum in
+    practice is α = 1 when the denoised image is usually better (docs/nn.md, §4.3).
+
+    Parameters
+    ----------
+    model : MixNet
+        With ``inputs="mix"``.
+    features : (N, 6C, H, W) tensor
+        :func:`~statmc.nn.mix_features` planes.
+    x, y, ref : (N, C, H, W) tensors
+        Renders, denoised images, and the reference (truth).
+    p, generator
+        Of :func:`random_swap`.
+    loss : callable ``(z, ref) -> 0-d tensor``
+        Default :func:`relmse_loss` (the paper trains with SMAPE, §5.3).
+
+    Returns
+    -------
+    0-d tensor
+    """
+    if getattr(model, "inputs", None) != "mix":
+        raise InputError("`model` must be a MixNet(inputs='mix'): the swap permutes "
+                         "mix_features planes.")
+    f, a, b, _ = random_swap(features, x, y, p=p, generator=generator)
+    return loss(model.mix(f, a, b), ref)
