@@ -355,6 +355,34 @@ def _placement(path, layer=None) -> dict:
     return keep
 
 
+def _file_layers(args, first: str, second: str) -> tuple:
+    """The layers of a two-file command's files: ``--<first>-layer`` and ``--<second>-layer``
+    where given, else ``--layer`` (both files)."""
+    return tuple(args.layer if getattr(args, f"{which}_layer") is None
+                 else getattr(args, f"{which}_layer") for which in (first, second))
+
+
+# The library's hint of a file whose colour is only in a layer ("..., or, in Python, read them
+# with statmc.exr.read_exr/read_image(path, layer='X')"); group 1 the quoted layer name.
+_LAYER_HINT = re.compile(r", or, in Python, read them with statmc\.exr\.read_exr/read_image\("
+                         r"path, layer=('[^']*'|\"[^\"]*\")\)")
+
+
+@contextlib.contextmanager
+def _layer_hint_for(option: str, which: str):
+    """Within the block, a file read refused for want of a layer names the per-file layer
+    option of the file it read (``--reference-layer 'X' for REFERENCE alone``) beside
+    ``--layer`` (both files), instead of the library's Python hint."""
+    try:
+        yield
+    except FileFormatError as e:
+        message = _LAYER_HINT.sub(rf", or give {option} \1 for {which} alone, or give --layer \1",
+                                  str(e))
+        if message == str(e):
+            raise
+        raise FileFormatError(message) from None
+
+
 def _write_result(path, data, image, *, inputs, extra=None, quiet=False, place=None) -> None:
     """Write ``data`` (statistics or an image) to ``path`` and a PNG preview of ``image``
     beside it, both or neither, never onto one of ``inputs``.  ``place``: what the output
@@ -879,9 +907,11 @@ def _combine_bins_file(args) -> int:
     from .exr import _reading_once, read_bins
 
     _check_out_file(args.out, [args.y])
-    if args.layer is not None:
-        raise InputError(f"--layer selects a layer of Y and Z; a sample-bins file ({args.y}, "
-                         "without Z) is statmc's own and has none: leave --layer out.")
+    given = [o for o, v in (("--layer", args.layer), ("--y-layer", args.y_layer),
+                            ("--z-layer", args.z_layer)) if v is not None]
+    if given:
+        raise InputError(f"{given[0]} selects a layer of Y and Z; a sample-bins file ({args.y}, "
+                         f"without Z) is statmc's own and has none: leave {given[0]} out.")
     with _reading_once(args.y):                # an alpha channel: from the same decoding
         bins = read_bins(args.y)
         place = _placement(args.y)
@@ -940,19 +970,21 @@ def cmd_combine(args) -> int:
                          "independent render Y with a correlated image Z of the same scene, "
                          "e.g. a `statmc render --crn` render.")
     statistical = args.weights == "statistical"
+    y_layer, z_layer = _file_layers(args, "y", "z")
     if not statistical:
         _refuse_unused(args, ["spp"], f"with --weights {args.weights} (it is the sample count "
                        "of a Y without SampleCount, which only --weights statistical reads)")
     try:
-        if statistical:
-            y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
-                                       "statistics; --weights uniform or gaussian combine a "
-                                       "plain image.", layer=args.layer)
-        else:
-            # Fixed weights read Y's colour only.  Read as statistics all the same, so that
-            # a --crn render (SpatialCovariance.*) or a bins file is still recognised by its
-            # channels.
-            y_stats = _read_colour(args.y, args.layer)
+        with _layer_hint_for("--y-layer", "Y"):
+            if statistical:
+                y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
+                                           "statistics; --weights uniform or gaussian combine a "
+                                           "plain image.", layer=y_layer)
+            else:
+                # Fixed weights read Y's colour only.  Read as statistics all the same, so
+                # that a --crn render (SpatialCovariance.*) or a bins file is still
+                # recognised by its channels.
+                y_stats = _read_colour(args.y, y_layer)
     except FileFormatError:
         _refuse_bins_as_y(args.y)
         raise
@@ -969,8 +1001,9 @@ def cmd_combine(args) -> int:
         try:
             # --spp (for a Y without SampleCount) applies to Z only if Z has none either;
             # a --crn Z's stencil comes from the same read of the file (below)
-            z_stats, z_stencil = _read_exr_and_stencil(args.z, spp=args.spp, spp_if_missing=True,
-                                                       layer=args.layer, covariance=False)
+            with _layer_hint_for("--z-layer", "Z"):
+                z_stats, z_stencil = _read_exr_and_stencil(
+                    args.z, spp=args.spp, spp_if_missing=True, layer=z_layer, covariance=False)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -981,12 +1014,13 @@ def cmd_combine(args) -> int:
         for st, path in ((y_stats, args.y), (z_stats, args.z)):
             _need_variance(st, path, "--weights statistical")
     else:
-        z = read_image(args.z, layer=args.layer)
+        with _layer_hint_for("--z-layer", "Z"):
+            z = read_image(args.z, layer=z_layer)
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
     _same_frame(args.y, args.z, "Y", "Z")
-    place = _placement(args.y, args.layer)
+    place = _placement(args.y, y_layer)
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -1058,8 +1092,11 @@ def cmd_metrics(args) -> int:
     from .metrics import all_metrics
     opts = {} if args.replace_nonfinite is None else {"nonfinite": "replace",
                                                       "replace_value": args.replace_nonfinite}
-    img = read_image(args.image, layer=args.layer, **opts)
-    ref = read_image(args.reference, layer=args.layer, **opts)
+    image_layer, reference_layer = _file_layers(args, "image", "reference")
+    with _layer_hint_for("--image-layer", "IMAGE"):
+        img = read_image(args.image, layer=image_layer, **opts)
+    with _layer_hint_for("--reference-layer", "REFERENCE"):
+        ref = read_image(args.reference, layer=reference_layer, **opts)
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
@@ -1100,6 +1137,17 @@ _LAYER_COMMANDS = ("reconstruct", "denoise", "progressive", "combine", "metrics"
 def _add_layer_option(parser, what: str = "the input") -> None:
     parser.add_argument("--layer", default=None, metavar="NAME",
                         help=LAYER_HELP.replace("EXR layer", f"layer of {what}"))
+
+
+def _add_file_layer_options(parser, *files: str) -> None:
+    """``--<file>-layer`` for each of a two-file command's files: its layer, in place of
+    ``--layer``'s (which names both files' layer)."""
+    for which in files:
+        upper = which.upper()
+        parser.add_argument(f"--{which}-layer", default=None, metavar="NAME",
+                            help=f"the layer of {upper} alone, in place of --layer's (say "
+                                 f"ViewLayer.Combined for a Blender render beside an "
+                                 f"unlayered file)")
 
 
 SPP_HELP = ("samples per pixel of a file without SampleCount (a positive integer; pbrt-v4 "
@@ -1189,6 +1237,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("image", help="EXR image (R,G,B or Y)")
     m.add_argument("reference", help="EXR of the same size")
     _add_layer_option(m, "both files")
+    _add_file_layer_options(m, "image", "reference")
     m.add_argument("--replace-nonfinite", type=FINITE, metavar="VALUE",
                    help="replace NaN/Inf pixels by VALUE (default: refuse such files)")
     m.set_defaults(func=cmd_metrics)
@@ -1244,6 +1293,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "`statmc reconstruct Y.exr --method oidn+combine` for that. Left out "
                         "when Y holds sample bins (Bin<b>.* and Bin<b>.Denoised.* channels)")
     _add_layer_option(c, "Y and Z")
+    _add_file_layer_options(c, "y", "z")
     c.add_argument("--weights", choices=["uniform", "gaussian", "statistical"], default="statistical",
                    help="default statistical")
     c.add_argument("--size", type=_odd_int, default=None,
@@ -1290,9 +1340,7 @@ def _cli_message(message: str, command: str) -> str:
            "expected finite values (`statmc info FILE` counts them per channel).")
     message = message.replace(_NONFINITE_HINT, fix)
     # the library's layer= is the command's --layer, where it has one
-    return re.sub(r", or, in Python, read them with statmc\.exr\.read_exr/read_image\(path, "
-                  r"layer=('[^']*'|\"[^\"]*\")\)",
-                  r", or give --layer \1" if command in _LAYER_COMMANDS else "", message)
+    return _LAYER_HINT.sub(r", or give --layer \1" if command in _LAYER_COMMANDS else "", message)
 
 
 def main(argv=None) -> int:

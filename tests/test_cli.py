@@ -2210,3 +2210,76 @@ def test_a_bad_layer_is_named_as_the_option(tmp_path):
         assert code == 2 and err.count("\n") == 1, err
         assert f"--layer must be a layer name such as 'ViewLayer.Combined' (without the channel's " \
                f"last part); got {bad!r}." in err and "`layer`" not in err
+
+
+# ------------------------------------- session 12: files written by other tools (per-file options)
+def _plain_copy(path, blender_channels, layer="ViewLayer.Combined"):
+    """The beauty of a Blender-style file written unprefixed (R, G, B and its statistics)."""
+    prefix = layer + "."
+    _write_channels(path, {k[len(prefix):]: v for k, v in blender_channels.items()
+                           if k.startswith(prefix)})
+
+
+def test_metrics_scores_a_blender_layer_against_an_unlayered_reference(tmp_path):
+    # before: --layer applied to both files, so a Blender render (ViewLayer.Combined.R) could
+    # not be scored against an unlayered reference (R, G, B): no --image-layer existed
+    rng = np.random.default_rng(30)
+    a, ref = tmp_path / "blender.exr", tmp_path / "ref.exr"
+    ch = _blender_file(a, rng)
+    _plain_copy(ref, ch)
+    code, out, err = run_cli("metrics", a, ref, "--image-layer", "ViewLayer.Combined")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    code, out, err = run_cli("metrics", ref, a, "--reference-layer", "ViewLayer.Combined")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    # a per-file option overrides --layer for its file only
+    code, out, err = run_cli("metrics", a, ref, "--layer", "ViewLayer.Combined",
+                             "--reference-layer", "Nope")
+    assert code == 2 and err.count("\n") == 1 and f"{ref}' has no channels in layer 'Nope'" in err
+    # --layer alone still means both files
+    code, _, err = run_cli("metrics", a, ref, "--layer", "ViewLayer.Combined")
+    assert code == 2 and err.count("\n") == 1 and "has no channels in layer" in err, err
+    # without a layer, the error names the file's own option beside --layer
+    code, _, err = run_cli("metrics", ref, a)
+    assert code == 2 and err.count("\n") == 1, err
+    assert (f"{a}" in err and "or give --reference-layer 'ViewLayer.Combined' for REFERENCE "
+            "alone, or give --layer 'ViewLayer.Combined'." in err and "Python" not in err), err
+
+
+@pytest.mark.parametrize("weights", ["uniform", "statistical"])
+def test_combine_reads_a_layer_of_one_input(tmp_path, weights):
+    # before: `combine Y Z --layer L` read L in both files; a Blender Z beside an unlayered Y
+    # (or the reverse) could not be combined
+    from statmc.exr import read_image
+    rng = np.random.default_rng(31)
+    y, z = tmp_path / "y.exr", tmp_path / "z.exr"
+    _plain_copy(y, _blender_file(tmp_path / "yb.exr", rng, stats=True))
+    zc = _blender_file(z, rng, stats=True)
+    o = tmp_path / "o.exr"
+    code, _, err = run_cli("combine", y, z, "--z-layer", "ViewLayer.Combined", "--weights",
+                           weights, "--out", o, "-q")
+    assert code == 0, err
+    _plain_copy(tmp_path / "zp.exr", zc)
+    code, _, err = run_cli("combine", y, tmp_path / "zp.exr", "--weights", weights,
+                           "--out", tmp_path / "o2.exr", "-q")
+    assert code == 0, err
+    assert np.array_equal(read_image(o), read_image(tmp_path / "o2.exr"))
+    # the other way round: Y in a layer (its alpha kept), Z plain
+    code, _, err = run_cli("combine", z, y, "--y-layer", "ViewLayer.Combined", "--weights",
+                           weights, "--out", o, "-q")
+    assert code == 0, err
+    from statmc.exr import read_channels
+    assert "A" in read_channels(o)
+    code, _, err = run_cli("combine", y, z, "--weights", weights, "--out", o, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "or give --z-layer 'ViewLayer.Combined' for Z alone, or give --layer" in err
+
+
+def test_per_file_layers_are_refused_for_a_bins_file(tmp_path):
+    from statmc.exr import bin_channels, write_exr
+    ys = np.random.default_rng(32).random((2, 4, 5, 3))
+    p = tmp_path / "bins.exr"
+    write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
+    for opt in ("--y-layer", "--z-layer"):
+        code, _, err = run_cli("combine", p, opt, "X", "--out", tmp_path / "o.exr")
+        assert code == 2 and err.count("\n") == 1, err
+        assert f"{opt} selects a layer of Y and Z" in err and f"leave {opt} out" in err
