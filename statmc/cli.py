@@ -333,19 +333,19 @@ def _staged_outputs(directory, inputs=()):
                     os.rmdir(m)
 
 
-def _placement(path, layer=None) -> dict:
-    """What an output keeps of its input ``path``, read (and checked) before the work: its
-    data and display windows (a crop stays where it was), ``chromaticities`` (an ACEScg
-    render stays ACEScg) and alpha channel ``A`` (``<layer>.A`` with ``layer``; None if it
-    has none), as denoisers pass alpha through for a compositor.  An alpha with NaN/Inf,
-    which the output would carry, is refused."""
+def _placement(path, layer=None, part=0) -> dict:
+    """What an output keeps of its input ``path`` (its ``part``), read (and checked) before
+    the work: its data and display windows (a crop stays where it was), ``chromaticities``
+    (an ACEScg render stays ACEScg) and alpha channel ``A`` (``<layer>.A`` with ``layer``;
+    None if it has none), as denoisers pass alpha through for a compositor.  An alpha with
+    NaN/Inf, which the output would carry, is refused."""
     from .exr import _header_summary, read_channels
-    info = _header_summary(path)
+    info = _header_summary(path, part)
     keep = {k: info[k] for k in ("data_window", "display_window", "chromaticities")}
     name = "A" if layer is None else f"{layer}.A"
     keep["alpha"] = None
     if name in info["channels"]:
-        a = np.asarray(read_channels(path, [name])[name], np.float32)
+        a = np.asarray(read_channels(path, [name], part=part)[name], np.float32)
         bad = int((~np.isfinite(a)).sum())
         if bad:
             raise InputError(f"{path}: its alpha channel {name} holds {bad} NaN/Inf values, "
@@ -358,8 +358,25 @@ def _placement(path, layer=None) -> dict:
 def _file_layers(args, first: str, second: str) -> tuple:
     """The layers of a two-file command's files: ``--<first>-layer`` and ``--<second>-layer``
     where given, else ``--layer`` (both files)."""
-    return tuple(args.layer if getattr(args, f"{which}_layer") is None
-                 else getattr(args, f"{which}_layer") for which in (first, second))
+    return _per_file(args, "layer", first, second, None)
+
+
+def _file_parts(args, first: str, second: str) -> tuple:
+    """The parts of a two-file command's files: ``--<first>-part`` and ``--<second>-part``
+    where given, else ``--part`` (both files), else part 0."""
+    return _per_file(args, "part", first, second, 0)
+
+
+def _per_file(args, option: str, first: str, second: str, default) -> tuple:
+    both = getattr(args, option)
+    both = default if both is None else both
+    return tuple(both if getattr(args, f"{which}_{option}") is None
+                 else getattr(args, f"{which}_{option}") for which in (first, second))
+
+
+def _part(args):
+    """The part of a one-file command's input: ``--part``, else 0."""
+    return 0 if args.part is None else args.part
 
 
 # The library's hint of a file whose colour is only in a layer ("..., or, in Python, read them
@@ -370,14 +387,19 @@ _LAYER_HINT = re.compile(r", or, in Python, read them with statmc\.exr\.read_exr
 
 @contextlib.contextmanager
 def _layer_hint_for(option: str, which: str):
-    """Within the block, a file read refused for want of a layer names the per-file layer
-    option of the file it read (``--reference-layer 'X' for REFERENCE alone``) beside
-    ``--layer`` (both files), instead of the library's Python hint."""
+    """Within the block, a file read refused for want of a layer (or of a channel that
+    another part holds) names the per-file option of the file it read (``--reference-layer
+    'X' for REFERENCE alone``, ``--reference-part``) beside ``--layer`` (``--part``; both
+    files), instead of the library's Python hint."""
     try:
         yield
     except FileFormatError as e:
+        from .exr import _PART_HINT
         message = _LAYER_HINT.sub(rf", or give {option} \1 for {which} alone, or give --layer \1",
                                   str(e))
+        part_option = option.replace("-layer", "-part")
+        message = message.replace(_PART_HINT, f"give {part_option} INDEX|NAME for {which} "
+                                  "alone, or --part INDEX|NAME, to read another")
         if message == str(e):
             raise
         raise FileFormatError(message) from None
@@ -663,8 +685,9 @@ def cmd_reconstruct(args) -> int:
     _check_out_file(args.out, [args.input])
     # no method reads the channel covariance (m2_cross): not built (1080p: 0.3-0.5 s, 143 MiB)
     with _reading_once(args.input):            # an alpha channel: from the same decoding
-        stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
-        place = _placement(args.input, args.layer)
+        stats = read_exr(args.input, spp=args.spp, layer=args.layer, part=_part(args),
+                         covariance=False)
+        place = _placement(args.input, args.layer, _part(args))
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     if args.method != "gem":
         _refuse_unused(args, ["gamma", "gem_bias"], f"on --method {args.method} (they are "
@@ -771,27 +794,27 @@ def _render_gem_defaults(args) -> None:
     _fill_gem_defaults(args)
 
 
-def _read_statistics(path, spp, why: str, layer=None, *, covariance: bool = False):
+def _read_statistics(path, spp, why: str, layer=None, *, part=0, covariance: bool = False):
     """``read_exr(path, spp=spp)``; a file without ``Variance.*`` or ``SampleCount`` is
     refused with ``why`` (what reads them, what would take a plain image) appended.
     ``covariance``: build the channel covariance ``m2_cross`` (only denoise --variance
     with OIDN reads it)."""
     from .exr import read_exr
     try:
-        return read_exr(path, spp=spp, layer=layer, covariance=covariance)
+        return read_exr(path, spp=spp, layer=layer, part=part, covariance=covariance)
     except FileFormatError as e:
         if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
             raise
         raise FileFormatError(f"{str(e).rstrip('.')}. {why}") from None
 
 
-def _read_colour(path, layer=None):
+def _read_colour(path, layer=None, part=0):
     """A file read for its colour and features only, as statistics (its channels listed in
     ``meta``): a plain RGB image needs neither ``Variance.*`` nor ``SampleCount`` (``n = 1``
     where it has none), and its channel covariance is not built."""
     from .exr import read_exr
     return read_exr(path, spp=1, spp_if_missing=True, require_variance=False, layer=layer,
-                    covariance=False)
+                    part=part, covariance=False)
 
 
 def cmd_denoise(args) -> int:
@@ -804,14 +827,15 @@ def cmd_denoise(args) -> int:
             stats = _read_statistics(args.input, args.spp, f"{what} reads the file's "
                                      "statistics; --denoiser oidn or gaussian without --variance "
                                      "denoises a plain image.", layer=args.layer,
+                                     part=_part(args),
                                      covariance=bool(args.variance and args.denoiser == "oidn"))
         else:
             _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it "
                            "is the sample count of a file without SampleCount, which only "
                            "--variance and --denoiser gem read)")
             # plain denoising reads the colour and OIDN's features (albedo, normal) only
-            stats = _read_colour(args.input, args.layer)
-        place = _placement(args.input, args.layer)
+            stats = _read_colour(args.input, args.layer, _part(args))
+        place = _placement(args.input, args.layer, _part(args))
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
                          "pixel); expected a render with samples.")
@@ -859,8 +883,9 @@ def cmd_progressive(args) -> int:
     from .pipeline import reconstruct_stats
     _check_out_file(args.out, [args.input])
     with _reading_once(args.input):            # an alpha channel: from the same decoding
-        stats = read_exr(args.input, spp=args.spp, layer=args.layer, covariance=False)
-        place = _placement(args.input, args.layer)
+        stats = read_exr(args.input, spp=args.spp, layer=args.layer, part=_part(args),
+                         covariance=False)
+        place = _placement(args.input, args.layer, _part(args))
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
     _need_variance(stats, args.input, "progressive denoising")
@@ -907,11 +932,13 @@ def _combine_bins_file(args) -> int:
     from .exr import _reading_once, read_bins
 
     _check_out_file(args.out, [args.y])
-    given = [o for o, v in (("--layer", args.layer), ("--y-layer", args.y_layer),
-                            ("--z-layer", args.z_layer)) if v is not None]
+    given = [f"--{o}" for o in ("layer", "y-layer", "z-layer", "part", "y-part", "z-part")
+             if getattr(args, o.replace("-", "_")) is not None]
     if given:
-        raise InputError(f"{given[0]} selects a layer of Y and Z; a sample-bins file ({args.y}, "
-                         f"without Z) is statmc's own and has none: leave {given[0]} out.")
+        what = "a layer" if given[0].endswith("layer") else "a part"
+        raise InputError(f"{given[0]} selects {what} of Y and Z; a sample-bins file ({args.y}, "
+                         f"without Z) is statmc's own single-part, unlayered file: leave "
+                         f"{given[0]} out.")
     with _reading_once(args.y):                # an alpha channel: from the same decoding
         bins = read_bins(args.y)
         place = _placement(args.y)
@@ -971,6 +998,7 @@ def cmd_combine(args) -> int:
                          "e.g. a `statmc render --crn` render.")
     statistical = args.weights == "statistical"
     y_layer, z_layer = _file_layers(args, "y", "z")
+    y_part, z_part = _file_parts(args, "y", "z")
     if not statistical:
         _refuse_unused(args, ["spp"], f"with --weights {args.weights} (it is the sample count "
                        "of a Y without SampleCount, which only --weights statistical reads)")
@@ -979,12 +1007,12 @@ def cmd_combine(args) -> int:
             if statistical:
                 y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
                                            "statistics; --weights uniform or gaussian combine a "
-                                           "plain image.", layer=y_layer)
+                                           "plain image.", layer=y_layer, part=y_part)
             else:
                 # Fixed weights read Y's colour only.  Read as statistics all the same, so
                 # that a --crn render (SpatialCovariance.*) or a bins file is still
                 # recognised by its channels.
-                y_stats = _read_colour(args.y, y_layer)
+                y_stats = _read_colour(args.y, y_layer, y_part)
     except FileFormatError:
         _refuse_bins_as_y(args.y)
         raise
@@ -1003,7 +1031,8 @@ def cmd_combine(args) -> int:
             # a --crn Z's stencil comes from the same read of the file (below)
             with _layer_hint_for("--z-layer", "Z"):
                 z_stats, z_stencil = _read_exr_and_stencil(
-                    args.z, spp=args.spp, spp_if_missing=True, layer=z_layer, covariance=False)
+                    args.z, spp=args.spp, spp_if_missing=True, layer=z_layer, part=z_part,
+                    covariance=False)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -1015,12 +1044,12 @@ def cmd_combine(args) -> int:
             _need_variance(st, path, "--weights statistical")
     else:
         with _layer_hint_for("--z-layer", "Z"):
-            z = read_image(args.z, layer=z_layer)
+            z = read_image(args.z, layer=z_layer, part=z_part)
     if z.shape != y.shape:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
-    _same_frame(args.y, args.z, "Y", "Z")
-    place = _placement(args.y, y_layer)
+    _same_frame(args.y, args.z, "Y", "Z", (y_part, z_part))
+    place = _placement(args.y, y_layer, y_part)
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":
@@ -1045,13 +1074,13 @@ def cmd_combine(args) -> int:
     return 0
 
 
-def _same_frame(a, b, name_a: str, name_b: str) -> None:
+def _same_frame(a, b, name_a: str, name_b: str, parts=(0, 0)) -> None:
     """Refuse two files of one size that are not the same pixels in the same colours: data
     windows in different places (say a crop and the full frame's corner) would pair
     different pixels, different ``chromaticities`` (an ACEScg render and a Rec. 709
     reference) different colours."""
     from .exr import _describe_colour_space, _header_summary, _same_colour_space
-    ha, hb = _header_summary(a), _header_summary(b)
+    ha, hb = _header_summary(a, parts[0]), _header_summary(b, parts[1])
     wa, wb = ha["data_window"], hb["data_window"]
     if wa != wb:
         raise InputError(f"{name_a} {a} has the data window {wa} but {name_b} {b} has {wb} "
@@ -1093,21 +1122,23 @@ def cmd_metrics(args) -> int:
     opts = {} if args.replace_nonfinite is None else {"nonfinite": "replace",
                                                       "replace_value": args.replace_nonfinite}
     image_layer, reference_layer = _file_layers(args, "image", "reference")
+    image_part, reference_part = _file_parts(args, "image", "reference")
     with _layer_hint_for("--image-layer", "IMAGE"):
-        img = read_image(args.image, layer=image_layer, **opts)
+        img = read_image(args.image, layer=image_layer, part=image_part, **opts)
     with _layer_hint_for("--reference-layer", "REFERENCE"):
-        ref = read_image(args.reference, layer=reference_layer, **opts)
+        ref = read_image(args.reference, layer=reference_layer, part=reference_part, **opts)
     if img.shape != ref.shape:
         raise InputError(f"{args.image} is {img.shape[1]}x{img.shape[0]}x{img.shape[2]} but "
                          f"{args.reference} is {ref.shape[1]}x{ref.shape[0]}x{ref.shape[2]}.")
-    _same_frame(args.image, args.reference, "IMAGE", "REFERENCE")
+    _same_frame(args.image, args.reference, "IMAGE", "REFERENCE", (image_part, reference_part))
     print(json.dumps(all_metrics(img, ref), indent=2, default=_json_default))
     return 0
 
 
 def cmd_info(args) -> int:
     from .exr import exr_info
-    print(json.dumps(exr_info(args.file, families=True), indent=2, default=_json_default))
+    print(json.dumps(exr_info(args.file, families=True, part=_part(args)), indent=2,
+                     default=_json_default))
     return 0
 
 
@@ -1137,6 +1168,22 @@ _LAYER_COMMANDS = ("reconstruct", "denoise", "progressive", "combine", "metrics"
 def _add_layer_option(parser, what: str = "the input") -> None:
     parser.add_argument("--layer", default=None, metavar="NAME",
                         help=LAYER_HELP.replace("EXR layer", f"layer of {what}"))
+    parser.add_argument("--part", type=_part_type, default=None, metavar="INDEX|NAME",
+                        help=f"the part of a multi-part EXR to read, of {what}: its index (from "
+                             "0) or its name (default: part 0)")
+
+
+#: The commands with --part: those with --layer, and info.
+_PART_COMMANDS = _LAYER_COMMANDS + ("info",)
+
+
+def _part_type(text: str):
+    """``--part``: an index (digits) or a part's name."""
+    if text.isdigit():
+        return int(text)
+    if not text:
+        raise argparse.ArgumentTypeError("expected a part's index (0, 1, ...) or its name; got ''")
+    return text
 
 
 def _add_file_layer_options(parser, *files: str) -> None:
@@ -1148,6 +1195,9 @@ def _add_file_layer_options(parser, *files: str) -> None:
                             help=f"the layer of {upper} alone, in place of --layer's (say "
                                  f"ViewLayer.Combined for a Blender render beside an "
                                  f"unlayered file)")
+        parser.add_argument(f"--{which}-part", type=_part_type, default=None,
+                            metavar="INDEX|NAME",
+                            help=f"the part of {upper} alone, in place of --part's")
 
 
 SPP_HELP = ("samples per pixel of a file without SampleCount (a positive integer; pbrt-v4 "
@@ -1244,6 +1294,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     i = sub.add_parser("info", help="channels, size, sample counts and NaN/Inf counts of an EXR")
     i.add_argument("file", help="EXR file")
+    i.add_argument("--part", type=_part_type, default=None, metavar="INDEX|NAME",
+                   help="the part of a multi-part EXR to describe: its index (from 0) or its "
+                        "name (default: part 0; the others are listed under other_parts)")
     i.set_defaults(func=cmd_info)
 
     d = sub.add_parser("denoise", help="denoise an EXR (OIDN uses its albedo/normal)")
@@ -1340,6 +1393,10 @@ def _cli_message(message: str, command: str) -> str:
            "expected finite values (`statmc info FILE` counts them per channel).")
     message = message.replace(_NONFINITE_HINT, fix)
     # the library's layer= is the command's --layer, where it has one
+    from .exr import _PART_HINT
+    message = message.replace(f" — {_PART_HINT}", " — give --part INDEX|NAME to read "
+                              "another" if command in _PART_COMMANDS else "")
+    message = message.replace("`part`", "--part")
     return _LAYER_HINT.sub(r", or give --layer \1" if command in _LAYER_COMMANDS else "", message)
 
 

@@ -179,22 +179,57 @@ def _openexr_diagnosis(p: str, text: str) -> str:
     return first.split(": ", 1)[1] if first.startswith(p + ": ") else first
 
 
+#: The hint of a multi-part file's missing-channel error (the command line names --part).
+_PART_HINT = "pass part=INDEX or part='NAME' to read another"
+
+
+def _part_label(q) -> str:
+    """``"part 1 ('variance')"`` (``"part 0"`` for an unnamed part) of a :func:`_parts_summary` entry."""
+    return f"part {q['part']}" + (f" ({q['name']!r})" if q["name"] else "")
+
+
 class _Channels(dict):
-    """``{name: (H, W) array}`` of part 0, with ``parts``: ``{"part", "name", "channels"}``
-    of every part of the file (:func:`_parts_summary`)."""
+    """``{name: (H, W) array}`` of the part read (``read_part``, its index), with ``parts``:
+    ``{"part", "name", "channels"}`` of every part of the file (:func:`_parts_summary`)."""
     parts: list = []
+    read_part: int = 0
 
     @property
     def note(self) -> str:
         """``" (only part 0 ('beauty') of this 2-part file is read; part 1 ('variance'):
-        [...])"``, appended to the channel list of a missing-channel error, or ""."""
+        [...]) — pass part=INDEX or part='NAME' to read another"``, appended to the channel
+        list of a missing-channel error, or ""."""
         if len(self.parts) < 2:
             return ""
+        rest = "; ".join(f"{_part_label(q)}: {q['channels']}" for q in self.parts
+                         if q["part"] != self.read_part)
+        return (f" (only {_part_label(self.parts[self.read_part])} of this {len(self.parts)}-part "
+                f"file is read; {rest}) — {_PART_HINT}")
 
-        def label(q):
-            return f"part {q['part']}" + (f" ({q['name']!r})" if q["name"] else "")
-        rest = "; ".join(f"{label(q)}: {q['channels']}" for q in self.parts[1:])
-        return f" (only {label(self.parts[0])} of this {len(self.parts)}-part file is read; {rest})"
+
+def _check_part(part):
+    """``part`` as given to the readers: an index >= 0 or a part's name."""
+    if isinstance(part, (bool, np.bool_)) or not (
+            (isinstance(part, (int, np.integer)) and part >= 0) or (isinstance(part, str) and part)):
+        raise InputError(f"`part` must be a part's index (0, 1, ...) or its name; got {part!r}.")
+    return int(part) if not isinstance(part, str) else part
+
+
+def _part_index(parts: list, part):
+    """The index of ``part`` (an index or a name) among ``parts`` (:func:`_parts_summary`), or
+    None when the file has no such part."""
+    if isinstance(part, str):
+        return next((q["part"] for q in parts if q["name"] == part), None)
+    return part if part < len(parts) else None
+
+
+def _no_part(p: str, parts: list, part) -> FileFormatError:
+    """The error of a ``part`` the file ``p`` does not have, naming the parts it has."""
+    which = f"part named {part!r}" if isinstance(part, str) else f"part {part}"
+    listed = ", ".join(_part_label(q) for q in parts)
+    return FileFormatError(f"{p!r} has no {which}; it has {len(parts)} part"
+                           f"{'' if len(parts) == 1 else 's'}: {listed} (`part` takes an index "
+                           "from 0 or a part's name).")
 
 
 def _parts_summary(f) -> list:
@@ -288,24 +323,25 @@ def _describe_colour_space(c) -> str:
     return "the chromaticities (" + ", ".join(f"{v:.4g}" for v in c) + ")"
 
 
-def _header_summary(path) -> dict:
+def _header_summary(path, part=0) -> dict:
     """What an output takes from an input, from the header only: ``data_window``,
-    ``display_window``, ``chromaticities`` and the ``channels`` names of part 0."""
-    header, _, _ = _open(path, header_only=True)
+    ``display_window``, ``chromaticities`` and the ``channels`` names of ``part``."""
+    header, _, _ = _open(path, header_only=True, part=part)
     data, display = _windows(header)
     return {"data_window": data, "display_window": display,
             "chromaticities": _chromaticities(header),
             "channels": sorted(str(c.name) for c in header.get("channels", ()))}
 
 
-def exr_windows(path) -> tuple[list, list]:
-    """The data window and display window of an EXR file (part 0), each
+def exr_windows(path, *, part=0) -> tuple[list, list]:
+    """The data window and display window of an EXR file (its ``part``, an index or a
+    name: part 0 unless given), each
     ``[x0, y0, x1, y1]`` with inclusive corners as OpenEXR stores them, read from the header
     only.  Pixel ``(i, j)`` of an array read by :func:`read_exr` or :func:`read_image` is
     pixel ``(x0 + j, y0 + i)`` of the image; pass the windows to :func:`write_exr` to write
     a result in the same place (``statmc reconstruct``, ``denoise``, ``progressive`` and
     ``combine`` do)."""
-    info = _header_summary(path)
+    info = _header_summary(path, part)
     return info["data_window"], info["display_window"]
 
 
@@ -315,35 +351,39 @@ _OPENED = threading.local()
 
 
 @contextlib.contextmanager
-def _reading_once(path, opened=None):
+def _reading_once(path, opened=None, part=0):
     """Inside the block, every :func:`_open` of ``path`` in this thread (``read_exr``,
-    ``read_channels``, ...) takes one decoding of the file: ``opened`` (an :func:`_open`
-    result), or else the block's first read of it.  Nothing is kept after the block."""
+    ``read_channels``, ...) takes one decoding of the file per ``part`` asked for:
+    ``opened`` (an :func:`_open` result of ``part``), or else the block's first read of it.
+    Nothing is kept after the block."""
     p = _name(path)
     before = getattr(_OPENED, "files", {})
-    _OPENED.files = {**before, p: opened}
+    _OPENED.files = {**before, p: {} if opened is None else {part: opened}}
     try:
         yield
     finally:
         _OPENED.files = before
 
 
-def _open(path, *, header_only: bool = False):
-    """Read part 0 of an EXR file: ``(header dict, {name: (H, W) array}, {name: type})``
-    (the arrays and types empty with ``header_only``)."""
+def _open(path, *, header_only: bool = False, part=0):
+    """Read one part of an EXR file (``part``, an index or a name; checked):
+    ``(header dict, {name: (H, W) array}, {name: type})`` (the arrays and types empty with
+    ``header_only``).  The header's ``_parts`` is the file's number of parts, ``_part`` the
+    index read."""
     p = _name(path)
+    part = _check_part(part)
     files = getattr(_OPENED, "files", {})
     if p not in files or header_only:
-        return _decode(p, header_only)
-    if files[p] is None:
-        files[p] = _decode(p, False)
-    header, arrays, types = files[p]
+        return _decode(p, header_only, part)
+    if part not in files[p]:
+        files[p][part] = _decode(p, False, part)
+    header, arrays, types = files[p][part]
     same = _Channels(arrays)
-    same.parts = arrays.parts
+    same.parts, same.read_part = arrays.parts, arrays.read_part
     return dict(header), same, dict(types)
 
 
-def _decode(p: str, header_only: bool):
+def _decode(p: str, header_only: bool, part=0):
     """:func:`_open` of the file ``p``, read from disk."""
     import OpenEXR
 
@@ -359,8 +399,10 @@ def _decode(p: str, header_only: bool):
         try:
             f = OpenEXR.File(p, separate_channels=True, header_only=header_only)
             n_parts = len(f.parts)
-            header = f.header(0)
-            chans = {} if header_only else f.channels(0)
+            parts = _parts_summary(f)
+            index = _part_index(parts, part) if part else 0
+            header = f.header(index or 0)
+            chans = {} if header_only or index is None else f.channels(index)
         except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
             err = e
     # OpenEXR reports a corrupt chunk on stdout and stderr (three lines) and then drops the
@@ -373,13 +415,15 @@ def _decode(p: str, header_only: bool):
     if err is not None or diag:
         raise FileFormatError(f"{p!r} is not a readable OpenEXR file (corrupt, truncated or "
                               f"another format): {diag or err}") from None
+    if index is None:
+        raise _no_part(p, parts, part)
     storage = str(header.get("type", ""))
     if "deep" in storage:
         raise FileFormatError(f"{p!r} is a deep EXR ({storage}); only flat images are supported.")
     (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
     hw = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
     arrays, types = _Channels(), {}
-    arrays.parts = _parts_summary(f)
+    arrays.parts, arrays.read_part = parts, index
     for name, ch in chans.items():
         px = np.asarray(ch.pixels)
         if ch.xSampling != 1 or ch.ySampling != 1 or px.shape != hw:
@@ -390,7 +434,7 @@ def _decode(p: str, header_only: bool):
         arrays[name] = np.array(px, copy=True)           # own the data beyond the File object
         types[name] = str(ch.type()).rsplit(".", 1)[-1].lower()
     header = dict(header)
-    header["_parts"] = n_parts
+    header["_parts"], header["_part"] = n_parts, index
     return header, arrays, types
 
 
@@ -497,7 +541,7 @@ def _select_layer(p, arrays, types, layer):
                          f"the channel's last part); got {layer!r}.")
     prefix = layer + "."
     out, kinds = _Channels(), {}
-    out.parts = arrays.parts
+    out.parts, out.read_part = arrays.parts, arrays.read_part
     for name, a in arrays.items():
         if name.startswith(prefix) and len(name) > len(prefix):
             out[name[len(prefix):]] = a
@@ -509,7 +553,7 @@ def _select_layer(p, arrays, types, layer):
     return out, kinds
 
 
-def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
+def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = True,
              nonfinite: str = "error", replace_value: float = 0.0,
              spp_if_missing: bool = False, covariance: bool = True) -> PixelStats:
     """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
@@ -527,6 +571,10 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
         Read the channels of this layer as if they had no prefix: ``layer="ViewLayer.Combined"``
         reads Blender's ``ViewLayer.Combined.R`` as ``R`` (and a layer's ``Variance.R``,
         ``SampleCount``, ...); channels outside the layer are left out.
+    part : int or str, default 0
+        The part of a multi-part file to read: its index (from 0) or its name (Nuke writes
+        one part per layer).  A part the file does not have raises
+        :class:`FileFormatError` naming the parts it has.
     require_variance : bool, default True
         Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
         them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
@@ -558,6 +606,7 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
         ``data_window`` and ``display_window`` (``[x0, y0, x1, y1]``: where the pixels lie
         in the frame, :func:`exr_windows`), ``depth_channel``,
         ``chromaticities`` (the header's 8 primaries and white point x, y, or None),
+        ``layer``, ``part`` (the index of the part read),
         ``sample_count_source`` (``"file"``: the channel, ``"header"``: the
         ``samplesPerPixel`` attribute, or ``"spp"``), ``nonfinite_replaced`` and
         ``nonfinite_by_group``.
@@ -590,7 +639,7 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
     _check_policy(nonfinite, replace_value)
     if not isinstance(covariance, (bool, np.bool_)):
         raise InputError(f"`covariance` must be True or False; got {covariance!r}.")
-    header, arrays, types = _open(p)
+    header, arrays, types = _open(p, part=part)
     arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
     mean = _group(p, arrays, color, "colour")
@@ -669,7 +718,7 @@ def read_exr(path, *, spp=None, layer=None, require_variance: bool = True,
         "has_variance": bool(all(v in arrays for v in var_names)),
         "has_covariance": has_cov,
         "data_window": data_window, "display_window": display_window,
-        "chromaticities": _chromaticities(header), "layer": layer,
+        "chromaticities": _chromaticities(header), "layer": layer, "part": header["_part"],
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -700,17 +749,17 @@ def _spp_map(spp, hw):
     return np.broadcast_to(af, tuple(hw))
 
 
-def read_image(path, *, layer=None, nonfinite: str = "error",
+def read_image(path, *, layer=None, part=0, nonfinite: str = "error",
                replace_value: float = 0.0) -> np.ndarray:
     """Read the colour of an EXR file as an ``(H, W, 3)`` (or ``(H, W, 1)`` for ``Y``) float32 array.
 
     For plain images such as references; variance and counts are ignored.  ``layer``
-    (``"ViewLayer.Combined"``) reads that layer's ``R, G, B``; NaN/Inf follow ``nonfinite``
-    as in :func:`read_exr`.
+    (``"ViewLayer.Combined"``) reads that layer's ``R, G, B``, ``part`` (an index or a name)
+    that part of a multi-part file; NaN/Inf follow ``nonfinite`` as in :func:`read_exr`.
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
-    _, arrays, types = _open(p)
+    _, arrays, types = _open(p, part=part)
     arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
     img = np.stack([arrays[c].astype(np.float32) for c in color], axis=-1)
@@ -720,13 +769,14 @@ def read_image(path, *, layer=None, nonfinite: str = "error",
     return img
 
 
-def read_channels(path, names=None) -> dict:
-    """Raw channels of an EXR file: ``{name: (H, W) array}`` (all, or those in ``names``).
+def read_channels(path, names=None, *, part=0) -> dict:
+    """Raw channels of an EXR file: ``{name: (H, W) array}`` (all, or those in ``names``) of
+    its ``part`` (an index or a name; part 0 unless given).
 
     Values are returned as stored (float16/float32/uint32), NaN/Inf included.
     """
     p = _name(path)
-    _, arrays, _ = _open(p)
+    _, arrays, _ = _open(p, part=part)
     if names is None:
         return arrays
     names = [names] if isinstance(names, str) else list(names)
@@ -818,13 +868,14 @@ def _summarise_families(info: dict) -> dict:
                 layout=layout, nonfinite=nonfinite)
 
 
-def exr_info(path, *, families: bool = False) -> dict:
+def exr_info(path, *, families: bool = False, part=0) -> dict:
     """A JSON-ready summary of an EXR file (for ``statmc info``).
 
     Keys: ``path``, ``width``, ``height``, ``data_window``, ``display_window``,
-    ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts``,
-    ``other_parts`` (``part``, ``name`` and ``channels`` of each part after part 0, which
-    statmc does not read), ``samples_per_pixel`` (pbrt-v4's ``samplesPerPixel`` header
+    ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts`` (their
+    number), ``part`` (``part`` and ``name`` of the part described: ``part``, an index or a
+    name, part 0 unless given), ``other_parts`` (``part``, ``name`` and ``channels`` of each
+    other part), ``samples_per_pixel`` (pbrt-v4's ``samplesPerPixel`` header
     attribute or None), ``chromaticities`` (or None), ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
@@ -839,7 +890,7 @@ def exr_info(path, *, families: bool = False) -> dict:
     (``"stencil MxM"`` or None), ``bins`` (their number or None) and ``bins_denoised``.
     """
     p = _name(path)
-    header, arrays, types = _open(p)
+    header, arrays, types = _open(p, part=part)
     data_window, display_window = _windows(header)
     x0, y0, x1, y1 = data_window
     groups: dict[str, list[str]] = {}
@@ -864,7 +915,10 @@ def exr_info(path, *, families: bool = False) -> dict:
         "samples_per_pixel": _header_spp(header),
         "chromaticities": _chromaticities(header),
         "parts": int(header["_parts"]),
-        "other_parts": arrays.parts[1:],
+        "part": {"part": arrays.read_part,
+                 "name": next((q["name"] for q in arrays.parts if q["part"] == arrays.read_part),
+                              None)},
+        "other_parts": [q for q in arrays.parts if q["part"] != arrays.read_part],
         "channels": {n: types[n] for n in sorted(arrays)},
         "groups": groups,
         "layout": {
@@ -1113,8 +1167,9 @@ def spatial_covariance_channels(cov, n) -> dict:
             for dy in range(-R, R + 1) for dx in range(-R, R + 1) for k, c in enumerate(_RGB)}
 
 
-def read_spatial_covariance(path, n=None):
-    """The neighbour-covariance stencil of an EXR file, or ``None`` if it has none.
+def read_spatial_covariance(path, n=None, *, part=0):
+    """The neighbour-covariance stencil of an EXR file (its ``part``, an index or a name), or
+    ``None`` if it has none.
 
     Returns the covariance of the pixel means, ``(H, W, m, m, 3)`` float64 (the stored
     one-sample covariance divided by ``n``: ``SampleCount`` unless ``n`` is given).  A
@@ -1122,7 +1177,7 @@ def read_spatial_covariance(path, n=None):
     :class:`~statmc.errors.FileFormatError` naming what is missing.
     """
     p = _name(path)
-    _, arrays, _ = _open(p)
+    _, arrays, _ = _open(p, part=part)
     found = {}
     for name in arrays:
         mt = _SPATIAL_CHANNEL.match(name)
@@ -1170,14 +1225,15 @@ def _read_exr_and_stencil(path, **read_options):
     in memory; drop ``stencil`` to free them.
     """
     p = _name(path)
-    opened = _open(p)
+    part = _check_part(read_options.get("part", 0))
+    opened = _open(p, part=part)
 
     def reading_opened(fn, *args, **kwargs):
-        with _reading_once(p, opened):
+        with _reading_once(p, opened, part):
             return fn(*args, **kwargs)
 
     stats = reading_opened(read_exr, p, **read_options)
-    return stats, lambda: reading_opened(read_spatial_covariance, p, stats.n)
+    return stats, lambda: reading_opened(read_spatial_covariance, p, stats.n, part=part)
 
 
 # ------------------------------------------------------------------ sample bins

@@ -2283,3 +2283,103 @@ def test_per_file_layers_are_refused_for_a_bins_file(tmp_path):
         code, _, err = run_cli("combine", p, opt, "X", "--out", tmp_path / "o.exr")
         assert code == 2 and err.count("\n") == 1, err
         assert f"{opt} selects a layer of Y and Z" in err and f"leave {opt} out" in err
+
+
+def _two_part_file(path, rng, alpha=True):
+    """Part 0 'depth' (Z only), part 1 'beauty' with statistics (and alpha)."""
+    import OpenEXR
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    ch = _crop_stats(rng)
+    if alpha:
+        ch["A"] = rng.random((8, 10))
+    ch = {k: np.ascontiguousarray(v, np.float32) for k, v in ch.items()}
+    OpenEXR.File([OpenEXR.Part(dict(hdr), {"Z": ch["R"].copy()}, name="depth"),
+                  OpenEXR.Part(dict(hdr), {k: v.copy() for k, v in ch.items()},
+                               name="beauty")]).write(str(path))
+    return ch
+
+
+@pytest.mark.parametrize("args", [
+    ["reconstruct", "{a}"],
+    ["denoise", "{a}", "--denoiser", "gaussian"],
+    ["denoise", "{a}", "--denoiser", "gaussian", "--variance"],
+    ["progressive", "{a}", "--denoiser", "gaussian"],
+    ["combine", "{a}", "{b}", "--weights", "uniform"],
+    ["combine", "{a}", "{b}"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_part_option_reads_another_part(tmp_path, args):
+    # before: only part 0 was read; a file whose beauty is part 1 was refused by every command
+    from statmc.exr import read_channels, read_image
+    rng = np.random.default_rng(33)
+    a, b, flat = tmp_path / "a.exr", tmp_path / "b.exr", tmp_path / "flat.exr"
+    ch = _two_part_file(a, rng)
+    _write_channels(flat, ch)
+    _write_channels(b, _crop_stats(rng))
+    o, want = tmp_path / "o.exr", tmp_path / "want.exr"
+    fill = lambda first: [x.format(a=first, b=b) for x in args]
+    for part in ("1", "beauty"):
+        code, _, err = run_cli(*fill(a), "--part" if args[0] != "combine" else "--y-part", part,
+                               "--out", o, "-q")
+        assert code == 0, err
+        code, _, err = run_cli(*fill(flat), "--out", want, "-q")
+        assert code == 0, err
+        assert np.array_equal(read_image(o), read_image(want))
+        np.testing.assert_array_equal(read_channels(o, ["A"])["A"], ch["A"])   # the part's alpha
+    code, _, err = run_cli(*fill(a), "--out", o, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "only part 0 ('depth') of this 2-part file is read; part 1 ('beauty')" in err
+    assert ("give --y-part INDEX|NAME for Y alone, or --part INDEX|NAME, to read another"
+            if args[0] == "combine" else "give --part INDEX|NAME to read another") in err
+    assert "part=" not in err
+    code, _, err = run_cli(*fill(a), "--part", "7", "--out", o, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert (f"'{a}' has no part 7; it has 2 parts: part 0 ('depth'), part 1 ('beauty') (--part "
+            "takes an index from 0 or a part's name)") in err
+
+
+def test_metrics_combine_and_info_take_a_part_per_file(tmp_path):
+    rng = np.random.default_rng(34)
+    a, flat = tmp_path / "a.exr", tmp_path / "flat.exr"
+    ch = _two_part_file(a, rng)
+    _write_channels(flat, ch)
+    code, out, err = run_cli("metrics", a, flat, "--image-part", "beauty")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    code, out, err = run_cli("metrics", flat, a, "--reference-part", "1")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    code, out, err = run_cli("metrics", a, a, "--part", "1")
+    assert code == 0 and json.loads(out)["mse"] == 0.0, err
+    code, _, err = run_cli("metrics", flat, a)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "give --reference-part INDEX|NAME for REFERENCE alone, or --part" in err
+    o = tmp_path / "o.exr"
+    code, _, err = run_cli("combine", flat, a, "--z-part", "beauty", "--out", o, "-q")
+    assert code == 0, err
+    code, out, err = run_cli("info", a, "--part", "beauty")
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["part"] == {"part": 1, "name": "beauty"} and info["layout"]["color"] == "R,G,B"
+    assert info["other_parts"] == [{"part": 0, "name": "depth", "channels": ["Z"]}]
+    code, _, err = run_cli("info", a, "--part", "2")
+    assert code == 2 and "has no part 2" in err and err.count("\n") == 1, err
+    code, _, err = run_cli("info", a, "--part", "")
+    assert code == 2 and "--part: expected a part's index" in err and err.count("\n") == 1, err
+
+
+def test_part_options_are_refused_for_a_bins_file(tmp_path):
+    from statmc.exr import bin_channels, write_exr
+    ys = np.random.default_rng(35).random((2, 4, 5, 3))
+    p = tmp_path / "bins.exr"
+    write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
+    for opt in ("--part", "--y-part", "--z-part"):
+        code, _, err = run_cli("combine", p, opt, "1", "--out", tmp_path / "o.exr")
+        assert code == 2 and err.count("\n") == 1, err
+        assert f"{opt} selects a part of Y and Z" in err and f"leave {opt} out" in err
+
+
+def test_a_part_hint_of_a_command_without_part_names_no_option(tmp_path):
+    p = tmp_path / "ref.exr"
+    _two_part_file(p, np.random.default_rng(36))
+    code, _, err = run_cli("render", "toy:constant", "--spp", 2, "--size", "10x8",
+                           "--reference", p, "--out", tmp_path / "r")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "only part 0 ('depth')" in err and "part=" not in err and "--part" not in err

@@ -1310,3 +1310,104 @@ def test_srgb_encoding_in_place_equals_both_branches_formula():
             got = exr.to_display(img, exposure=exposure, tonemap=tonemap)
             assert got.tobytes() == want.tobytes(), (tonemap, exposure)
     assert img.tobytes() == keep.tobytes()
+
+
+# ------------------------------------------------ session 12: multi-part files, part=
+def _two_part_file(path, rng, h=4, w=3):
+    """Part 0 'depth' (Z only, at the origin); part 1 'beauty' with statistics and alpha in
+    another data window: what a compositor's multi-part file holds."""
+    def hdr(window=None):
+        h_ = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        if window is not None:
+            (x0, y0, x1, y1), disp = window
+            h_["dataWindow"] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
+            h_["displayWindow"] = (np.array(disp[:2], np.int32), np.array(disp[2:], np.int32))
+        return h_
+    ch = _stats_channels_for(h, w, rng)
+    ch["A"] = rng.random((h, w)).astype(np.float32)
+    windows = ([2, 1, 2 + w - 1, 1 + h - 1], [0, 0, 9, 9])
+    # the parts of a file share one display window (OpenEXR refuses others)
+    OpenEXR.File([OpenEXR.Part(hdr(([0, 0, w - 1, h - 1], windows[1])), {"Z": ch["R"].copy()},
+                               name="depth"),
+                  OpenEXR.Part(hdr(windows), {k: v.copy() for k, v in ch.items()},
+                               name="beauty")]).write(str(path))
+    return ch, windows
+
+
+def test_part_reads_another_part_by_index_or_name(tmp_path):
+    # before: only part 0 was read (read_exr had no part=): a multi-part file whose beauty is
+    # not the first part could not be read at all
+    rng = np.random.default_rng(40)
+    p = tmp_path / "parts.exr"
+    ch, windows = _two_part_file(p, rng)
+    for part in (1, "beauty", np.int64(1)):
+        s = read_exr(p, part=part)
+        np.testing.assert_array_equal(s.mean[..., 1], ch["G"])
+        np.testing.assert_array_equal(s.sample_var[..., 2], ch["Variance.B"])
+        assert (s.n == 16).all() and s.meta["part"] == 1 and s.meta["extra_channels"] == ["A"]
+        assert (s.meta["data_window"], s.meta["display_window"]) == windows
+        np.testing.assert_array_equal(read_image(p, part=part)[..., 0], ch["R"])
+        np.testing.assert_array_equal(read_channels(p, ["A"], part=part)["A"], ch["A"])
+        assert exr.exr_windows(p, part=part) == windows
+        info = exr_info(p, part=part, families=True)
+        assert info["part"] == {"part": 1, "name": "beauty"} and info["layout"]["variance"]
+        assert info["other_parts"] == [{"part": 0, "name": "depth", "channels": ["Z"]}]
+    assert read_exr(p, part=1, layer=None).meta["layer"] is None
+    # part 0 as before, its error now naming part= and the other part's channels
+    assert exr_info(p)["part"] == {"part": 0, "name": "depth"}
+    assert read_channels(p, part="depth")["Z"].shape == (4, 3)
+    with pytest.raises(FileFormatError, match=r"only part 0 \('depth'\) of this 2-part file is "
+                       r"read; part 1 \('beauty'\): \['A', 'B', .*\) — pass part=INDEX or "
+                       r"part='NAME' to read another"):
+        read_image(p)
+    # a missing channel in part 1 lists part 0's
+    with pytest.raises(FileFormatError, match=r"lacks channel\(s\) \['Z'\].*only part 1 "
+                       r"\('beauty'\) of this 2-part file is read; part 0 \('depth'\): \['Z'\]\)"):
+        read_channels(p, ["Z"], part="beauty")
+
+
+def test_a_missing_part_is_refused_naming_the_parts(tmp_path):
+    rng = np.random.default_rng(41)
+    p = tmp_path / "parts.exr"
+    _two_part_file(p, rng)
+    for read in (read_exr, read_image, read_channels, exr_info, exr.exr_windows):
+        with pytest.raises(FileFormatError, match=r"has no part 2; it has 2 parts: part 0 "
+                           r"\('depth'\), part 1 \('beauty'\) \(`part` takes an index"):
+            read(p, part=2)
+        with pytest.raises(FileFormatError, match=r"has no part named 'Beauty'; it has 2 parts: "
+                           r"part 0 \('depth'\), part 1 \('beauty'\)"):
+            read(p, part="Beauty")
+    for bad in (-1, True, "", 1.0, None):
+        with pytest.raises(InputError, match=r"`part` must be a part's index \(0, 1, ...\) or its "
+                           rf"name; got {re.escape(repr(bad))}"):
+            read_exr(p, part=bad)
+    q = tmp_path / "one.exr"                           # a single-part file: part 0 only
+    _write_raw(q, {c: np.ones((2, 3)) for c in "RGB"})
+    assert read_image(q, part=0).shape == (2, 3, 3)
+    with pytest.raises(FileFormatError, match=r"has no part 1; it has 1 part: part 0 \(`part`"):
+        read_image(q, part=1)
+
+
+def test_statistics_and_stencil_of_another_part_from_one_read(tmp_path, monkeypatch):
+    # the --crn Z of `statmc combine --z-part`: statistics and stencil of part 1, one read
+    rng = np.random.default_rng(42)
+    st, cov = _stencil_stats(rng)
+    single = tmp_path / "crn.exr"
+    write_exr(single, st, extra=exr.spatial_covariance_channels(cov, st.n))
+    chans = read_channels(single)
+    p = tmp_path / "parts.exr"
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File([OpenEXR.Part(dict(hdr), {"Z": chans["R"].copy()}, name="depth"),
+                  OpenEXR.Part(dict(hdr), {k: v.copy() for k, v in chans.items()},
+                               name="crn")]).write(str(p))
+    real, reads = OpenEXR.File, []
+
+    def counting(*a, **k):
+        reads.append(str(a[0]))
+        return real(*a, **k)
+
+    monkeypatch.setattr(OpenEXR, "File", counting)
+    got, stencil = exr._read_exr_and_stencil(p, part="crn", covariance=False)
+    assert stencil().tobytes() == exr.read_spatial_covariance(single).tobytes()
+    _assert_same(read_exr(single, covariance=False), got)
+    assert reads == [str(p), str(single), str(single)]
