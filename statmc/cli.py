@@ -982,7 +982,7 @@ def _refuse_bins_as_y(path) -> None:
 
 def cmd_combine(args) -> int:
     from . import combine as cb
-    from .exr import read_image
+    from .exr import _reading_once, read_image
     if args.weights != "gaussian":
         _refuse_unused(args, ["sigma"], f"with --weights {args.weights} (it is the width of "
                        "--weights gaussian)")
@@ -1002,22 +1002,26 @@ def cmd_combine(args) -> int:
     if not statistical:
         _refuse_unused(args, ["spp"], f"with --weights {args.weights} (it is the sample count "
                        "of a Y without SampleCount, which only --weights statistical reads)")
-    try:
-        with _layer_hint_for("--y-layer", "Y"):
-            if statistical:
-                y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads Y's "
-                                           "statistics; --weights uniform or gaussian combine a "
-                                           "plain image.", layer=y_layer, part=y_part)
-            else:
-                # Fixed weights read Y's colour only.  Read as statistics all the same, so
-                # that a --crn render (SpatialCovariance.*) or a bins file is still
-                # recognised by its channels.
-                y_stats = _read_colour(args.y, y_layer, y_part)
-    except FileFormatError:
-        _refuse_bins_as_y(args.y)
-        raise
-    if _has_bins(y_stats):
-        _refuse_bins_as_y(args.y)
+    # Y's alpha (and a bins file's channels) from the same decoding as its colour
+    with _reading_once(args.y):
+        try:
+            with _layer_hint_for("--y-layer", "Y"):
+                if statistical:
+                    y_stats = _read_statistics(args.y, args.spp, "--weights statistical reads "
+                                               "Y's statistics; --weights uniform or gaussian "
+                                               "combine a plain image.", layer=y_layer,
+                                               part=y_part)
+                else:
+                    # Fixed weights read Y's colour only.  Read as statistics all the same, so
+                    # that a --crn render (SpatialCovariance.*) or a bins file is still
+                    # recognised by its channels.
+                    y_stats = _read_colour(args.y, y_layer, y_part)
+        except FileFormatError:
+            _refuse_bins_as_y(args.y)
+            raise
+        if _has_bins(y_stats):
+            _refuse_bins_as_y(args.y)
+        place = _placement(args.y, y_layer, y_part)
     _refuse_crn(y_stats, args.y, "Y must be an independent render (Back 2020 §3.1, Eq. 11); "
                 "pass the --crn render as Z")
     y = y_stats.mean.astype(np.float32)
@@ -1049,7 +1053,6 @@ def cmd_combine(args) -> int:
         raise InputError(f"{args.z} is {z.shape[1]}x{z.shape[0]}x{z.shape[2]} but {args.y} is "
                          f"{w}x{h}x{y.shape[2]}; Y and Z must have the same size.")
     _same_frame(args.y, args.z, "Y", "Z", (y_part, z_part))
-    place = _placement(args.y, y_layer, y_part)
     if args.weights == "uniform":
         weights = cb.uniform_weights(h, w, 1, args.size)
     elif args.weights == "gaussian":

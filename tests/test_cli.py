@@ -2383,3 +2383,31 @@ def test_a_part_hint_of_a_command_without_part_names_no_option(tmp_path):
                            "--reference", p, "--out", tmp_path / "r")
     assert code == 2 and err.count("\n") == 1, err
     assert "only part 0 ('depth')" in err and "part=" not in err and "--part" not in err
+
+
+@pytest.mark.parametrize("weights", ["uniform", "gaussian", "statistical"])
+def test_combine_decodes_a_y_with_alpha_once(tmp_path, monkeypatch, weights):
+    # before: combine read Y's colour, then (after Z's checks) decoded the whole of Y again for
+    # its alpha in _placement: reads were [Y, Z, Y]; header-only reads are not counted
+    import OpenEXR
+
+    from statmc.exr import read_channels
+    rng = np.random.default_rng(37)
+    y, z = tmp_path / "y.exr", tmp_path / "z.exr"
+    alpha = rng.random((8, 10))
+    _write_channels(y, dict(_crop_stats(rng), A=alpha))
+    _write_channels(z, _crop_stats(rng))
+    real, reads = OpenEXR.File, []
+
+    def counting(*x, **k):
+        if isinstance(x[0], str) and not k.get("header_only", False):
+            reads.append(x[0])
+        return real(*x, **k)
+
+    monkeypatch.setattr(OpenEXR, "File", counting)
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli("combine", y, z, "--weights", weights, "--out", out, "-q")
+    assert code == 0, err
+    assert reads == [str(y), str(z)]
+    monkeypatch.undo()
+    np.testing.assert_array_equal(read_channels(out, ["A"])["A"], alpha.astype(np.float32))
