@@ -686,7 +686,8 @@ def cmd_reconstruct(args) -> int:
     # no method reads the channel covariance (m2_cross): not built (1080p: 0.3-0.5 s, 143 MiB)
     with _reading_once(args.input):            # an alpha channel: from the same decoding
         stats = read_exr(args.input, spp=args.spp, layer=args.layer, part=_part(args),
-                         covariance=False)
+                         covariance=False, **_features(args, args.method == "oidn+combine",
+                                                       f"on --method {args.method}"))
         place = _placement(args.input, args.layer, _part(args))
     _refuse_crn(stats, args.input, f"statmc reconstruct {_ASSUMES_INDEPENDENT}")
     if args.method != "gem":
@@ -734,6 +735,17 @@ def _refuse_unused(args, names, why: str) -> None:
     if given:
         raise InputError(f"{' and '.join(given)} {'has' if len(given) == 1 else 'have'} no "
                          f"effect {why}.")
+
+
+def _features(args, oidn: bool, where: str) -> dict:
+    """``read_exr``'s ``albedo=`` and ``normal=`` of a command's input: ``--albedo-layer``
+    and ``--normal-layer`` (None: statmc's own channels, else the layers recognised) where
+    OIDN runs; elsewhere statmc's own channels only (False), and the options are refused."""
+    if not oidn:
+        _refuse_unused(args, ["albedo_layer", "normal_layer"], f"{where} (they name the layers "
+                       "of OIDN's albedo and normal, and no OIDN runs)")
+        return {"albedo": False, "normal": False}
+    return {"albedo": args.albedo_layer, "normal": args.normal_layer}
 
 
 _GAMMA_READ = ("it is read only with --gem-bias paper (Rousselle 2011 Eq. 1) or by `statmc render "
@@ -794,47 +806,51 @@ def _render_gem_defaults(args) -> None:
     _fill_gem_defaults(args)
 
 
-def _read_statistics(path, spp, why: str, layer=None, *, part=0, covariance: bool = False):
+def _read_statistics(path, spp, why: str, layer=None, *, part=0, covariance: bool = False,
+                     albedo=False, normal=False):
     """``read_exr(path, spp=spp)``; a file without ``Variance.*`` or ``SampleCount`` is
     refused with ``why`` (what reads them, what would take a plain image) appended.
     ``covariance``: build the channel covariance ``m2_cross`` (only denoise --variance
-    with OIDN reads it)."""
+    with OIDN reads it).  ``albedo``, ``normal``: as ``read_exr``'s (statmc's own channels
+    only unless given)."""
     from .exr import read_exr
     try:
-        return read_exr(path, spp=spp, layer=layer, part=part, covariance=covariance)
+        return read_exr(path, spp=spp, layer=layer, part=part, covariance=covariance,
+                        albedo=albedo, normal=normal)
     except FileFormatError as e:
         if not any(f"has no {c}" in str(e) for c in ("Variance.", "SampleCount")):
             raise
         raise FileFormatError(f"{str(e).rstrip('.')}. {why}") from None
 
 
-def _read_colour(path, layer=None, part=0):
+def _read_colour(path, layer=None, part=0, *, albedo=False, normal=False):
     """A file read for its colour and features only, as statistics (its channels listed in
     ``meta``): a plain RGB image needs neither ``Variance.*`` nor ``SampleCount`` (``n = 1``
     where it has none), and its channel covariance is not built."""
     from .exr import read_exr
     return read_exr(path, spp=1, spp_if_missing=True, require_variance=False, layer=layer,
-                    part=part, covariance=False)
+                    part=part, covariance=False, albedo=albedo, normal=normal)
 
 
 def cmd_denoise(args) -> int:
     from .exr import _reading_once
     from .stats import PixelStats
     _check_out_file(args.out, [args.input])
+    features = _features(args, args.denoiser == "oidn", f"with --denoiser {args.denoiser}")
     with _reading_once(args.input):            # an alpha channel: from the same decoding
         if args.variance or args.denoiser == "gem":
             what = "--variance" if args.variance else "--denoiser gem"
             stats = _read_statistics(args.input, args.spp, f"{what} reads the file's "
                                      "statistics; --denoiser oidn or gaussian without --variance "
                                      "denoises a plain image.", layer=args.layer,
-                                     part=_part(args),
+                                     part=_part(args), **features,
                                      covariance=bool(args.variance and args.denoiser == "oidn"))
         else:
             _refuse_unused(args, ["spp"], f"on --denoiser {args.denoiser} without --variance (it "
                            "is the sample count of a file without SampleCount, which only "
                            "--variance and --denoiser gem read)")
             # plain denoising reads the colour and OIDN's features (albedo, normal) only
-            stats = _read_colour(args.input, args.layer, _part(args))
+            stats = _read_colour(args.input, args.layer, _part(args), **features)
         place = _placement(args.input, args.layer, _part(args))
     if not np.any(stats.n > 0):
         raise InputError(f"{args.input!r} holds no samples (its sample count is 0 in every "
@@ -884,7 +900,8 @@ def cmd_progressive(args) -> int:
     _check_out_file(args.out, [args.input])
     with _reading_once(args.input):            # an alpha channel: from the same decoding
         stats = read_exr(args.input, spp=args.spp, layer=args.layer, part=_part(args),
-                         covariance=False)
+                         covariance=False, **_features(args, args.denoiser == "oidn",
+                                                       f"with --denoiser {args.denoiser}"))
         place = _placement(args.input, args.layer, _part(args))
     _refuse_crn(stats, args.input, f"statmc progressive {_ASSUMES_INDEPENDENT}")
     _gem_defaults(args)
@@ -1036,7 +1053,7 @@ def cmd_combine(args) -> int:
             with _layer_hint_for("--z-layer", "Z"):
                 z_stats, z_stencil = _read_exr_and_stencil(
                     args.z, spp=args.spp, spp_if_missing=True, layer=z_layer, part=z_part,
-                    covariance=False)
+                    covariance=False, albedo=False, normal=False)
         except FileFormatError as e:
             if "Variance" not in str(e):
                 raise
@@ -1189,6 +1206,18 @@ def _part_type(text: str):
     return text
 
 
+def _add_feature_options(parser) -> None:
+    """``--albedo-layer`` and ``--normal-layer``: where OIDN's features come from."""
+    parser.add_argument("--albedo-layer", default=None, metavar="NAME",
+                        help="the layer whose .R,.G,.B is OIDN's albedo, e.g. 'ViewLayer.Denoising "
+                             "Albedo' (default: the file's Albedo.*, else Blender's Denoising "
+                             "Albedo beside the colour or a top-level Mitsuba AOV 'albedo')")
+    parser.add_argument("--normal-layer", default=None, metavar="NAME",
+                        help="the layer whose .X,.Y,.Z (or .R,.G,.B) is OIDN's normal, e.g. 'nn' "
+                             "(default: the file's N.*, else Blender's Denoising Normal beside "
+                             "the colour or a top-level AOV 'normal', 'normals' or 'sh_normal')")
+
+
 def _add_file_layer_options(parser, *files: str) -> None:
     """``--<file>-layer`` for each of a two-file command's files: its layer, in place of
     ``--layer``'s (which names both files' layer)."""
@@ -1268,6 +1297,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     rc.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     _add_layer_option(rc, "the input")
+    _add_feature_options(rc)
     _add_gem_options(rc, "--method gem", refuse_unused=True)
     rc.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     rc.set_defaults(func=cmd_reconstruct)
@@ -1313,6 +1343,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--variance", action="store_true",
                    help="also store the output's first-order variance (Firmino 2023) as Variance.*")
     _add_layer_option(d, "the input")
+    _add_feature_options(d)
     _add_gem_options(d, "--denoiser gem", refuse_unused=True)
     d.add_argument("--sigma", type=POSITIVE, default=None,
                    help="standard deviation of --denoiser gaussian in pixels (default 1)")
@@ -1329,6 +1360,7 @@ def build_parser() -> argparse.ArgumentParser:
     pg.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     pg.add_argument("--spp", type=POSITIVE_INT, help=SPP_HELP)
     _add_layer_option(pg, "the input")
+    _add_feature_options(pg)
     _add_gem_options(pg, "--denoiser gem", refuse_unused=True)
     pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
@@ -1382,6 +1414,12 @@ _CLI_WORDING = (
     ("`params`", "-D"),
     ("`sensor`", "--sensor"),
     ("`layer` must be a layer name", "--layer must be a layer name"),
+    ("pass albedo='NAME' (one of them)", "give --albedo-layer NAME (one of them)"),
+    ("pass normal='NAME' (one of them)", "give --normal-layer NAME (one of them)"),
+    ("`albedo` must be the name", "--albedo-layer must be the name"),
+    ("`normal` must be the name", "--normal-layer must be the name"),
+    ("; None: recognised, False: statmc's own Albedo.* only", ""),
+    ("; None: recognised, False: statmc's own N.* only", ""),
     ("`n` must be >= 2 in every pixel", "the sample count must be >= 2 in every pixel"),
     ("`color` must be an (H, W, 3) image", "the denoiser needs an R,G,B image"),
 )

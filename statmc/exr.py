@@ -553,7 +553,81 @@ def _select_layer(p, arrays, types, layer):
     return out, kinds
 
 
-def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = True,
+# Feature layers of other tools that read_exr takes as albedo and normal (when the file has
+# no Albedo.* / N.* of its own): kind -> (channel suffixes, statmc's own channels, last names
+# of the layers recognised, case-sensitive).  Blender (Cycles) writes its denoising data
+# passes as '<view layer>.Denoising Albedo.R/G/B' and '<view layer>.Denoising Normal.X/Y/Z';
+# Mitsuba 3's aov integrator names a layer by the user's AOV name ('albedo:albedo' writes
+# albedo.R/G/B, 'sh_normal:sh_normal' sh_normal.X/Y/Z; checked with Mitsuba 3.9.1).
+# Blender's plain 'Normal' pass and Mitsuba names such as 'nn' are not guessed at: pass
+# normal='ViewLayer.Normal' or normal='nn'.
+_FEATURE_KINDS = {
+    "albedo": (("R", "G", "B"), _ALBEDO, ("Denoising Albedo", "albedo")),
+    "normal": (("X", "Y", "Z"), _NORMAL, ("Denoising Normal", "normal", "normals", "sh_normal")),
+}
+
+
+def _parent(layer) -> str:
+    """The layer that holds ``layer`` (``"ViewLayer"`` of ``"ViewLayer.Combined"``; "" at
+    the top level or for None)."""
+    return layer.rsplit(".", 1)[0] if layer and "." in layer else ""
+
+
+def _feature_candidates(arrays, kind: str, parent=None) -> list:
+    """The layers of ``arrays`` recognised as feature ``kind`` (all three channels present,
+    a last name of :data:`_FEATURE_KINDS`), in ``parent`` only unless None; sorted."""
+    comps, _, names = _FEATURE_KINDS[kind]
+    found = set()
+    for n in arrays:
+        if n.endswith("." + comps[0]):
+            layer = n[:-len(comps[0]) - 1]
+            if (layer.rsplit(".", 1)[-1] in names and (parent is None or _parent(layer) == parent)
+                    and all(f"{layer}.{c}" in arrays for c in comps)):
+                found.add(layer)
+    return sorted(found)
+
+
+def _feature_channels(p, arrays, layer, kind: str, choice):
+    """``(channel names, layer)`` of feature ``kind`` (``"albedo"`` or ``"normal"``) among the
+    channels ``arrays`` of the part read (prefixes and all): ``choice`` a layer's name, its
+    ``.R/.G/.B`` (a normal's ``.X/.Y/.Z``, else ``.R/.G/.B``); None statmc's own ``Albedo.*``
+    / ``N.*`` (inside ``layer`` if given), else the one layer of another tool recognised
+    beside ``layer`` (:data:`_FEATURE_KINDS`; two are refused); False statmc's own only.
+    The layer is None when the file has no such feature (the names are then absent)."""
+    comps, own, _ = _FEATURE_KINDS[kind]
+    prefix = "" if layer is None else layer + "."
+    own_names = tuple(prefix + n for n in own)
+    own_layer = prefix + own[0].rsplit(".", 1)[0]
+    if choice is None or choice is False:
+        if choice is False or any(n in arrays for n in own_names):
+            return own_names, (own_layer if any(n in arrays for n in own_names) else None)
+        found = _feature_candidates(arrays, kind, _parent(layer))
+        if len(found) > 1:
+            raise FileFormatError(
+                f"{p!r} has {len(found)} layers statmc would read as the {kind}: {found}; it "
+                f"does not choose between them: pass {kind}='NAME' (one of them) to read that "
+                "one.")
+        if not found:
+            return own_names, None
+        return tuple(f"{found[0]}.{c}" for c in comps), found[0]
+    if not isinstance(choice, str) or not choice or choice.endswith("."):
+        raise InputError(f"`{kind}` must be the name of the layer holding the {kind} (such as "
+                         f"'ViewLayer.Denoising {kind.capitalize()}'; None: recognised, False: "
+                         f"statmc's own {own[0].rsplit('.', 1)[0]}.* only); got {choice!r}.")
+    for cs in ((comps, ("R", "G", "B")) if kind == "normal" else (comps,)):
+        names = tuple(f"{choice}.{c}" for c in cs)
+        if all(n in arrays for n in names):
+            return names, choice
+    want = "', '".join(f"{choice}.{c}" for c in comps)
+    layers = sorted({n.rsplit(".", 1)[0] for n in arrays if "." in n
+                     and n.rsplit(".", 1)[1] in comps})
+    raise FileFormatError(f"{p!r} has no {kind} layer {choice!r} (channels '{want}'"
+                          f"{' or .R, .G, .B' if kind == 'normal' else ''}); layers with "
+                          f"{', '.join(comps)} channels: {layers}{getattr(arrays, 'note', '')}.")
+
+
+def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
+             require_variance: bool = True,
              nonfinite: str = "error", replace_value: float = 0.0,
              spp_if_missing: bool = False, covariance: bool = True) -> PixelStats:
     """Read per-pixel statistics from an EXR file in pbrt-v4's gbuffer layout.
@@ -575,6 +649,19 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
         The part of a multi-part file to read: its index (from 0) or its name (Nuke writes
         one part per layer).  A part the file does not have raises
         :class:`FileFormatError` naming the parts it has.
+    albedo, normal : str, None or False, optional
+        Where the albedo and normal features (OIDN's auxiliary images) come from.  A string
+        names a layer: ``albedo="ViewLayer.Denoising Albedo"`` reads its ``.R, .G, .B``,
+        ``normal="nn"`` its ``.X, .Y, .Z`` (or ``.R, .G, .B``); the name is the whole
+        channel prefix, whatever ``layer`` is.  None (the default) takes statmc's (and
+        pbrt-v4's) own ``Albedo.*`` and ``N.*`` (inside ``layer``), else the one layer of
+        another tool recognised beside the colour: Blender's denoising data passes
+        ``<view layer>.Denoising Albedo`` / ``Denoising Normal`` (with
+        ``layer="ViewLayer.Combined"``, those of ``ViewLayer``), or the top-level AOV layers
+        ``albedo`` and ``normal``, ``normals`` or ``sh_normal`` of Mitsuba 3's ``aov``
+        integrator; two such layers raise :class:`FileFormatError` listing them.  False
+        reads statmc's own channels only.  Values are passed through as stored (OIDN takes
+        normals in any consistent space).
     require_variance : bool, default True
         Raise when the ``Variance.*`` channels are missing.  With ``False`` a file without
         them is read with zero spread (``M2 = 0``); ``meta["has_variance"]`` says so.
@@ -606,7 +693,9 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
         ``data_window`` and ``display_window`` (``[x0, y0, x1, y1]``: where the pixels lie
         in the frame, :func:`exr_windows`), ``depth_channel``,
         ``chromaticities`` (the header's 8 primaries and white point x, y, or None),
-        ``layer``, ``part`` (the index of the part read),
+        ``layer``, ``part`` (the index of the part read), ``albedo_layer`` and
+        ``normal_layer`` (the layer the feature came from, e.g. ``"Albedo"`` or
+        ``"ViewLayer.Denoising Albedo"``, or None),
         ``sample_count_source`` (``"file"``: the channel, ``"header"``: the
         ``samplesPerPixel`` attribute, or ``"spp"``), ``nonfinite_replaced`` and
         ``nonfinite_by_group``.
@@ -640,8 +729,11 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
     if not isinstance(covariance, (bool, np.bool_)):
         raise InputError(f"`covariance` must be True or False; got {covariance!r}.")
     header, arrays, types = _open(p, part=part)
+    whole, whole_types = arrays, types
     arrays, types = _select_layer(p, arrays, types, layer)
     color = _color_names(p, arrays)
+    albedo_names, albedo_layer = _feature_channels(p, whole, layer, "albedo", albedo)
+    normal_names, normal_layer = _feature_channels(p, whole, layer, "normal", normal)
     mean = _group(p, arrays, color, "colour")
     var_names = tuple("Variance." + c for c in color)
     var = _group(p, arrays, var_names, "variance")
@@ -655,8 +747,8 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
     if cov is not None and var is None:
         raise FileFormatError(f"{p!r} has Covariance channels but no {', '.join(var_names)}: a "
                               "channel covariance needs the variances on its diagonal.")
-    albedo = _group(p, arrays, _ALBEDO, "albedo")
-    normal = _group(p, arrays, _NORMAL, "normal")
+    albedo = _group(p, whole, albedo_names, "albedo")
+    normal = _group(p, whole, normal_names, "normal")
     depth_name = next((d for d in _DEPTH if d in arrays), None)
     depth = arrays[depth_name].astype(np.float64) if depth_name else None
     count = arrays[SAMPLE_COUNT].astype(np.float64) if SAMPLE_COUNT in arrays else None
@@ -672,9 +764,10 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
               depth_name or "Z": depth, SAMPLE_COUNT: count}
     groups = {k: v for k, v in groups.items() if v is not None}
     members = {"+".join(color): color, "Variance": var_names, "Covariance": _COV,
-               "Albedo": _ALBEDO, "N": _NORMAL, depth_name or "Z": (depth_name,),
-               SAMPLE_COUNT: (SAMPLE_COUNT,)}
-    half = {k for k in groups if all(types.get(c) == "half" for c in members[k])}
+               depth_name or "Z": (depth_name,), SAMPLE_COUNT: (SAMPLE_COUNT,)}
+    half = {k for k in groups if k in members and all(types.get(c) == "half" for c in members[k])}
+    half |= {k for k, names in (("Albedo", albedo_names), ("N", normal_names))
+             if k in groups and all(whole_types.get(c) == "half" for c in names)}
     by_group = _handle_nonfinite(p, groups, nonfinite, replace_value, half)
     if not covariance:                 # checked above, not kept
         groups.pop("Covariance", None)
@@ -710,15 +803,22 @@ def read_exr(path, *, spp=None, layer=None, part=0, require_variance: bool = Tru
     stats = PixelStats.from_mean_var(mean, var, n, sample_cov=cov, albedo=albedo, normal=normal,
                                      depth=depth)
     data_window, display_window = _windows(header)
+    # another tool's feature channels read from the layer's own channels (a top-level
+    # albedo.R of Mitsuba beside R, G, B) are not extra channels
+    prefix = "" if layer is None else layer + "."
+    features_read = {n[len(prefix):] for names, got in ((albedo_names, albedo_layer),
+                                                        (normal_names, normal_layer))
+                     if got is not None for n in names if n.startswith(prefix)}
     stats.meta.update({
         "source": p, "channels": sorted(arrays),
         "extra_channels": sorted(set(arrays) - set(color) - set(var_names) - set(_ALBEDO)
                                  - set(_NORMAL) - {depth_name, SAMPLE_COUNT}
-                                 - (set(_COV) if has_cov else set())),
+                                 - (set(_COV) if has_cov else set()) - features_read),
         "has_variance": bool(all(v in arrays for v in var_names)),
         "has_covariance": has_cov,
         "data_window": data_window, "display_window": display_window,
         "chromaticities": _chromaticities(header), "layer": layer, "part": header["_part"],
+        "albedo_layer": albedo_layer, "normal_layer": normal_layer,
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
         "nonfinite_by_group": by_group,
@@ -878,6 +978,10 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
     other part), ``samples_per_pixel`` (pbrt-v4's ``samplesPerPixel`` header
     attribute or None), ``chromaticities`` (or None), ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
+    ``features`` (``albedo`` and ``normal``: the layers :func:`read_exr` recognises as
+    such, statmc's own ``Albedo`` / ``N`` first, then other tools' layers such as Blender's
+    ``ViewLayer.Denoising Albedo`` or Mitsuba's ``albedo``, at any level; ``read_exr`` takes
+    its own, else the one beside the colour it reads),
     ``sample_count`` (``min``/``mean``/``max``/``total`` or None) and ``nonfinite``
     (group → NaN and Inf counts, only groups that have any).
 
@@ -929,6 +1033,9 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
             "normal": all(c in arrays for c in _NORMAL),
             "depth": next((d for d in _DEPTH if d in arrays), None),
         },
+        "features": {kind: ([own[0].rsplit(".", 1)[0]] if all(c in arrays for c in own) else [])
+                     + _feature_candidates(arrays, kind)
+                     for kind, (_, own, _) in _FEATURE_KINDS.items()},
         "sample_count": sc,
         "nonfinite": nonfinite,
     }

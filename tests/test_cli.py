@@ -2411,3 +2411,85 @@ def test_combine_decodes_a_y_with_alpha_once(tmp_path, monkeypatch, weights):
     assert reads == [str(y), str(z)]
     monkeypatch.undo()
     np.testing.assert_array_equal(read_channels(out, ["A"])["A"], alpha.astype(np.float32))
+
+
+def _feature_files(tmp_path, rng):
+    """The same render three ways: Blender-style (statistics in ViewLayer.Combined, features
+    in its Denoising Albedo/Normal passes, a plain Normal pass beside them), flat with
+    statmc's Albedo.*/N.*, and flat without features."""
+    st = _crop_stats(rng)
+    albedo = {c: rng.random((8, 10)) for c in "RGB"}
+    normal = {c: rng.random((8, 10)) * 2 - 1 for c in "XYZ"}
+    blender = {f"ViewLayer.Combined.{k}": v for k, v in st.items()}
+    blender.update({f"ViewLayer.Denoising Albedo.{c}": v for c, v in albedo.items()})
+    blender.update({f"ViewLayer.Denoising Normal.{c}": v for c, v in normal.items()})
+    blender.update({f"ViewLayer.Normal.{c}": -v for c, v in normal.items()})
+    paths = {k: tmp_path / f"{k}.exr" for k in ("blender", "mitsuba", "flat", "bare")}
+    _write_channels(paths["blender"], blender)
+    mitsuba = dict(st, **{f"albedo.{c}": v for c, v in albedo.items()},
+                   **{f"nn.{c}": v for c, v in normal.items()})
+    _write_channels(paths["mitsuba"], mitsuba)
+    _write_channels(paths["flat"], dict(st, **{f"Albedo.{c}": v for c, v in albedo.items()},
+                                        **{f"N.{c}": v for c, v in normal.items()}))
+    _write_channels(paths["bare"], st)
+    return paths
+
+
+@pytest.mark.parametrize("cmd", [["denoise", "--denoiser", "oidn"],
+                                 ["denoise", "--denoiser", "oidn", "--variance"],
+                                 ["progressive"], ["reconstruct", "--method", "oidn+combine"]],
+                         ids=" ".join)
+def test_oidn_takes_the_features_of_blender_and_mitsuba_files(tmp_path, cmd):
+    # before: Blender's Denoising Albedo/Normal passes and Mitsuba's aov layers were extra
+    # channels, so OIDN ran without features: the output was that of the bare file
+    from statmc.exr import read_image
+    paths = _feature_files(tmp_path, np.random.default_rng(38))
+    out = {}
+    for name, opts in (("flat", []), ("bare", []),
+                       ("blender", ["--layer", "ViewLayer.Combined"]),
+                       ("mitsuba", ["--normal-layer", "nn"]),
+                       ("blender_plain_normal", ["--layer", "ViewLayer.Combined", "--normal-layer",
+                                                 "ViewLayer.Normal"])):
+        o = tmp_path / f"o_{name}.exr"
+        src = paths[name.split("_")[0]]
+        code, _, err = run_cli(cmd[0], src, *cmd[1:], *opts, "--out", o, "-q")
+        assert code == 0, (name, err)
+        out[name] = read_image(o)
+    assert not np.array_equal(out["flat"], out["bare"])          # the features matter here
+    assert np.array_equal(out["blender"], out["flat"])
+    assert np.array_equal(out["mitsuba"], out["flat"])
+    assert not np.array_equal(out["blender_plain_normal"], out["flat"])
+
+
+def test_feature_layer_options_are_checked_and_refused_where_no_oidn_runs(tmp_path):
+    paths = _feature_files(tmp_path, np.random.default_rng(39))
+    o = tmp_path / "o.exr"
+    for args, why in ((["reconstruct", paths["mitsuba"], "--normal-layer", "nn"],
+                       "--normal-layer has no effect on --method gem"),
+                      (["denoise", paths["mitsuba"], "--denoiser", "gaussian", "--albedo-layer",
+                        "albedo"], "--albedo-layer has no effect with --denoiser gaussian"),
+                      (["progressive", paths["mitsuba"], "--denoiser", "gem", "--albedo-layer",
+                        "albedo"], "--albedo-layer has no effect with --denoiser gem"),
+                      (["denoise", paths["mitsuba"], "--normal-layer", "n"],
+                       "has no normal layer 'n' (channels 'n.X', 'n.Y', 'n.Z' or .R, .G, .B); "
+                       "layers with X, Y, Z channels: ['nn']")):
+        code, _, err = run_cli(*args, "--out", o, "-q")
+        assert code == 2 and err.count("\n") == 1 and why in err, (args, err)
+        assert not o.exists()
+    # two albedo layers beside the colour: refused where OIDN runs, naming the option
+    q = tmp_path / "two.exr"
+    _write_channels(q, dict(_crop_stats(np.random.default_rng(40)),
+                            **{f"{n}.{c}": np.full((8, 10), 0.5) for n in ("albedo", "Denoising Albedo")
+                               for c in "RGB"}))
+    code, _, err = run_cli("denoise", q, "--out", o, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert ("has 2 layers statmc would read as the albedo: ['Denoising Albedo', 'albedo']; it "
+            "does not choose between them: give --albedo-layer NAME (one of them)") in err
+    code, _, err = run_cli("denoise", q, "--albedo-layer", "albedo", "--out", o, "-q")
+    assert code == 0, err
+    # where no OIDN runs, the file reads as before
+    code, _, err = run_cli("denoise", q, "--denoiser", "gaussian", "--out", o, "-q")
+    assert code == 0, err
+    code, out, err = run_cli("info", paths["blender"])
+    assert code == 0 and json.loads(out)["features"] == {
+        "albedo": ["ViewLayer.Denoising Albedo"], "normal": ["ViewLayer.Denoising Normal"]}, err

@@ -1411,3 +1411,133 @@ def test_statistics_and_stencil_of_another_part_from_one_read(tmp_path, monkeypa
     assert stencil().tobytes() == exr.read_spatial_covariance(single).tobytes()
     _assert_same(read_exr(single, covariance=False), got)
     assert reads == [str(p), str(single), str(single)]
+
+
+# ------------------------------- session 12: feature layers of other tools (albedo, normal)
+def _blender_denoising_file(path, rng, view_layers=("ViewLayer",), dtype=np.float32):
+    """A Blender (Cycles) multilayer file with Denoising Data passes, per view layer: the
+    beauty in '<vl>.Combined', 'Denoising Albedo.R/G/B', 'Denoising Normal.X/Y/Z' (camera
+    space), and the plain 'Normal' pass (world space), which is not a denoising feature."""
+    ch = {}
+    for vl in view_layers:
+        ch.update({f"{vl}.Combined.{c}": rng.random((3, 4)) for c in "RGBA"})
+        ch.update({f"{vl}.Denoising Albedo.{c}": rng.random((3, 4)) for c in "RGB"})
+        ch.update({f"{vl}.Denoising Normal.{c}": rng.random((3, 4)) * 2 - 1 for c in "XYZ"})
+        ch.update({f"{vl}.Normal.{c}": rng.random((3, 4)) * 2 - 1 for c in "XYZ"})
+        ch[f"{vl}.Depth.Z"] = rng.random((3, 4))
+    _write_raw(path, ch, dtype=dtype)
+    return {k: v.astype(dtype).astype(np.float64) for k, v in ch.items()}
+
+
+def test_blender_denoising_passes_are_read_as_albedo_and_normal(tmp_path):
+    # before: a Blender render's Denoising Albedo/Normal passes were left out (channels
+    # outside --layer), so OIDN ran on it without features
+    rng = np.random.default_rng(50)
+    p = tmp_path / "blender.exr"
+    ch = _blender_denoising_file(p, rng, view_layers=("ViewLayer", "Other"))
+    for vl in ("ViewLayer", "Other"):              # the view layer of the colour read
+        s = read_exr(p, layer=f"{vl}.Combined", spp=4, require_variance=False)
+        for k, c in enumerate("RGB"):
+            np.testing.assert_array_equal(s.albedo[..., k], ch[f"{vl}.Denoising Albedo.{c}"])
+        for k, c in enumerate("XYZ"):               # as stored, not normalised or rotated
+            np.testing.assert_array_equal(s.normal[..., k], ch[f"{vl}.Denoising Normal.{c}"])
+        assert s.meta["albedo_layer"] == f"{vl}.Denoising Albedo"
+        assert s.meta["normal_layer"] == f"{vl}.Denoising Normal"
+        assert s.meta["extra_channels"] == ["A"]
+    # explicit layers: Blender's plain Normal pass, or none of another tool (False)
+    s = read_exr(p, layer="ViewLayer.Combined", spp=4, require_variance=False,
+                 normal="ViewLayer.Normal", albedo=False)
+    np.testing.assert_array_equal(s.normal[..., 2], ch["ViewLayer.Normal.Z"])
+    assert s.albedo is None and s.meta["albedo_layer"] is None
+    info = exr_info(p, families=True)
+    assert info["features"] == {"albedo": ["Other.Denoising Albedo", "ViewLayer.Denoising Albedo"],
+                                "normal": ["Other.Denoising Normal", "ViewLayer.Denoising Normal"]}
+
+
+def _mitsuba_aov_file(path, rng, aovs=("albedo", "nn")):
+    """Channels as Mitsuba 3.9.1's aov integrator writes them (film bitmap of
+    aovs="albedo:albedo,nn:sh_normal,dd:depth" with a nested 'img' path integrator, checked
+    by rendering): R, G, B, img.R/G/B/A, albedo.R/G/B, nn.X/Y/Z, dd.T."""
+    ch = {c: rng.random((3, 4)) for c in "RGB"}
+    ch.update({f"img.{c}": rng.random((3, 4)) for c in "RGBA"})
+    ch["dd.T"] = rng.random((3, 4))
+    for name in aovs:
+        comps = "RGB" if "albedo" in name.lower() else "XYZ"
+        ch.update({f"{name}.{c}": rng.random((3, 4)) for c in comps})
+    _write_raw(path, ch)
+    return {k: v.astype(np.float32).astype(np.float64) for k, v in ch.items()}
+
+
+def test_mitsuba_aov_layers_are_recognised_by_well_known_names_only(tmp_path):
+    rng = np.random.default_rng(51)
+    p = tmp_path / "mitsuba.exr"
+    ch = _mitsuba_aov_file(p, rng)
+    s = read_exr(p, spp=4, require_variance=False)
+    np.testing.assert_array_equal(s.albedo[..., 1], ch["albedo.G"])
+    assert s.normal is None and s.meta["normal_layer"] is None      # 'nn' is not guessed
+    assert s.meta["extra_channels"] == ["dd.T", "img.A", "img.B", "img.G", "img.R",
+                                        "nn.X", "nn.Y", "nn.Z"]
+    s = read_exr(p, spp=4, require_variance=False, normal="nn")
+    np.testing.assert_array_equal(s.normal[..., 0], ch["nn.X"])
+    assert "nn.X" not in s.meta["extra_channels"] and s.meta["normal_layer"] == "nn"
+    q = tmp_path / "sh.exr"
+    ch = _mitsuba_aov_file(q, rng, aovs=("albedo", "sh_normal"))
+    s = read_exr(q, spp=4, require_variance=False)
+    np.testing.assert_array_equal(s.normal[..., 2], ch["sh_normal.Z"])
+    assert exr_info(q)["features"] == {"albedo": ["albedo"], "normal": ["sh_normal"]}
+
+
+def test_ambiguous_feature_layers_are_refused_listing_them(tmp_path):
+    rng = np.random.default_rng(52)
+    p = tmp_path / "two.exr"
+    ch = _mitsuba_aov_file(p, rng, aovs=("albedo", "Denoising Albedo", "normal"))
+    with pytest.raises(FileFormatError, match=r"has 2 layers statmc would read as the albedo: "
+                       r"\['Denoising Albedo', 'albedo'\]; it does not choose between them: "
+                       r"pass albedo='NAME'"):
+        read_exr(p, spp=4, require_variance=False)
+    s = read_exr(p, spp=4, require_variance=False, albedo="Denoising Albedo")
+    np.testing.assert_array_equal(s.albedo[..., 0], ch["Denoising Albedo.R"])
+    np.testing.assert_array_equal(s.normal[..., 0], ch["normal.X"])
+    assert read_exr(p, spp=4, require_variance=False, albedo=False).albedo is None
+    # statmc's own Albedo.* comes first: no ambiguity with another tool's layer
+    q = tmp_path / "own.exr"
+    _write_raw(q, dict({k: v for k, v in ch.items()},
+                       **{f"Albedo.{c}": np.full((3, 4), 0.25) for c in "RGB"}))
+    s = read_exr(q, spp=4, require_variance=False)
+    assert (s.albedo == 0.25).all() and s.meta["albedo_layer"] == "Albedo"
+    assert "albedo.R" in s.meta["extra_channels"]
+    assert exr_info(q)["features"]["albedo"] == ["Albedo", "Denoising Albedo", "albedo"]
+
+
+def test_explicit_feature_layers_are_checked(tmp_path):
+    rng = np.random.default_rng(53)
+    p = tmp_path / "m.exr"
+    ch = _mitsuba_aov_file(p, rng)
+    with pytest.raises(FileFormatError, match=r"has no normal layer 'n' \(channels 'n.X', 'n.Y', "
+                       r"'n.Z' or .R, .G, .B\); layers with X, Y, Z channels: \['nn'\]"):
+        read_exr(p, spp=4, require_variance=False, normal="n")
+    with pytest.raises(FileFormatError, match=r"has no albedo layer 'img.A'"):
+        read_exr(p, spp=4, require_variance=False, albedo="img.A")
+    # a normal stored as R, G, B (as some tools write it)
+    s = read_exr(p, spp=4, require_variance=False, normal="img")
+    np.testing.assert_array_equal(s.normal[..., 1], ch["img.G"])
+    for bad in ("", "nn.", 3, True):
+        with pytest.raises(InputError, match=r"`normal` must be the name of the layer holding "
+                           r"the normal"):
+            read_exr(p, spp=4, require_variance=False, normal=bad)
+
+
+def test_nonfinite_values_of_another_tools_feature_layer_are_counted(tmp_path):
+    rng = np.random.default_rng(54)
+    p = tmp_path / "b.exr"
+    ch = {f"ViewLayer.Combined.{c}": np.full((3, 4), 0.5) for c in "RGB"}
+    ch.update({f"ViewLayer.Denoising Albedo.{c}": np.full((3, 4), 0.5) for c in "RGB"})
+    ch["ViewLayer.Denoising Albedo.G"][1, 1] = np.inf
+    _write_raw(p, ch, dtype=np.float16)
+    with pytest.raises(FileFormatError, match=r"non-finite values \(Albedo: 0 NaN, 1 Inf\) \(the "
+                       r"Inf of Albedo is likely an overflow"):
+        read_exr(p, layer="ViewLayer.Combined", spp=2, require_variance=False)
+    s = read_exr(p, layer="ViewLayer.Combined", spp=2, require_variance=False,
+                 nonfinite="replace")
+    assert s.albedo[1, 1, 1] == 0 and s.meta["nonfinite_by_group"] == {"Albedo": {"nan": 0, "inf": 1}}
+    del rng
