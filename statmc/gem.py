@@ -1258,7 +1258,12 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
         bias-difference² + Var(c − f)``, so the raw sum overstates the MSE of filtered
         pixels by their noise.
     extra_output : bool
-        Also return a dict with ``density``, ``gain``, ``rel_mse``, ``scales``, ``est_mse``.
+        Also return a dict with ``density`` (the real-valued map that is rounded to
+        ``counts``), ``gain`` and ``rel_mse`` (§5's per-pixel terms, first round),
+        ``scales`` (selected scale per pixel, an index into ``sigmas``), ``est_mse``
+        (estimated MSE of the selected filter), ``amount`` (samples handed to each
+        pixel before they are spread over its filter support), ``batch`` (the
+        per-pixel batch used) and ``sigmas`` (the adaptive bank's scales).
 
     Returns
     -------
