@@ -687,7 +687,8 @@ def test_mix_features_are_the_paper_inputs_in_closed_form():
     C = 3
     for kw, s in (({}, 100.0 / ((x * x + y * y) / 2 + 0.01)),
                   ({"gain": 7.0}, 7.0 / ((x * x + y * y) / 2 + 0.01)),
-                  ({"relative": False, "gain": 1.0}, 1.0)):
+                  ({"relative": False, "gain": 1.0}, 1.0),
+                  ({"relative": False, "gain": 3.0}, 3.0)):
         f = snn.mix_features(x, var, y, sure, div, dtype=F64, **kw)
         assert f.shape == (1, snn.mix_feature_channels(C), 5, 6) == (1, 18, 5, 6)
         g = f[0].numpy().transpose(1, 2, 0)
@@ -717,6 +718,8 @@ def test_swap_is_an_exact_permutation_of_the_mix_planes(relative):
     assert snn.MIX_SWAP == (2, 3, 0, 1, 4, 5)
     batch = torch.cat([f, swapped])
     torch.testing.assert_close(snn.swap_mix_planes(batch), torch.cat([swapped, f]), rtol=0, atol=0)
+    # one sample without its batch axis, (6C, H, W), as the docstring allows
+    torch.testing.assert_close(snn.swap_mix_planes(f[0]), swapped[0], rtol=0, atol=0)
 
 
 def _mix_batch(N=3, C=3, H=6, W=7):
@@ -767,6 +770,35 @@ def test_random_swap_draws_about_half_and_swaps_images_with_their_planes():
             assert torch.equal(f2[i], snn.swap_mix_planes(feats[j:j + 1])[0])
         else:
             assert torch.equal(x2[i], x[j]) and torch.equal(y2[i], y[j]) and torch.equal(f2[i], feats[j])
+
+
+@pytest.mark.parametrize("p", [0.2, 0.8])
+def test_random_swap_swaps_with_probability_p(p):
+    """Each sample is swapped with probability p, not 1/2: a two-sided binomial test of
+    the count over 2000 samples (fixed generator).  A draw that ignores p (1/2 for every
+    0 < p < 1) gives p-values below 1e-100 here; p = 0 and 1 alone would not catch it."""
+    from scipy.stats import binomtest
+    feats, x, y, _ = _mix_batch(N=1, H=2, W=2)
+    n = 2000
+    _, _, _, sw = snn.random_swap(feats.repeat(n, 1, 1, 1), x.repeat(n, 1, 1, 1), y.repeat(n, 1, 1, 1),
+                                  p=p, generator=torch.Generator().manual_seed(1))
+    k = int(sw.sum())
+    assert binomtest(k, n, p).pvalue > 1e-3, (k, n, p)
+
+
+def test_mix_inputs_is_mc_sure_with_its_options():
+    """mix_inputs hands k, eps and rng to statmc.sure.mc_sure: its dict is that call's
+    denoised image, SURE map and divergence, bit for bit."""
+    from statmc import denoisers, sure
+    st = _render(size=8, spp=4)
+    f = denoisers.gaussian(1.0)
+    inp = snn.mix_inputs(st, f, k=2, eps=1e-3, rng=5)
+    s, info = sure.mc_sure(f, st.mean, st.mean_var, k=2, eps=1e-3, rng=5, extra_output=True)
+    np.testing.assert_array_equal(inp["sure"], s)
+    np.testing.assert_array_equal(inp["divergence"], info["divergence"])
+    np.testing.assert_array_equal(inp["y"], info["denoised"])
+    np.testing.assert_array_equal(inp["mean_var"], st.mean_var)
+    assert not np.array_equal(snn.mix_inputs(st, f, rng=5)["divergence"], info["divergence"])
 
 
 def test_mix_net_with_mix_inputs_goes_through_progressive_denoise():
