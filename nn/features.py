@@ -37,8 +37,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import (InputError, as_float_array, as_number, check_finite, check_nonempty,
-                           check_nonnegative)
+from statmc.errors import InputError, as_float_array, as_number, check_finite
+from statmc.progressive import _image, _like, _variance, bind_denoiser
 from statmc.stats import PixelStats, check_stats
 
 __all__ = ["pixel_features", "feature_channels", "REL_EPS", "VAR_FLOOR", "DIST_EPS",
@@ -167,12 +167,12 @@ def mix_feature_channels(channels: int = 3) -> int:
     return 6 * int(channels)
 
 
-def _mix_map(name, a, shape):
-    arr = as_float_array(name, a, ndim=3, dtype=np.float64)
-    if arr.shape != shape:
-        raise InputError(f"`{name}` must have the shape of `x` {shape}; got {arr.shape}.")
-    check_finite(name, arr)
-    return arr
+def _check_mix_options(relative=True, gain=MIX_GAIN):
+    """``(relative, gain)`` of :func:`mix_features` checked: ``relative`` a bool, ``gain``
+    a finite number > 0 (``InputError`` otherwise); returns them (``gain`` as a float)."""
+    if not isinstance(relative, (bool, np.bool_)):
+        raise InputError(f"`relative` must be a bool; got {relative!r}.")
+    return bool(relative), as_number("gain", gain, lo=0.0, lo_open=True)
 
 
 def mix_features(x, mean_var, y, sure_y, divergence, *, relative: bool = True,
@@ -243,24 +243,13 @@ def mix_features(x, mean_var, y, sure_y, divergence, *, relative: bool = True,
     """
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
-    if not isinstance(relative, (bool, np.bool_)):
-        raise InputError(f"`relative` must be a bool; got {relative!r}.")
-    gain = as_number("gain", gain, lo=0.0, lo_open=True)
-    xx = as_float_array("x", x, ndim=3, dtype=np.float64)
-    check_nonempty("x", xx)
-    check_finite("x", xx)
+    relative, gain = _check_mix_options(relative, gain)
+    # the checks of statmc.progressive, whose progressive_denoise hands these to `alpha`
+    xx = _image("x", x)
     shape = xx.shape
-    v = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=np.float64)
-    if v.ndim == 4 and v.shape == shape + (shape[2],):
-        v = np.diagonal(v, axis1=-2, axis2=-1)
-    if v.shape != shape:
-        raise InputError(f"`mean_var` must be the variance of the mean with the shape of `x` "
-                         f"{shape} (or a covariance {shape + (shape[2],)}); got {np.shape(mean_var)}.")
-    check_finite("mean_var", v)
-    check_nonnegative("mean_var", v)
-    yy = _mix_map("y", y, shape)
-    sy = _mix_map("sure_y", sure_y, shape)
-    d = _mix_map("divergence", divergence, shape)
+    v = _variance(mean_var, shape)
+    yy, sy, d = (_like(name, a, shape) for name, a in
+                 (("y", y), ("sure_y", sure_y), ("divergence", divergence)))
     scale = gain / ((xx * xx + yy * yy) / 2.0 + MIX_REL_EPS) if relative else gain
     planes = [np.log1p(np.maximum(xx, 0.0)), np.arctan(scale * v),
               np.log1p(np.maximum(yy, 0.0)), np.arctan(scale * sy),
@@ -297,7 +286,6 @@ def mix_inputs(stats: PixelStats, denoiser, *, k: int = 4, eps: float = 1e-4, rn
     ``rng``.  ``denoiser`` is a callable or a name bound to ``stats`` by
     :func:`statmc.progressive.bind_denoiser` (e.g. ``"oidn"``).
     """
-    from statmc.progressive import bind_denoiser
     from statmc.sure import mc_sure
 
     check_stats(stats)
