@@ -41,8 +41,8 @@ from statmc.errors import InputError, as_float_array, as_number, check_finite
 from statmc.sampling import counts_from_density
 from statmc.stats import check_stats
 
-from .features import (feature_channels, mix_feature_channels, mix_features_of, pixel_features,
-                       swap_mix_planes)
+from .features import (_check_mix_options, feature_channels, mix_feature_channels, mix_features_of,
+                       pixel_features, swap_mix_planes)
 from .layout import kernels_to_numpy, weights_to_numpy
 from .ops import apply_kernels, check_finite_tensor, check_tensor
 
@@ -106,8 +106,9 @@ class _Net(torch.nn.Module):
         if not isinstance(features, torch.Tensor) or features.ndim != 4 \
                 or features.shape[1] != self.in_channels:
             got = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
+            builder = "mix_features" if getattr(self, "inputs", None) == "mix" else "pixel_features"
             raise InputError(f"`features` must be an (N, {self.in_channels}, H, W) tensor "
-                             f"(statmc.nn.pixel_features with this network's settings); got {got}.")
+                             f"(statmc.nn.{builder} with this network's settings); got {got}.")
         if features.device != self._device:
             raise InputError(f"`features` is on device {features.device} but the network is on "
                              f"{self._device}; move one of them (`features.to(net_device)`).")
@@ -316,6 +317,8 @@ class MixNet(_Net):
                                         or not set(mix_options) <= {"relative", "gain"}):
             raise InputError(f"`mix_options` must be None or, with inputs='mix', a dict of "
                              f"mix_features options (relative, gain); got {mix_options!r}.")
+        if mix_options:                    # refused here, not at the first alpha_from
+            _check_mix_options(**mix_options)
         self.activation = activation
         self.inputs = inputs
         self.mix_options = dict(mix_options or {})
@@ -371,6 +374,9 @@ class MixNet(_Net):
             raise InputError("MixNet(inputs='mix') needs `sure` and `divergence` of `y` "
                              "(statmc.sure.mc_sure(..., extra_output=True)); got None.")
         check_stats(stats)
+        # as pixel_features and mix_inputs: mean_var is 0 where n < 2, which reads as noise-free
+        stats.require_variance(why="for the VAR plane of the mixing network's inputs",
+                               hint=" Render a uniform pass of >= 2 spp first.")
         return self.alpha_from({"x": stats.mean, "y": y, "mean_var": stats.mean_var,
                                 "sure": sure, "divergence": divergence})
 

@@ -286,6 +286,7 @@ _OUTSIDE_INF = _K.clone()
 _OUTSIDE_INF[0, 0, 0, 0] = float("inf")      # tap (0, 0) of pixel (0, 0) reads (-1, -1): outside
 _META = _IMG.to("meta")                       # another device, without needing CUDA
 _ST = ToyRenderer("mixed", width=5, height=4).render_uniform(2, seed=0)
+_ST1 = ToyRenderer("mixed", width=5, height=4).render_uniform(1, seed=0)     # n = 1: no variance
 _SIGNED = torch.cat([torch.ones(1, 4, 4, 5), torch.zeros(1, 1, 4, 5), -torch.ones(1, 4, 4, 5)], 1)
 
 
@@ -839,6 +840,13 @@ def test_mix_net_with_mix_inputs_goes_through_progressive_denoise():
     (lambda a: snn.MixNet(mix_options={"gain": 2.0}), "`mix_options`"),
     (lambda a: snn.MixNet(inputs="mix").alpha(_render(size=6), a[0][:6, :6] * 0 + 0.5), "needs `sure`"),
     (lambda a: snn.MixNet().alpha_from({}), "alpha_from"),
+    (lambda a: snn.MixNet(inputs="mix", mix_options={"gain": -1.0}), "`gain`"),
+    (lambda a: snn.MixNet(inputs="mix", mix_options={"relative": "no"}), "`relative` must be a bool"),
+    (lambda a: snn.MixNet(inputs="mix").alpha(_ST1, a[0][:4, :5], sure=a[3][:4, :5], divergence=a[4][:4, :5]),
+     "samples in every pixel"),
+    (lambda a: snn.MixNet(inputs="mix", channels=1).alpha_from(dict(zip(("x", "mean_var", "y", "sure", "divergence"), a))),
+     "statmc.nn.mix_features with this"),
+    (lambda a: snn.mix_features(a[0], a[1][..., None].repeat(2, -1), a[2], a[3], a[4]), "covariance"),
 ])
 def test_mix_inputs_bad_input_names_the_parameter(call, match):
     with pytest.raises(InputError, match=match):
