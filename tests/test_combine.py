@@ -2009,3 +2009,131 @@ def test_reconstruct_stats_combine_reads_the_mix_without_the_sure_terms(monkeypa
     kw, info = seen[0]
     assert not kw.get("sure_terms", False) and not {"gain", "weighted_gain", "rel"} & set(info)
     np.testing.assert_array_equal(maps["mix"], np.asarray(info["mix"], np.float32).sum(axis=-1))
+
+
+# --------------------------------------------------------------- properties on any image
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+def _any_image(seed, h, w, c, dtype, scale, zero_frac, b=None):
+    """Signed means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is
+    0) and heavy-tailed (gamma 0.3) variances, a fraction ``zero_frac`` of them exactly 0;
+    ``b`` bins give a leading axis."""
+    rng = np.random.default_rng(seed)
+    lead = () if b is None else (b,)
+    m = rng.normal(size=lead + (h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
+    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
+    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
+    m[..., : h // 2, : w // 2, :] = m[..., :1, :1, :]          # a flat region
+    return m.astype(dtype), v.astype(dtype)
+
+
+def _any_weights(seed, h, w, k, wscale, dtype, b=None):
+    """Non-negative window weights, a third of the taps exactly 0, the centre > 0."""
+    rng = np.random.default_rng(seed + 1)
+    lead = (h, w) if b is None else (h, w, b)
+    wt = rng.gamma(0.5, 1, size=lead + (k, k)) * (rng.uniform(size=lead + (k, k)) > 0.33)
+    wt[..., k // 2, k // 2] += 0.1
+    return (wt * wscale).astype(dtype)
+
+
+_IMAGES = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 12), w=st.integers(1, 12),
+               c=st.integers(1, 3), dtype=st.sampled_from([np.float32, np.float64]),
+               scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+               zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+
+
+def _in_range(out, lo, hi, dtype):
+    slack = 16 * np.finfo(dtype).eps * np.maximum(np.abs(lo), np.abs(hi))
+    return bool((out >= lo - slack).all() and (out <= hi + slack).all())
+
+
+@settings(max_examples=50, deadline=None)
+@given(k=st.sampled_from([1, 3, 5]), wscale=st.sampled_from([1e-20, 1.0, 1e15]),
+       zconst=st.sampled_from([0.0, 1.0, -3e7]), **_IMAGES)
+def test_combine_with_a_flat_z_is_a_convex_average_of_y_on_any_image(seed, h, w, c, dtype,
+                                                                     scale, zero_frac, k,
+                                                                     wscale, zconst):
+    # With z constant every per-tap estimate e_t = y_t + z_c − z_t of Eq. 8 is y_t, and
+    # non-negative weights normalised by W_c make a convex average: each output lies
+    # between the channel's smallest and largest y, for Eq. 8 (combine), Eq. 14 with one
+    # bin (combine_multi) and Eq. 15 (combine_boosting) alike.
+    y, _ = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    z = np.full_like(y, zconst)
+    wt = _any_weights(seed, h, w, k, wscale, dtype)
+    lo, hi = y.min(axis=(0, 1)), y.max(axis=(0, 1))
+    for out in (combine(y, z, wt), combine_multi(y[None], z[None], wt[:, :, None]),
+                combine_boosting(y, z, wt)):
+        assert out.shape == y.shape and out.dtype == y.dtype
+        assert np.isfinite(out).all()
+        # Eq. 15 computes z + filter(y − z): its rounding is that of |y − z|
+        tol_lo, tol_hi = lo - 16 * np.finfo(dtype).eps * abs(zconst), hi + 16 * np.finfo(dtype).eps * abs(zconst)
+        assert _in_range(out, tol_lo, tol_hi, dtype)
+        if scale == 0.0 and zconst == 0.0:
+            assert not out.any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(k=st.sampled_from([1, 3, 5]), wscale=st.sampled_from([1e-20, 1.0, 1e15]), **_IMAGES)
+def test_combine_of_an_image_with_itself_returns_it_on_any_image(seed, h, w, c, dtype, scale,
+                                                                zero_frac, k, wscale):
+    # z = y makes every e_t = y_t + y_c − y_t = y_c (Eq. 8), so β̂_c = y_c whatever the
+    # (normalised, non-negative) weights: up to the rounding of y_t + y_c − y_t.
+    y, _ = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    wt = _any_weights(seed, h, w, k, wscale, dtype)
+    tol = 16 * np.finfo(dtype).eps * np.abs(y).max(axis=(0, 1))
+    for out in (combine(y, y, wt), combine_boosting(y, y, wt)):
+        assert out.shape == y.shape and out.dtype == y.dtype
+        assert (np.abs(out - y) <= tol).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(k=st.sampled_from([1, 3]), b=st.integers(1, 3), method=st.sampled_from(["coherent", "diagonal"]),
+       z_bias=st.sampled_from(["estimate", "zero", "pairs"]), **_IMAGES)
+def test_statistical_weights_are_normalised_and_non_negative_on_any_image(seed, h, w, c, dtype,
+                                                                         scale, zero_frac, k,
+                                                                         b, method, z_bias):
+    # "coherent" minimises over a >= 0 and "diagonal" takes inverse MSEs, then both are
+    # normalised over the taps inside the image: finite, >= 0, zero outside the image,
+    # summing to 1 per pixel — with zero variances, flat regions and 1-pixel images, and
+    # the combination with them a convex average of the per-tap estimates.
+    if z_bias == "pairs" and b < 2:
+        b = 2
+    y, v = _any_image(seed, h, w, c, dtype, scale, zero_frac, b=b)
+    z = np.roll(y, 1, axis=-2) * 0.5 + 0.5 * y                 # a blurred-like z
+    wt = statistical_weights(y, z, np.broadcast_to(v, y.shape), v, k, method=method,
+                             z_bias=z_bias)
+    assert wt.shape == (h, w, b, k, k) and wt.dtype == np.float32
+    assert np.isfinite(wt).all() and wt.min() >= 0
+    r = k // 2
+    inside = np.zeros((h, w, k, k), bool)
+    for dy in range(k):
+        for dx in range(k):
+            inside[max(0, r - dy):h - max(0, dy - r), max(0, r - dx):w - max(0, dx - r), dy, dx] = True
+    assert not wt[~np.broadcast_to(inside[:, :, None], wt.shape)].any()
+    np.testing.assert_allclose(wt.sum(axis=(2, 3, 4)), 1.0, rtol=1e-5)
+    out = combine_multi(y, z, wt)
+    assert out.shape == (h, w, c) and np.isfinite(out).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(k=st.sampled_from([1, 3, 5]), wscale=st.sampled_from([1e-20, 1.0, 1e15]),
+       b=st.integers(1, 2), zb=st.sampled_from([0.0, 2.5, -1e10]), yb=st.sampled_from([0.0, 0.5]),
+       **_IMAGES)
+def test_combine_bias_variance_of_constant_biases_and_non_negative_variance(seed, h, w, c, dtype,
+                                                                            scale, zero_frac,
+                                                                            k, wscale, b, zb,
+                                                                            yb):
+    # Eq. 10: a constant z bias cancels in z_c − z_t and a constant y bias is averaged by
+    # normalised weights, so bias = y_bias exactly; Eq. 11 with uncorrelated pixels is a
+    # sum of w² var terms / W², hence >= 0, and 0 where every variance is 0.
+    _, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    wt = _any_weights(seed, h, w, k, wscale, dtype, b=b)
+    bias, var = combine_bias_variance(wt, v, v, z_bias=np.full_like(v, zb),
+                                      y_bias=np.full_like(v, yb))
+    assert bias.shape == var.shape == (h, w, c) and bias.dtype == var.dtype == np.float64
+    assert np.isfinite(bias).all() and np.isfinite(var).all()
+    np.testing.assert_allclose(bias, yb, rtol=1e-12, atol=1e-12 * (1 + abs(zb)))
+    assert var.min() >= 0
+    if zero_frac == 1.0:
+        assert not var.any()
