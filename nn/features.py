@@ -265,7 +265,10 @@ def swap_mix_planes(features: torch.Tensor) -> torch.Tensor:
 
     ``features`` is ``(N, 6C, H, W)`` (or ``(6C, H, W)``); the result is the same planes
     permuted, exactly the features of the swapped inputs (``mix_features(y, SURE, x, σ²,
-    D)``, see :func:`mix_features` for why the divergence ``D`` stays).
+    D)`` where SURE ≥ 0 — that call refuses a negative variance, the permutation has no such
+    limit; see :func:`mix_features` for why the divergence ``D`` stays).  The VAR slot of a
+    swapped sample is negative wherever SURE is, which an unswapped one never is: a network
+    can tell the two orientations apart, as the paper's can.
     """
     if not isinstance(features, torch.Tensor) or features.ndim not in (3, 4) \
             or features.shape[-3] % 6 != 0 or features.shape[-3] == 0:
