@@ -1122,3 +1122,71 @@ def test_elementwise_helpers_refuse_bad_input():
     x[1, 1, 1] = np.nan
     with pytest.raises(InputError, match="`x` holds 1 NaN"):
         pg.outlier_alpha(np.full((4, 5), 0.5), x, np.ones((4, 5, 3)), v)
+
+
+# --------------------------------------------------------------- properties on any image
+def _any_image(seed, h, w, c, scale, zero_frac):
+    """Signed means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is
+    0) and heavy-tailed (gamma 0.3) variances, a fraction ``zero_frac`` of them exactly 0."""
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
+    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
+    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
+    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
+    return m, v
+
+
+_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 10), w=st.integers(1, 10),
+            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+
+
+@settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(smooth=st.sampled_from([0.0, 1.0, 4.0]), shrink=st.sampled_from([0.0, 2.0]),
+       per_channel=st.booleans(), relative_eps=st.sampled_from([None, 0.01]),
+       channel_noise=st.sampled_from(["correlated", "independent"]),
+       window=st.sampled_from([1, 3, 11]), channels=st.sampled_from(["separate", "shared"]),
+       cdf=st.sampled_from(["normal", "logistic"]), **_ANY)
+def test_alpha_and_gate_stay_in_the_unit_interval_on_any_image(seed, h, w, c, scale, zero_frac,
+                                                               smooth, shrink, per_channel,
+                                                               relative_eps, channel_noise,
+                                                               window, channels, cdf):
+    # Eq. 9/10 clamp α to [0, 1] and the gate of Eq. 18 only scales it down by a factor in
+    # [0, 1], so 0 <= α' <= α <= 1 finite, whatever the magnitudes: 1e-20 variances
+    # (relative_eps), 1e15 values, zero variances and 1-pixel images.
+    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    rng = np.random.default_rng(seed + 1)
+    y = x + scale * rng.normal(size=x.shape) * (rng.uniform(size=x.shape) < 0.5)
+    sure = (y - x) ** 2 - v * rng.uniform(0, 2, size=x.shape)       # may be negative
+    div = v * rng.uniform(0, 1, size=x.shape)
+    if smooth == 0.0:
+        shrink = 0.0                                # shrinkage needs a smoothing window
+    a = pg.mixing_weights(x, y, v, sure, div, smooth=smooth, shrink=shrink,
+                          per_channel=per_channel, relative_eps=relative_eps,
+                          channel_noise=channel_noise, n=np.full((h, w), 4))
+    assert a.shape == x.shape and np.isfinite(a).all() and a.min() >= 0 and a.max() <= 1
+    ag = pg.confidence_gate(x, y, v, a, window=window, channels=channels, cdf=cdf)
+    assert ag.shape == x.shape and np.isfinite(ag).all() and ag.min() >= 0 and (ag <= a).all()
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(denoiser=st.sampled_from(["gaussian", "gem"]), gate=st.booleans(),
+       n=st.sampled_from([1, 2, 16]), **_ANY)
+def test_progressive_denoise_lies_between_render_and_denoised_on_any_image(seed, h, w, c, scale,
+                                                                           zero_frac, denoiser,
+                                                                           gate, n):
+    # z = x + α'(y − x) with α' in [0, 1] (§4 of Firmino 2023): every value lies between
+    # the render x and the denoised y, and an all-black render stays black.
+    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    stt = PixelStats.from_mean_var(x, v * n, np.full((h, w), n))
+    f = denoisers.gaussian(1.0) if denoiser == "gaussian" else denoisers.gem(v)
+    # one sample per pixel has no sample variance: the variances are passed instead
+    z, info = pg.progressive_denoise(stt, f, k=2, rng=seed, gate=gate, extra_output=True,
+                                     mean_var=v if n == 1 else None)
+    y = info["denoised"]
+    assert z.shape == x.shape and z.dtype == np.float64 and np.isfinite(z).all()
+    lo, hi = np.minimum(x, y), np.maximum(x, y)
+    slack = 4 * np.finfo(np.float64).eps * np.maximum(np.abs(lo), np.abs(hi))
+    assert (z >= lo - slack).all() and (z <= hi + slack).all()
+    if scale == 0.0:
+        assert not z.any()
