@@ -14,8 +14,9 @@ network                output (torch, NCHW)        plugs into (NumPy, channel-la
                        positive weights             :func:`~statmc.combine.combine_multi`
                                                     (``(H, W, B, k, k)``; Back 2020 Eq. 8, 14, §4.2)
 :class:`MixNet`        ``(N, 1, H, W)`` α ∈ [0, 1]  :func:`statmc.progressive.progressive_denoise`
-                                                    ``(alpha=...)`` (``(H, W)``; Firmino 2022 §4.3;
-                                                    ``inputs="mix"``: :func:`~statmc.nn.mix_features`)
+                       (``(N, C, H, W)`` with           ``(alpha=...)`` (``(H, W)`` or ``(H, W, C)``;
+                       ``per_channel=True``)        Firmino 2022 §4.3; ``inputs="mix"``:
+                                                    :func:`~statmc.nn.mix_features`)
 :class:`SamplingNet`   ``(N, 1, H, W)`` logits      :func:`statmc.sampling.counts_from_density`
                                                     (``(H, W)`` counts; Salehi 2022 Eq. 11)
 =====================  ==========================  ==================================================
@@ -289,14 +290,22 @@ class MixNet(_Net):
     mix_options : dict, optional
         ``relative`` and ``gain`` of :func:`statmc.nn.mix_features`, used by the NumPy
         methods (:meth:`alpha`, :meth:`alpha_from`); build training features with the same.
+    per_channel : bool
+        ``False`` (default): one α per pixel, shared by the channels, ``(N, 1, H, W)``.
+        ``True``: one α per pixel and channel, ``(N, C, H, W)`` — the paper's network
+        "outputs three values (x1, x2, x3) per pixel and per channel" (Firmino 2022 §4.3),
+        so with ``activation="f_act"`` the head has ``3C`` outputs, ``x1`` of channel ``c``
+        at ``c``, ``x2`` at ``C + c``, ``x3`` at ``2C + c``, and Eq. 19 is applied per
+        channel.  The NumPy methods then return ``(H, W, C)``, which
+        :func:`statmc.progressive.progressive_denoise` and its gate take as they are.
     seed : int or None
 
     Notes
     -----
-    One α per pixel, shared by the channels (the paper's network predicts one per pixel
-    and channel; ``progressive_denoise`` accepts either).  The swap turns the pair round:
-    on swapped inputs the network's output is the β of ``y + β(x − y)`` (Eq. 10); a
-    swap-consistent network has ``α(x, y) = 1 − α(y, x)`` (:meth:`swap_consistency`).
+    The swap turns the pair round: on swapped inputs the network's output is the β of
+    ``y + β(x − y)`` (Eq. 10), per channel with ``per_channel=True`` (the swap exchanges
+    all channels' planes at once); a swap-consistent network has ``α(x, y) = 1 − α(y, x)``
+    (:meth:`swap_consistency`).
     ``z = x + α (y − x)`` (§4 of Firmino 2022; the network is their ``h`` of Eq. 3).  Pass the α of :meth:`alpha` to
     :func:`statmc.progressive.progressive_denoise` ``(alpha=...)``: it goes through the
     same Student-t confidence gate (Eq. 12–18) as the classical α of Eq. 9, which keeps
@@ -307,7 +316,7 @@ class MixNet(_Net):
     _INPUTS = ("pixel", "mix")
 
     def __init__(self, channels: int = 3, *, width: int = 16, activation: str = "sigmoid",
-                 inputs: str = "pixel", mix_options=None, seed=0):
+                 inputs: str = "pixel", mix_options=None, per_channel: bool = False, seed=0):
         if activation not in self._ACTIVATIONS:
             raise InputError(f"`activation` must be 'sigmoid' or 'f_act'; got {activation!r}.")
         if inputs not in self._INPUTS:
@@ -319,20 +328,26 @@ class MixNet(_Net):
                              f"mix_features options (relative, gain); got {mix_options!r}.")
         if mix_options:                    # refused here, not at the first alpha_from
             _check_mix_options(**mix_options)
+        if not isinstance(per_channel, (bool, np.bool_)):
+            raise InputError(f"`per_channel` must be a bool (one α per pixel and channel); "
+                             f"got {per_channel!r}.")
         self.activation = activation
         self.inputs = inputs
         self.mix_options = dict(mix_options or {})
         C = _int("channels", channels, 1)
+        self.per_channel = bool(per_channel)
+        K = C if self.per_channel else 1   # α maps: one per channel, or one shared
         F = feature_channels(C, extra=1) if inputs == "pixel" else mix_feature_channels(C)
-        super().__init__(F, 1 if activation == "sigmoid" else 3, width, seed)
+        super().__init__(F, K if activation == "sigmoid" else 3 * K, width, seed)
         if activation == "f_act":          # start inside the clamp, x3 > ε (F_ACT_INIT_BIAS)
             head = self.body[-1]
             with torch.no_grad():
                 head.weight.mul_(F_ACT_INIT_SCALE)
-                head.bias.copy_(torch.tensor(F_ACT_INIT_BIAS, dtype=head.bias.dtype))
+                head.bias.copy_(torch.tensor(F_ACT_INIT_BIAS, dtype=head.bias.dtype)
+                                .repeat_interleave(K))
 
     def forward(self, features):
-        """Features -> ``(N, 1, H, W)`` α in [0, 1].
+        """Features -> ``(N, 1, H, W)`` α in [0, 1] (``(N, C, H, W)`` with ``per_channel``).
 
         The α of ``z = x + α (y − x)`` (Firmino 2022 §4; the network is ``h`` of Eq. 3,
         with ``f_act`` of Eq. 19 when ``activation="f_act"``), gated by
@@ -342,7 +357,8 @@ class MixNet(_Net):
         o = self._body(features)
         if self.activation == "sigmoid":
             return torch.sigmoid(o)
-        x1, x2, x3 = o[:, 0:1], o[:, 1:2], o[:, 2:3]
+        K = o.shape[1] // 3
+        x1, x2, x3 = o[:, :K], o[:, K:2 * K], o[:, 2 * K:]
         return torch.clamp((x1 - x2) / torch.clamp(x3, min=F_ACT_EPS), 0.0, 1.0)
 
     def mix(self, features, x, y):
@@ -354,10 +370,14 @@ class MixNet(_Net):
         if (a.shape[0], *a.shape[2:]) != (x.shape[0], *x.shape[2:]):
             raise InputError(f"`x` has shape {tuple(x.shape)}, but the images must have the "
                              f"batch size and (H, W) of `features` {tuple(features.shape)}.")
+        if a.shape[1] != 1 and a.shape[1] != x.shape[1]:
+            raise InputError(f"`x` must have the {a.shape[1]} channels of this per-channel "
+                             f"network's α; got shape {tuple(x.shape)}.")
         return x + a * (y - x)
 
     def alpha(self, stats, y, *, sure=None, divergence=None) -> np.ndarray:
-        """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64 map.
+        """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64
+        map (``(H, W, C)`` with ``per_channel``).
 
         With ``inputs="mix"``, ``sure`` and ``divergence`` (``(H, W, C)``, from
         :func:`statmc.sure.mc_sure`) are needed too; :meth:`alpha_from` takes them in a
@@ -368,8 +388,7 @@ class MixNet(_Net):
                 raise InputError("`sure` and `divergence` are inputs of MixNet(inputs='mix'); "
                                  "this network reads pixel_features(stats, extra=y) only.")
             with torch.no_grad():
-                a = self(self._features(stats, extra=_images("y", y, stats)))
-            return a[0, 0].cpu().numpy().astype(np.float64)
+                return self._alpha_map(self(self._features(stats, extra=_images("y", y, stats))))
         if sure is None or divergence is None:
             raise InputError("MixNet(inputs='mix') needs `sure` and `divergence` of `y` "
                              "(statmc.sure.mc_sure(..., extra_output=True)); got None.")
@@ -381,20 +400,26 @@ class MixNet(_Net):
                                 "sure": sure, "divergence": divergence})
 
     def alpha_from(self, inputs) -> np.ndarray:
-        """α ``(H, W)`` from a dict of ``x``, ``y``, ``mean_var``, ``sure``, ``divergence``
-        (``inputs="mix"``): pass ``alpha=net.alpha_from`` to
-        :func:`statmc.progressive.progressive_denoise`, which calls it with exactly that
-        dict, so the network sees the ``y`` and MC-SURE that the gate and the mix use."""
+        """α ``(H, W)`` (``(H, W, C)`` with ``per_channel``) from a dict of ``x``, ``y``,
+        ``mean_var``, ``sure``, ``divergence`` (``inputs="mix"``): pass
+        ``alpha=net.alpha_from`` to :func:`statmc.progressive.progressive_denoise`, which
+        calls it with exactly that dict, so the network sees the ``y`` and MC-SURE that the
+        gate and the mix use."""
         if self.inputs != "mix":
             raise InputError("`alpha_from` is for MixNet(inputs='mix'); use alpha(stats, y).")
         with torch.no_grad():
             f = mix_features_of(inputs, dtype=self._dtype, **self.mix_options).to(self._device)
-            a = self(f)
-        return a[0, 0].cpu().numpy().astype(np.float64)
+            return self._alpha_map(self(f))
+
+    def _alpha_map(self, a):
+        """The first sample's α as statmc's float64 ``(H, W)`` or, per channel, ``(H, W, C)``."""
+        a = a[0].permute(1, 2, 0) if self.per_channel else a[0, 0]
+        return a.cpu().numpy().astype(np.float64)
 
     def swap_consistency(self, features) -> torch.Tensor:
-        """``α(x, y) + α(y, x) − 1`` per pixel (``inputs="mix"``; 0 for a swap-consistent
-        network, Firmino 2022 §4.3: swapping the inputs should turn α into β = 1 − α)."""
+        """``α(x, y) + α(y, x) − 1`` per pixel, and per channel with ``per_channel``
+        (``inputs="mix"``; 0 for a swap-consistent network, Firmino 2022 §4.3: swapping the
+        inputs should turn α into β = 1 − α)."""
         if self.inputs != "mix":
             raise InputError("`swap_consistency` is for MixNet(inputs='mix').")
         return self(features) + self(swap_mix_planes(features)) - 1.0

@@ -638,8 +638,9 @@ def test_a_few_dozen_steps_reduce_held_out_error():
     assert after.mean() < 0.7 * before.mean(), msg
 
 
-@pytest.mark.parametrize("activation", ["sigmoid", "f_act"])
-def test_mix_net_training_reduces_held_out_error(activation):
+@pytest.mark.parametrize("activation, per_channel",
+                         [("sigmoid", False), ("f_act", False), ("sigmoid", True), ("f_act", True)])
+def test_mix_net_training_reduces_held_out_error(activation, per_channel):
     """MixNet trained 40 steps to mix a 32-spp render x with its Gaussian blur y; 8
     held-out renders, each must beat the untrained network (sign test, p = 2^-8 = 0.004)
     and the mean must drop by 30 %.  With f_act this failed before the output layer's
@@ -648,7 +649,7 @@ def test_mix_net_training_reduces_held_out_error(activation):
     scene = ToyRenderer("mixed", width=16, height=16)
     truth_np = scene.true_mean()
     truth, blur = snn.image_to_tensor(truth_np), denoisers.gaussian(1.5)
-    net, untrained = snn.MixNet(activation=activation), snn.MixNet(activation=activation)
+    net, untrained = (snn.MixNet(activation=activation, per_channel=per_channel) for _ in range(2))
 
     def loss_fn(m, step):
         st = scene.render_uniform(32, seed=step)
@@ -661,9 +662,10 @@ def test_mix_net_training_reduces_held_out_error(activation):
         st = scene.render_uniform(32, seed=s)
         y = blur(st.mean)
         for m, out in ((untrained, before), (net, after)):
-            out.append(metrics.relmse(st.mean + m.alpha(st, y)[..., None] * (y - st.mean), truth_np))
+            a = m.alpha(st, y)
+            out.append(metrics.relmse(st.mean + (a if per_channel else a[..., None]) * (y - st.mean), truth_np))
     before, after = np.array(before), np.array(after)
-    msg = f"{activation}: held-out relMSE untrained {before.mean():.4f}, trained {after.mean():.4f}"
+    msg = f"{activation}, per_channel={per_channel}: held-out relMSE untrained {before.mean():.4f}, trained {after.mean():.4f}"
     assert np.all(after < before), msg
     assert after.mean() < 0.7 * before.mean(), msg
 
@@ -826,6 +828,98 @@ def test_mix_net_with_mix_inputs_goes_through_progressive_denoise():
     np.testing.assert_array_equal(gain.alpha_from(inp), want)
 
 
+# ---------------------------------------------------------------------------- one α per pixel and channel
+@pytest.mark.parametrize("inputs", ["pixel", "mix"])
+@pytest.mark.parametrize("activation", ["sigmoid", "f_act"])
+def test_per_channel_mix_net_shapes_and_methods(activation, inputs):
+    """per_channel=True: (N, C, H, W) α, (H, W, C) from the NumPy methods, each the first
+    sample of forward; mix is x + α(y − x) channel by channel; the channels' α differ."""
+    from statmc import denoisers
+    C = 2
+    st = ToyRenderer("mixed", width=7, height=5, channels=C).render_uniform(4, seed=0)
+    f = denoisers.gaussian(1.0)
+    inp = snn.mix_inputs(st, f, rng=0)
+    net = snn.MixNet(C, activation=activation, inputs=inputs, per_channel=True, width=4, seed=2)
+    feats = (snn.pixel_features(st, extra=inp["y"]) if inputs == "pixel"
+             else snn.mix_features_of(inp))
+    x, y = snn.image_to_tensor(inp["x"]), snn.image_to_tensor(inp["y"])
+    with torch.no_grad():
+        assert net(torch.cat([feats, feats])).shape == (2, C, 5, 7)
+        a_t = net(feats)
+        assert a_t.shape == (1, C, 5, 7) and (a_t >= 0).all() and (a_t <= 1).all()
+        assert (a_t[:, 0] != a_t[:, 1]).any()                    # not one map broadcast
+        torch.testing.assert_close(net.mix(feats, x, y), x + a_t * (y - x), rtol=0, atol=0)
+    a = net.alpha(st, inp["y"]) if inputs == "pixel" else net.alpha_from(inp)
+    assert a.shape == (5, 7, C)
+    np.testing.assert_array_equal(a, snn.tensor_to_image(a_t))
+    if inputs == "mix":
+        np.testing.assert_array_equal(a, net.alpha(st, inp["y"], sure=inp["sure"],
+                                                   divergence=inp["divergence"]))
+        with torch.no_grad():
+            dev = net.swap_consistency(feats)
+            assert dev.shape == (1, C, 5, 7)
+            torch.testing.assert_close(dev, net(feats) + net(snn.swap_mix_planes(feats)) - 1,
+                                       rtol=0, atol=0)
+
+
+def test_per_channel_f_act_is_eq19_per_channel():
+    """Firmino 2022 Eq. 19 per pixel and channel: with C channels the head's outputs
+    0..C-1 are x1, C..2C-1 are x2 and 2C..3C-1 are x3 of channels 0..C-1; a fresh network
+    starts with every channel's x3 far above ε (bias 2) and α near 1/2."""
+    C = 3
+    net = snn.MixNet(C, activation="f_act", inputs="mix", per_channel=True, width=4, seed=1)
+    head = net.body[-1]
+    assert head.out_channels == 3 * C
+    torch.testing.assert_close(head.bias.detach(), torch.tensor([1.0] * C + [0.0] * C + [2.0] * C))
+    feats = torch.randn(2, net.in_channels, 6, 7, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        o = net.body(feats)
+        assert (o[:, 2 * C:] > 0.5).all()
+        want = torch.clamp((o[:, :C] - o[:, C:2 * C]) / torch.clamp(o[:, 2 * C:], min=1e-6), 0, 1)
+        torch.testing.assert_close(net(feats), want, rtol=0, atol=0)
+        # a head that sets channel c's (x1, x2, x3) to (c + 1, 0, 4) gives α_c = (c + 1)/4
+        head.weight.zero_()
+        head.bias.copy_(torch.tensor([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 4.0, 4.0, 4.0]))
+        got = net(feats)
+    for c in range(C):
+        assert torch.all(got[:, c] == (c + 1) / 4), c
+    net = net.double()
+    f64 = feats[:1, :, :3, :3].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda f_: net(f_), (f64,))
+
+
+@pytest.mark.parametrize("activation", ["sigmoid", "f_act"])
+def test_per_channel_swap_mix_loss_is_the_swapped_mix_channel_by_channel(activation):
+    """The swap with one β per channel: p = 1 gives the loss of y + β_c (x − y) in each
+    channel c, β the network's (N, C, H, W) output on the swapped planes."""
+    feats, x, y, ref = _mix_batch()
+    net = snn.MixNet(activation=activation, inputs="mix", per_channel=True, width=4, seed=3)
+    with torch.no_grad():
+        beta = net(snn.swap_mix_planes(feats))
+        assert beta.shape == x.shape
+        torch.testing.assert_close(snn.swap_mix_loss(net, feats, x, y, ref, p=1.0),
+                                   snn.relmse_loss(y + beta * (x - y), ref), rtol=1e-6, atol=0)
+
+
+def test_per_channel_alpha_goes_through_progressive_denoise():
+    """progressive_denoise takes the (H, W, C) α of alpha_from as it is: ungated it is
+    x + α_c (y − x) per channel; gated it is confidence_gate of that α (Eq. 12–18)."""
+    from statmc import denoisers
+    st = _render(spp=16)
+    f = denoisers.gaussian(1.5)
+    net = snn.MixNet(inputs="mix", per_channel=True, width=8, seed=1)
+    inp = snn.mix_inputs(st, f, rng=0)
+    a = net.alpha_from(inp)
+    assert a.shape == (24, 24, 3)
+    ungated = progressive.progressive_denoise(st, f, alpha=net.alpha_from, gate=False, rng=0)
+    np.testing.assert_allclose(ungated, st.mean + a * (inp["y"] - st.mean), atol=1e-12)
+    gated, info = progressive.progressive_denoise(st, f, alpha=net.alpha_from, rng=0, extra_output=True)
+    np.testing.assert_array_equal(info["alpha"], a)
+    want = progressive.confidence_gate(st.mean, inp["y"], st.mean_var, a)
+    np.testing.assert_allclose(info["alpha_gated"], want, atol=1e-12)
+    np.testing.assert_allclose(gated, st.mean + want * (inp["y"] - st.mean), atol=1e-12)
+
+
 @pytest.mark.parametrize("call, match", [
     (lambda a: snn.mix_features(a[0], a[1], a[2][:2], a[3], a[4]), "`y` must have the shape of `x`"),
     (lambda a: snn.mix_features(a[0], -a[1], a[2], a[3], a[4]), "mean_var"),
@@ -847,6 +941,9 @@ def test_mix_net_with_mix_inputs_goes_through_progressive_denoise():
     (lambda a: snn.MixNet(inputs="mix", channels=1).alpha_from(dict(zip(("x", "mean_var", "y", "sure", "divergence"), a))),
      "statmc.nn.mix_features with this"),
     (lambda a: snn.mix_features(a[0], a[1][..., None].repeat(2, -1), a[2], a[3], a[4]), "covariance"),
+    (lambda a: snn.MixNet(per_channel="yes"), "`per_channel` must be a bool"),
+    (lambda a: snn.MixNet(inputs="mix", per_channel=True).mix(_mix_batch()[0], *(t[:, :2] for t in _mix_batch()[1:3])),
+     "`x` must have the 3 channels"),
 ])
 def test_mix_inputs_bad_input_names_the_parameter(call, match):
     with pytest.raises(InputError, match=match):
