@@ -6,6 +6,9 @@ Usage (from the repository root; files go to $STATMC_MIXEXP, default out/bench/m
     python bench/analysis_mixnet_swap.py data                       # 400 training renders
     python bench/analysis_mixnet_swap.py train ACT P STEPS [SEED]   # ACT sigmoid|f_act, P swap prob.
     python bench/analysis_mixnet_swap.py eval NAME [NAME ...]       # e.g. sigmoid_p0.5_s2000_seed0
+
+--per-channel (anywhere on the train line): MixNet(..., per_channel=True), one α per pixel
+and channel as the paper's network; the run's NAME ends in _pc, which eval reads back.
 """
 import json, os, sys, time
 import numpy as np
@@ -45,22 +48,22 @@ def nchw(a): return torch.from_numpy(np.ascontiguousarray(np.moveaxis(a, -1, 1))
 def smape(z, r):
     return torch.mean(torch.abs(z - r) / (z.abs() + r.abs() + 0.01))
 
-def train(act, p, steps, seed=0, batch=8, lr=3e-3, lossname="relmse"):
+def train(act, p, steps, seed=0, batch=8, lr=3e-3, lossname="relmse", per_channel=False):
     z = np.load(f"{D}/train.npz")
     F = torch.from_numpy(z["feats"]).float(); X, Y, T = nchw(z["x"]), nchw(z["y"]), nchw(z["truth"])
-    net = snn.MixNet(activation=act, inputs="mix", seed=seed)
+    net = snn.MixNet(activation=act, inputs="mix", per_channel=per_channel, seed=seed)
     g = np.random.default_rng(seed)
     def loss_fn(m, step):
         idx = torch.from_numpy(g.choice(len(F), batch, replace=False))
         return snn.swap_mix_loss(m, F[idx], X[idx], Y[idx], T[idx], p=p, loss=smape if lossname == "smape" else snn.relmse_loss)
     run = snn.train(net, loss_fn, steps, lr=lr, seed=seed)
-    name = f"{act}_p{p}_s{steps}_seed{seed}" + ("" if lossname == "relmse" else "_" + lossname) + ("" if lr == 3e-3 else f"_lr{lr}")
+    name = f"{act}_p{p}_s{steps}_seed{seed}" + ("" if lossname == "relmse" else "_" + lossname) + ("" if lr == 3e-3 else f"_lr{lr}") + ("_pc" if per_channel else "")
     torch.save(net.state_dict(), f"{D}/{name}.pt")
     L = run["losses"]
     print(name, f"{run['seconds']:.1f}s", "loss first50", np.mean(L[:50]).round(4), "last50", np.mean(L[-50:]).round(4))
 
 def load(name, act):
-    net = snn.MixNet(activation=act, inputs="mix")
+    net = snn.MixNet(activation=act, inputs="mix", per_channel=name is not None and name.endswith("_pc"))
     if name is not None:
         net.load_state_dict(torch.load(f"{D}/{name}.pt")); net.eval()
     return net
@@ -81,7 +84,7 @@ def evaluate(names):
                 feats = snn.mix_features_of(inp)
                 for n, net in nets.items():
                     a = net.alpha_from(inp)
-                    res[f"{n}:raw"].append(metrics.relmse(x + a[..., None] * (y - x), truth))
+                    res[f"{n}:raw"].append(metrics.relmse(x + (a if a.ndim == 3 else a[..., None]) * (y - x), truth))
                     res[f"{n}:gated"].append(metrics.relmse(progressive.progressive_denoise(st, f, alpha=net.alpha_from, rng=seed), truth))
                     amean[n].append(a.mean())
                     with torch.no_grad():
@@ -103,11 +106,19 @@ def evaluate(names):
                 p = wilcoxon(v, w, alternative="less").pvalue if np.any(v != w) else 1.0
                 per = " ".join(f"{int((v[spp == q] < w[spp == q]).sum())}/{int((spp == q).sum())}" for q in [8, 32, 128, 512])
                 print(f"  {kind} vs {b}: wins {(v < w).sum()}/{len(v)} (per spp {per}) ratio {v.mean() / w.mean():.3f} p_less={p:.2g}")
+    for n in names:                     # per-channel network against its per-pixel twin
+        if n.endswith("_pc") and n[:-3] in names:
+            v, w = res[f"{n}:gated"], res[f"{n[:-3]}:gated"]
+            per = " ".join(f"{int((v[spp == q] < w[spp == q]).sum())}/{int((spp == q).sum())}" for q in [8, 32, 128, 512])
+            print(f"{n} vs {n[:-3]} (gated): wins {(v < w).sum()}/{len(v)} (per spp {per}) ratio {v.mean() / w.mean():.3f}"
+                  f" p_less={wilcoxon(v, w, alternative='less').pvalue:.2g} p_greater={wilcoxon(v, w, alternative='greater').pvalue:.2g}")
 
 if __name__ == "__main__":
+    pc = "--per-channel" in sys.argv
+    sys.argv = [a for a in sys.argv if a != "--per-channel"]
     cmd = sys.argv[1]
     t = time.time()
     if cmd == "data": data()
-    elif cmd == "train": train(sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]) if len(sys.argv) > 5 else 0, lossname=sys.argv[6] if len(sys.argv) > 6 else "relmse", lr=float(sys.argv[7]) if len(sys.argv) > 7 else 3e-3)
+    elif cmd == "train": train(sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]) if len(sys.argv) > 5 else 0, lossname=sys.argv[6] if len(sys.argv) > 6 else "relmse", lr=float(sys.argv[7]) if len(sys.argv) > 7 else 3e-3, per_channel=pc)
     elif cmd == "eval": evaluate(sys.argv[2:])
     print("seconds", round(time.time() - t, 1))
