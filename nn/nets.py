@@ -14,7 +14,7 @@ network                output (torch, NCHW)        plugs into (NumPy, channel-la
                        positive weights             :func:`~statmc.combine.combine_multi`
                                                     (``(H, W, B, k, k)``; Back 2020 Eq. 8, 14, §4.2)
 :class:`MixNet`        ``(N, 1, H, W)`` α ∈ [0, 1]  :func:`statmc.progressive.progressive_denoise`
-                       (``(N, C, H, W)`` with           ``(alpha=...)`` (``(H, W)`` or ``(H, W, C)``;
+                       (``(N, C, H, W)`` with       ``(alpha=...)`` (``(H, W)`` or ``(H, W, C)``;
                        ``per_channel=True``)        Firmino 2022 §4.3; ``inputs="mix"``:
                                                     :func:`~statmc.nn.mix_features`)
 :class:`SamplingNet`   ``(N, 1, H, W)`` logits      :func:`statmc.sampling.counts_from_density`
