@@ -556,3 +556,67 @@ def test_sigma_past_the_fold_limit_is_refused(sigma):
     with pytest.raises(InputError, match=r"`sigma` must be at most 4.793e\+06 pixels for "
                                          r"SSIM's window.*got"):
         one_minus_ssim(x, r, sigma=max(sigma, 4.8e6))
+
+
+# --------------------------------------------------------------- properties on any image
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+def _any_pair(seed, h, w, c, dtype, scale, same_frac):
+    """A non-negative reference of magnitude up to ``scale`` (a flat block, all black when
+    ``scale`` is 0) and a test image equal to it on a fraction ``same_frac`` of pixels;
+    ``c = 0`` gives (H, W) images."""
+    rng = np.random.default_rng(seed)
+    shp = (h, w) if c == 0 else (h, w, c)
+    ref = np.abs(rng.normal(size=shp)) * scale * rng.gamma(0.5, 1, size=shp)
+    ref[: h // 2, : w // 2] = ref[0, 0]
+    x = np.abs(ref + scale * rng.normal(size=shp))
+    same = rng.uniform(size=(h, w)) < same_frac
+    x[same] = ref[same]
+    return x.astype(dtype), ref.astype(dtype)
+
+
+_PAIRS = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 12), w=st.integers(1, 12),
+              c=st.integers(0, 3), dtype=st.sampled_from([np.float32, np.float64]),
+              scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+              same_frac=st.sampled_from([0.0, 0.5, 1.0]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(eps=st.sampled_from([0.01, 1e-30, 1.0]), **_PAIRS)
+def test_error_metrics_are_non_negative_and_zero_for_identical_images_on_any_image(
+        seed, h, w, c, dtype, scale, same_frac, eps):
+    # relMSE, SMAPE, logLoss and MSE are means of non-negative per-pixel terms, each 0 where
+    # x = ref; SMAPE lies in [0, 1) and is symmetric; the scalar is the mean of the map.
+    x, ref = _any_pair(seed, h, w, c, dtype, scale, same_frac)
+    for fn, kw in ((relmse, dict(eps=eps)), (smape, dict(eps=eps)), (logloss, dict(eps=eps)),
+                   (mse, {})):
+        v = fn(x, ref, **kw)
+        m = fn(x, ref, per_pixel=True, **kw)
+        assert isinstance(v, float) and math.isfinite(v) and v >= 0, fn.__name__
+        assert m.shape == (h, w) and np.isfinite(m).all() and m.min() >= 0, fn.__name__
+        assert v == pytest.approx(m.mean(), rel=1e-9, abs=1e-300), fn.__name__
+        if same_frac == 1.0:
+            assert v == 0.0 and fn(ref, ref, **kw) == 0.0, fn.__name__
+    s = smape(x, ref, eps=eps, per_pixel=True)
+    assert s.max() < 1.0
+    np.testing.assert_allclose(s, smape(ref, x, eps=eps, per_pixel=True), rtol=1e-15)
+
+
+@settings(max_examples=50, deadline=None)
+@given(sigma=st.sampled_from([0.5, 1.5, 40.0]), **_PAIRS)
+def test_ssim_is_one_for_identical_images_and_within_minus_one_one_on_any_image(
+        seed, h, w, c, dtype, scale, same_frac, sigma):
+    # Eq. 13 of Wang 2004 is a product of two factors in [−1, 1] (2ab <= a² + b² and
+    # Cauchy–Schwarz for the window moments), and 1 for identical images; the data range
+    # is the span of the images (>= 1), as the docstring asks for HDR values.
+    x, ref = _any_pair(seed, h, w, c, dtype, scale, same_frac)
+    L = max(1.0, float(np.max(ref)), float(np.max(x)))
+    s = ssim_map(x, ref, data_range=L, sigma=sigma)
+    assert s.shape == (h, w, max(c, 1)) and np.isfinite(s).all()
+    assert (np.abs(s) <= 1 + 1e-9).all()
+    np.testing.assert_allclose(ssim_map(ref, ref, data_range=L, sigma=sigma), 1.0, rtol=1e-12)
+    d = one_minus_ssim(x, ref, data_range=L, sigma=sigma)
+    assert 0 <= d + 1e-9 and d <= 2 + 1e-9
+    if same_frac == 1.0:
+        assert d == pytest.approx(0.0, abs=1e-12)
