@@ -1026,3 +1026,119 @@ def test_gamma_parameters_takes_a_count_map_with_colour_images():
     a3, b3 = an.gamma_parameters(x, v, np.repeat(s[..., None], 3, -1))
     np.testing.assert_array_equal(a, a3)
     np.testing.assert_array_equal(b, b3)
+
+
+# --------------------------------------------------------------- properties on any image
+def _any_image(seed, h, w, c, scale, zero_frac, nonneg=False):
+    """Means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is 0;
+    signed unless ``nonneg``) and heavy-tailed (gamma 0.3) sample variances, a fraction
+    ``zero_frac`` of them exactly 0."""
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
+    if nonneg:
+        m = np.abs(m)
+    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
+    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
+    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
+    return m, v
+
+
+_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 8), w=st.integers(1, 8),
+            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_COUNTS = st.sampled_from([0.0, 0.3, 1.0, 7.0, 1e6])
+
+
+@settings(max_examples=50, deadline=None)
+@given(sb=_COUNTS, s=_COUNTS, ks=st.sampled_from([1, 3]), **_ANY)
+def test_future_moments_and_kernel_bias_variance_on_any_image(seed, h, w, c, scale, zero_frac,
+                                                              sb, s, ks):
+    # Eq. 6 is a convex combination of x_t and x_g, Eq. 19/7 are >= 0 (0 without new
+    # samples), and Lemma A.1 with the identity kernel gives back exactly those moments:
+    # bias = E[Y] − x_g, var = Var[Y].  Counts per pixel mix 0, fractions and 1e6.
+    x_g, v = _any_image(seed, h, w, c, scale, zero_frac)
+    rng = np.random.default_rng(seed + 1)
+    x_t = x_g + scale * rng.normal(size=x_g.shape)
+    s_bar = np.where(rng.uniform(size=(h, w)) < 0.5, sb, s)
+    s_new = np.where(rng.uniform(size=(h, w)) < 0.5, s, sb)
+    m, var = future_moments(x_t, s_bar, s_new, x_g, v)
+    assert m.shape == var.shape == x_t.shape and np.isfinite(m).all() and np.isfinite(var).all()
+    lo, hi = np.minimum(x_t, x_g), np.maximum(x_t, x_g)
+    slack = 4 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi))
+    assert (m >= lo - slack).all() and (m <= hi + slack).all()
+    assert var.min() >= 0 and not var[s_new == 0].any()
+    m2, var2 = future_moments(x_t, s_bar, s_new, x_g, v, mean_var_t=v / np.maximum(s_bar, 1)[..., None])
+    assert np.isfinite(var2).all() and var2.min() >= 0
+    eye = np.zeros((h, w, ks, ks))
+    eye[..., ks // 2, ks // 2] = 1.0
+    bias, kv = kernel_bias_variance(eye, x_t, s_bar, s_new, x_g, v)
+    np.testing.assert_allclose(bias, m - x_g, rtol=1e-12, atol=1e-12 * (np.abs(m).max() + 1e-300))
+    np.testing.assert_allclose(kv, var, rtol=1e-12, atol=0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(s=_COUNTS, **_ANY)
+def test_gamma_parameters_match_the_moments_where_defined_on_any_image(seed, h, w, c, scale,
+                                                                      zero_frac, s):
+    # Eq. 9: α/β = x_g and α/β² = var_g/s wherever x_g·s·var_g > 0 (both > 0 and finite
+    # there), NaN exactly where the law is a point mass.
+    x_g, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    a, b = gamma_parameters(x_g, v, np.full((h, w), s))
+    ok = (x_g > 0) & (v > 0) & (s > 0)
+    assert np.array_equal(np.isnan(a), ~ok) and np.array_equal(np.isnan(b), ~ok)
+    if ok.any():
+        assert (a[ok] > 0).all() and (b[ok] > 0).all()
+        assert np.isfinite(a[ok]).all() and np.isfinite(b[ok]).all()
+        np.testing.assert_allclose(a[ok] / b[ok], x_g[ok], rtol=1e-12)
+        np.testing.assert_allclose(a[ok] / b[ok] ** 2, v[ok] / s, rtol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(budget_per_pixel=st.sampled_from([0, 1, 5]), extra=st.integers(0, 20),
+       loss=st.sampled_from(["mse", "relmse"]), sb=st.sampled_from([1.0, 4.0, 0.5]),
+       ks=st.sampled_from([1, 3]), cap=st.booleans(), **_ANY)
+def test_optimal_sample_counts_hand_out_the_budget_exactly_on_any_image(seed, h, w, c, scale,
+                                                                       zero_frac,
+                                                                       budget_per_pixel, extra,
+                                                                       loss, sb, ks, cap):
+    # Eq. 1–2 with Lemma A.1: the real map is >= 0, under its cap and sums to the budget
+    # (to rounding); the integer counts meet it exactly — with zero variances, black
+    # images and budgets smaller than the pixel count.
+    x_g, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    rng = np.random.default_rng(seed + 1)
+    K = rng.gamma(1.0, 1.0, size=(h, w, ks, ks))
+    K /= K.sum(axis=(2, 3), keepdims=True)
+    x_t = np.abs(x_g + scale * rng.normal(size=x_g.shape))
+    s_bar = np.full((h, w), sb)
+    budget = budget_per_pixel * h * w + extra
+    max_count = np.full((h, w), budget_per_pixel + extra + 1.0) if cap else None
+    smap = optimal_sample_map(K, x_t, s_bar, x_g, v, budget, loss=loss, max_count=max_count)
+    assert smap.shape == (h, w) and np.isfinite(smap).all() and smap.min() >= 0
+    assert smap.sum() == pytest.approx(budget, rel=1e-9, abs=1e-9)
+    if cap:
+        assert (smap <= max_count * (1 + 1e-12)).all()
+    counts = optimal_sample_counts(K, x_t, s_bar, x_g, v, budget, loss=loss, rng=seed)
+    assert counts.dtype == np.int64 and counts.min() >= 0 and int(counts.sum()) == budget
+
+
+@settings(max_examples=40, deadline=None)
+@given(sigma=st.sampled_from([0.0, 1.0, 2.0, 50.0]), prior_dof=st.sampled_from([None, 0.0, 3.0]),
+       nmax=st.sampled_from([1, 2, 16]), **_ANY)
+def test_pooled_sample_variance_stays_within_the_input_range_on_any_image(seed, h, w, c, scale,
+                                                                         zero_frac, sigma,
+                                                                         prior_dof, nmax):
+    # The pool is a (n − 1)-weighted Gaussian average of s² and the result a convex
+    # combination of it and s²: within [min s², max s²] of the pixels with n >= 2 per
+    # channel where n >= 2, and in [0, max] where n = 1 (no degree of freedom: the pool,
+    # 0 when the window has none either, as documented).
+    _, v = _any_image(seed, h, w, c, scale, zero_frac)
+    n = np.random.default_rng(seed + 2).integers(1, nmax + 1, size=(h, w))
+    out = an.pooled_sample_variance(v, n, sigma=sigma, prior_dof=prior_dof)
+    assert out.shape == v.shape and np.isfinite(out).all() and out.min() >= 0
+    dof = n > 1
+    if not dof.any():
+        assert not out.any()
+        return
+    lo, hi = v[dof].min(axis=0), v[dof].max(axis=0)
+    assert (out <= hi * (1 + 1e-12)).all()
+    assert (out[dof] >= lo * (1 - 1e-12)).all()
