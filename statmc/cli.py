@@ -1471,8 +1471,9 @@ def run_command(call, *, prog: str, label: str | None = None, debug: bool = Fals
     label = label or prog
     previous = _on_sigterm(_terminate)
     try:
-        from .exr import capturing_openexr_output
-        with warnings.catch_warnings(), capturing_openexr_output():  # one-line errors
+        from .exr import capturing_openexr_output, using_io_threads
+        # one-line errors; EXR files decoded and encoded on all CPUs (OpenEXR: one thread)
+        with warnings.catch_warnings(), capturing_openexr_output(), using_io_threads():
             if not debug:  # one line per warning, without the source file and line
                 warnings.showwarning = functools.partial(_show_warning, label)
             return int(call() or 0)

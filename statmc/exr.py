@@ -127,6 +127,46 @@ def capturing_openexr_output():
         _capture = before
 
 
+#: OpenEXR's worker threads wanted by :func:`using_io_threads` (0: leave OpenEXR's setting).
+_io_threads = 0
+
+
+def _cpu_count() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+@contextlib.contextmanager
+def using_io_threads(threads=None):
+    """Within this block, EXR files are decoded and encoded by OpenEXR's thread pool of
+    ``threads`` workers (default: the CPUs this process may use) instead of OpenEXR's
+    default of none (the calling thread alone); the pool's size is restored after it.
+    The command line turns it on: at 1920x1080 on 2 CPUs it took a 15-channel ZIP file's
+    decoding from 2.8 to 1.2 s.  Pixels and bytes written are the same (ZIP compresses
+    each block of 16 scanlines on its own, and the blocks are written in order)."""
+    global _io_threads
+    before, _io_threads = _io_threads, _cpu_count() if threads is None else int(threads)
+    try:
+        yield
+    finally:
+        _io_threads = before
+        exr = sys.modules.get("OpenEXR")
+        if exr is not None and exr.global_thread_count() != before:
+            exr.set_global_thread_count(before)
+
+
+def _import_openexr():
+    """``import OpenEXR``, with the thread pool :func:`using_io_threads` asks for."""
+    import OpenEXR
+
+    if _io_threads and OpenEXR.global_thread_count() != _io_threads:
+        OpenEXR.set_global_thread_count(_io_threads)
+    return OpenEXR
+
+
 @contextlib.contextmanager
 def _captured_c_output():
     """Collect what is written to ``sys.stdout``/``sys.stderr`` and to file descriptors
@@ -385,7 +425,7 @@ def _open(path, *, header_only: bool = False, part=0):
 
 def _decode(p: str, header_only: bool, part=0):
     """:func:`_open` of the file ``p``, read from disk."""
-    import OpenEXR
+    OpenEXR = _import_openexr()
 
     if not os.path.exists(p):
         raise FileFormatError(f"EXR file {p!r} does not exist.")
@@ -431,7 +471,8 @@ def _decode(p: str, header_only: bool, part=0):
                 f"{p!r}: channel {name!r} has size {px.shape} (sampling {ch.xSampling}x"
                 f"{ch.ySampling}) but the image is {hw[0]}x{hw[1]} (H x W); channels of "
                 "inconsistent sizes (subsampled channels) are not supported.")
-        arrays[name] = np.array(px, copy=True)           # own the data beyond the File object
+        # own the data beyond the File object (the binding's arrays own theirs: no copy)
+        arrays[name] = px if px.flags.owndata and px.base is None else np.array(px, copy=True)
         types[name] = str(ch.type()).rsplit(".", 1)[-1].lower()
     header = dict(header)
     header["_parts"], header["_part"] = n_parts, index
@@ -447,7 +488,11 @@ def _group(p, arrays, names, what):
         missing = [n for n in names if n not in arrays]
         raise FileFormatError(f"{p!r} has only part of the {what} channels: missing {missing}; "
                               f"channels present: {_present(arrays)}.")
-    return np.stack([arrays[n].astype(np.float64) for n in names], axis=-1)
+    first = arrays[names[0]]
+    out = np.empty(first.shape + (len(names),), np.float64)   # one pass per channel, no
+    for k, n in enumerate(names):                              # float64 copy before the stack
+        out[..., k] = arrays[n]
+    return out
 
 
 def _color_names(p, arrays):
@@ -1073,7 +1118,7 @@ def _write_exr_file(tmp: str, channels: dict, windows=None, attrs=None) -> None:
     """Write ``{name: (H, W) float32/uint32 array}`` as a ZIP-compressed scanline EXR, with
     ``windows = (data_window, display_window)`` (``[x0, y0, x1, y1]`` each) when given and
     the header attributes ``attrs``."""
-    import OpenEXR
+    OpenEXR = _import_openexr()
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(attrs or {})
@@ -1104,10 +1149,13 @@ def _check_window(name: str, box, hw=None) -> list:
 
 
 def _f32(name, a):
-    check_finite(name, np.asarray(a))
-    with np.errstate(over="ignore"):
+    """``a`` as contiguous float32; NaN/Inf in ``a`` (``check_finite``'s error) or values
+    beyond float32's range refused.  One scan of the result when all is finite: a NaN/Inf
+    of ``a`` stays one in float32."""
+    with np.errstate(over="ignore", invalid="ignore"):
         out = np.ascontiguousarray(a, dtype=np.float32)
     if not np.isfinite(out).all():
+        check_finite(name, np.asarray(a))
         raise InputError(f"`{name}` overflows float32 in {int((~np.isfinite(out)).sum())} values "
                          f"(max |value| {np.abs(np.asarray(a)).max():.4g} > 3.4e38).")
     return out
@@ -1409,6 +1457,9 @@ def read_bins(path):
 
 
 # ---------------------------------------------------------------------------- previews
+#: zlib level of the PNG previews (:func:`write_png_preview`).
+_PNG_LEVEL = 1
+
 def _srgb_encode(x):
     """sRGB transfer function (IEC 61966-2-1) of linear values clamped to [0, 1]:
     ``12.92 x`` up to 0.0031308, else ``1.055 x^(1/2.4) − 0.055``.  ``x`` (float64, the
@@ -1452,11 +1503,16 @@ def to_display(image, *, exposure: float = 0.0, tonemap: str = "srgb") -> np.nda
     if scale is None:
         x = np.where(x > 0, np.inf, 0.0)
     else:
-        with np.errstate(over="ignore"):    # 1e300 · 2**100: inf, white
-            x = np.maximum(x.astype(np.float64) * scale, 0.0)
+        # one float64 temporary, changed in place from here on (the same values as
+        # ``np.maximum(x * scale, 0.0)``; 1920x1080: three 50 MB copies fewer)
+        x = x.astype(np.float64)
+        if scale != 1.0:
+            with np.errstate(over="ignore"):    # 1e300 · 2**100: inf, white
+                x *= scale
+        np.maximum(x, 0.0, out=x)
     # Above 1e150 every curve is at its limit to float64's precision (x/(1+x) = 1, ACES
     # 2.51/2.43); capping there keeps x² finite and inf/inf from making NaN.
-    x = np.minimum(x, 1e150)
+    np.minimum(x, 1e150, out=x)
     if tonemap == "reinhard":
         x = x / (1.0 + x)
     elif tonemap == "aces":
@@ -1480,9 +1536,13 @@ def write_png_preview(path, image, *, exposure: float = 0.0, tonemap: str = "srg
         disp = disp[..., 0]
     if disp.ndim == 3 and disp.shape[2] != 3:
         raise InputError(f"`image` must have 1 or 3 channels for a PNG preview; got {disp.shape}.")
-    u8 = np.round(disp * 255.0).astype(np.uint8)
+    disp *= 255.0                     # to_display's own array: rounded in place
+    u8 = np.round(disp, out=disp).astype(np.uint8)
 
     def write(tmp):
-        Image.fromarray(u8).save(tmp, format="PNG")
+        # zlib level 1, not Pillow's default 6: lossless all the same, 2.5x faster at
+        # 1920x1080 (0.67 against 1.68 s) and no larger on rendered images (2198 against
+        # 2300 KiB for a GEM reconstruction)
+        Image.fromarray(u8).save(tmp, format="PNG", compress_level=_PNG_LEVEL)
 
     _atomic_write(path, write, overwrite=overwrite, protect=protect)
