@@ -325,3 +325,69 @@ def test_variance_formulas_and_tonemap_refuse_bad_input():
     for f in (da.tonemap, da.tonemap_derivative):
         with pytest.raises(InputError, match="`image` holds 1 NaN"):
             f(np.array([0.5, np.nan]))
+
+
+# --------------------------------------------------------------- properties on any image
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+
+
+def _any_stats(seed, h, w, c, scale, zero_frac, n):
+    """Non-negative means of magnitude up to ``scale`` (a flat block, all black when
+    ``scale`` is 0), heavy-tailed variances, a fraction ``zero_frac`` exactly 0."""
+    rng = np.random.default_rng(seed)
+    m = np.abs(rng.normal(size=(h, w, c))) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
+    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
+    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
+    m[: h // 2, : w // 2] = m[0, 0]
+    return PixelStats.from_mean_var(m, v, np.full((h, w), n))
+
+
+_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 9), w=st.integers(1, 9),
+            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(denoiser=st.sampled_from(["gaussian", "gem"]), variant=st.sampled_from(["variance", "mc-sure"]),
+       output=st.sampled_from(["denoised", "progressive"]), tm=st.sampled_from([None, "aces"]),
+       n=st.sampled_from([2, 64]), budget_per_pixel=st.sampled_from([0, 1, 4]),
+       extra=st.integers(0, 30), **_ANY)
+def test_density_is_non_negative_and_the_map_meets_the_budget_on_any_image(
+        seed, h, w, c, scale, zero_frac, denoiser, variant, output, tm, n, budget_per_pixel,
+        extra):
+    # Eq. 3 of the notes clamps at 0 and blurs with non-negative weights: a finite (H, W)
+    # density >= 0; the integer map meets the budget exactly with counts >= 0, also for
+    # black or noiseless images and budgets below the pixel count.
+    stt = _any_stats(seed, h, w, c, scale, zero_frac, n)
+    kw = dict(variant=variant, output=output, tonemap=tm, k=2, rng=seed)
+    d = da.denoising_aware_density(stt, denoiser, **kw)
+    assert d.shape == (h, w) and d.dtype == np.float64 and np.isfinite(d).all() and d.min() >= 0
+    budget = budget_per_pixel * h * w + extra
+    counts = da.denoising_aware_map(stt, denoiser, budget, **kw)
+    assert counts.shape == (h, w) and counts.min() >= 0 and int(counts.sum()) == budget
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(["aces", "reinhard"]), exposure=st.sampled_from([1e-20, 1.0, 1e15]),
+       scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]), seed=st.integers(0, 2 ** 31),
+       a=st.floats(0, 1), rho=st.floats(-1, 1))
+def test_tone_curves_and_mix_variances_on_any_values(name, exposure, scale, seed, a, rho):
+    # The tone curves map into [0, 1], are non-decreasing with non-negative derivatives (0
+    # where ACES is clamped at 1);
+    # the variance of (1 − α) x + α y with |Cov| <= √(Var x Var y) and α in [0, 1] is
+    # in [0, max(Var x, Var y)] (a convex function of α, 0 <= at the ends).
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.normal(size=50) * scale * rng.gamma(0.5, 1, size=50))
+    t = da.tonemap(x, name, exposure=exposure)
+    d = da.tonemap_derivative(x, name, exposure=exposure)
+    assert np.isfinite(t).all() and t.min() >= 0 and t.max() <= 1 and (np.diff(t) >= 0).all()
+    assert np.isfinite(d).all() and d.min() >= 0
+    if name == "aces":
+        assert not d[t >= 1].any()                  # the clamped top has no slope
+    vx = rng.gamma(0.3, 1, size=50) * scale ** 2
+    vy = rng.gamma(0.3, 1, size=50) * scale ** 2
+    cov = rho * np.sqrt(vx * vy)
+    for mv in (da.mix_variance(a, vx, vy), da.mix_variance(a, vx, vy, cov_xy=cov)):
+        assert np.isfinite(mv).all()
+        top = np.maximum(vx, vy)
+        assert (mv >= -1e-12 * top).all() and (mv <= top * (1 + 1e-12)).all()
