@@ -527,3 +527,68 @@ def test_constructors_that_build_m2_cross_equal_the_checked_path():
     big = np.full((1, 1, 3), 1e200)
     with pytest.raises(InputError, match="`m2_cross` holds 0 NaN and 6 Inf"):
         PixelStats.from_sums(np.full((1, 1), 2), big, np.ones((1, 1, 3)), np.zeros((1, 1, 3)))
+
+
+# --------------------------------------------------------------- properties on any samples
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2 ** 31), h=st.integers(1, 5), w=st.integers(1, 5), c=st.integers(1, 3),
+       offset=st.sampled_from([0.0, 1e-20, 1.0, -1e15]), spread=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+       dtype=st.sampled_from([np.float32, np.float64]), nmax=st.sampled_from([0, 1, 3, 9]),
+       parts=st.integers(1, 4))
+def test_merge_of_split_pixel_samples_equals_all_samples_on_any_values(seed, h, w, c, offset,
+                                                                       spread, dtype, nmax,
+                                                                       parts):
+    # Chan's update is exact: merging the statistics of any split (pixels with 0, 1 or many
+    # samples in each part, float32 or float64 values from 1e-20 to 1e15, constant ones)
+    # gives the counts, means and M2 of all samples at once, up to rounding of the
+    # means; M2, sample and mean variances are >= 0 (rounding-small for constant samples);
+    # merging no samples changes nothing.
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, nmax + 1, size=h * w)
+    idx = rng.permutation(np.repeat(np.arange(h * w), counts))
+    vals = (offset + spread * rng.standard_normal((idx.size, c))).astype(dtype)
+    whole = PixelStats.from_pixel_samples(idx, vals, (h, w))
+    cuts = np.sort(rng.integers(0, idx.size + 1, size=parts - 1))
+    acc = PixelStats.empty(h, w, c)
+    for a, b in zip([0, *cuts], [*cuts, idx.size]):
+        acc = acc.merge(PixelStats.from_pixel_samples(idx[a:b], vals[a:b], (h, w)))
+    assert np.array_equal(acc.n, counts.reshape(h, w))
+    big = float(np.abs(vals.astype(np.float64)).max(initial=0.0))
+    ulp = np.finfo(np.float64).eps * big
+    np.testing.assert_allclose(acc.mean, whole.mean, rtol=1e-12, atol=8 * ulp)
+    tol = 64 * max(1, int(counts.max(initial=0))) * ulp ** 2
+    np.testing.assert_allclose(acc.m2, whole.m2, rtol=1e-9, atol=tol)
+    for s in (acc, whole):
+        assert s.m2.min() >= 0 and np.isfinite(s.m2).all()
+        sv = s.sample_var
+        assert np.isfinite(sv).all() and sv.min() >= 0 and s.mean_var.min() >= 0
+    if spread == 0.0:                 # constant samples: only the rounding of their mean
+        assert whole.m2.max(initial=0) <= tol and acc.m2.max(initial=0) <= tol
+    same = acc.merge(PixelStats.empty(h, w, c))
+    assert np.array_equal(same.n, acc.n) and np.array_equal(same.mean, acc.mean)
+    assert np.array_equal(same.m2, acc.m2)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2 ** 31), h=st.integers(1, 4), w=st.integers(1, 4), c=st.integers(1, 3),
+       offset=st.sampled_from([0.0, 1e-20, 1.0, 1e15]), spread=st.sampled_from([0.0, 1e-20, 1.0]),
+       nmax=st.sampled_from([1, 2, 50]))
+def test_from_sums_and_from_mean_var_agree_with_the_samples_on_any_values(seed, h, w, c, offset,
+                                                                         spread, nmax):
+    # M2 = Σx² − (Σx)²/n cancels catastrophically for a large offset; it is clipped at 0,
+    # so the variances stay >= 0 and within rounding of the two-pass M2, and
+    # from_mean_var(mean, sample_var, n) gives back the same statistics.
+    rng = np.random.default_rng(seed)
+    s = nmax
+    x = offset + spread * rng.standard_normal((s, h, w, c))
+    ref = PixelStats.from_samples(x)
+    st_ = PixelStats.from_sums(np.full((h, w), s), x.sum(0), (x * x).sum(0))
+    assert st_.m2.min() >= 0 and np.isfinite(st_.sample_var).all() and st_.sample_var.min() >= 0
+    ulp = np.finfo(np.float64).eps * float(np.abs(x).max())
+    np.testing.assert_allclose(st_.mean, ref.mean, rtol=1e-12, atol=4 * s * ulp)
+    np.testing.assert_allclose(st_.m2, ref.m2, rtol=1e-6, atol=16 * s * ulp * float(np.abs(x).max()))
+    back = PixelStats.from_mean_var(ref.mean, ref.sample_var, ref.n)
+    np.testing.assert_array_equal(back.n, ref.n)
+    np.testing.assert_array_equal(back.mean, ref.mean)
+    np.testing.assert_allclose(back.m2, ref.m2, rtol=1e-12, atol=0)
+    assert back.sample_var.min() >= 0
