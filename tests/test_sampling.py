@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy import stats as sps
 
@@ -173,3 +173,27 @@ def test_budget_and_min_count_must_be_whole_numbers(kw, shown):
         counts_from_density(np.ones((2, 2)), args["budget"], min_count=args["min_count"], rng=0)
     for b in (12.0, np.float64(12.0), np.int32(12)):
         assert counts_from_density(np.ones((2, 2)), b, min_count=np.int64(1), rng=0).sum() == 12
+
+
+@settings(max_examples=60, deadline=None)
+@example(seed=0, h=1, w=2, dtype=np.float64, mags=[1.79e308], budget=7, min_count=0)  # sum = inf
+@given(seed=st.integers(0, 2 ** 31), h=st.integers(1, 12), w=st.integers(1, 12),
+       dtype=st.sampled_from([np.float32, np.float64]),
+       mags=st.lists(st.sampled_from([0.0, 5e-324, 1e-300, 1e-20, 1.0, 1e15, 1e300, 1.79e308]),
+                     min_size=1, max_size=3),
+       budget=st.sampled_from([0, 1, 7, 1000, 2 ** 40, 2 ** 53]), min_count=st.integers(0, 2))
+def test_budget_is_met_exactly_on_any_magnitudes(seed, h, w, dtype, mags, budget, min_count):
+    # Any mix of magnitudes (subnormal to near float64's maximum, float32 maps where they
+    # fit), one-row/one-column maps, budgets from 0 to 2**53: the counts are int64, >=
+    # min_count, sum to the budget exactly, and pixels of density 0 get min_count only
+    # (unless the whole map is 0: then it is uniform).
+    rng = np.random.default_rng(seed)
+    d = rng.choice(np.asarray(mags, np.float64), size=(h, w)) * rng.uniform(0.5, 1.0, size=(h, w))
+    if dtype == np.float32:
+        d = np.minimum(d, 3e38).astype(np.float32)
+    budget = max(budget, min_count * h * w)
+    c = counts_from_density(d, budget, min_count=min_count, rng=seed)
+    assert c.dtype == np.int64 and c.shape == (h, w)
+    assert int(c.sum()) == budget and c.min() >= min_count
+    if d.any():
+        assert (c[d == 0] == min_count).all()
