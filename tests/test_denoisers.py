@@ -295,3 +295,41 @@ def test_docstring_examples():
 
     result = doctest.testmod(D, optionflags=doctest.ELLIPSIS)
     assert result.attempted >= 3 and result.failed == 0
+
+
+# --------------------------------------------------------------- properties on any image
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2 ** 31), h=st.integers(1, 12), w=st.integers(1, 12), c=st.integers(1, 3),
+       dtype=st.sampled_from([np.float32, np.float64]), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
+       sigma=st.sampled_from([0.3, 1.0, 2.5, 40.0]), zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+def test_gaussian_and_gem_denoisers_average_within_the_input_range_on_any_image(seed, h, w, c,
+                                                                               dtype, scale,
+                                                                               sigma, zero_frac):
+    # The Gaussian's kernels are >= 0, 0 outside the image and sum to 1 (border
+    # renormalised), and apply_kernels with them is the filter; so are GEM's scales:
+    # outputs keep shape and dtype and lie within each channel's input range, and the
+    # GEM variance bound is >= 0 (0 where every variance is 0).
+    rng = np.random.default_rng(seed)
+    x = (rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))).astype(dtype)
+    v = (rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)).astype(dtype)
+    v[rng.uniform(size=(h, w)) < zero_frac] = 0
+    lo, hi = x.min(axis=(0, 1)), x.max(axis=(0, 1))
+    g = D.gaussian(sigma)
+    K = g.kernels(x.shape)
+    # rounding of a k-term sum (and of the border scale's taps sum), k taps a side
+    slack = (8 + 2 * K.shape[-1]) * np.finfo(dtype).eps * np.abs(x).max(axis=(0, 1))
+    assert K.min() >= 0
+    np.testing.assert_allclose(K.sum(axis=(2, 3)), 1.0, rtol=1e-12)
+    for f in (g, D.gem(v), D.identity()):
+        y = f(x)
+        assert y.shape == x.shape and y.dtype == x.dtype and np.isfinite(y).all(), f
+        assert (y >= lo - slack).all() and (y <= hi + slack).all(), f
+    np.testing.assert_allclose(apply_kernels(K, x.astype(np.float64)), g(x.astype(np.float64)),
+                               rtol=1e-9, atol=1e-12 * float(np.abs(x).max(initial=0)))
+    var, img = D.gem(v).output_variance(x)
+    assert var.shape == x.shape and np.isfinite(var).all() and var.min() >= 0
+    if not v.any():
+        assert not var.any()
