@@ -203,8 +203,18 @@ class GEMDenoiser:
         from . import gem as _gem  # lazy: statmc.gem is a peer module
 
         x = _color("color", color, shape=self.mean_var.shape)
-        return _gem.reconstruct(x, self.mean_var.astype(x.dtype, copy=False), gamma=self.gamma,
-                                final=self.final, n=self.n, bias=self.bias)
+        xw, vw = self._working(x)
+        out = _gem.reconstruct(xw, vw, gamma=self.gamma, final=self.final, n=self.n,
+                               bias=self.bias)
+        return out.astype(x.dtype, copy=False)
+
+    def _working(self, x):
+        """``(color, mean_var)`` in the colour's dtype, or both in float64 where the
+        variance does not fit it (a finite float64 ``mean_var`` beyond float32's 3.4e38 would
+        become inf); GEM's output is an average of the colour, so it fits back."""
+        if self.mean_var.size and float(self.mean_var.max()) > float(np.finfo(x.dtype).max):
+            return x.astype(np.float64), self.mean_var.astype(np.float64, copy=False)
+        return x, self.mean_var.astype(x.dtype, copy=False)
 
     def output_variance(self, color):
         """``(variance, image)`` of the output on ``color``, both float64: the variance of
@@ -214,9 +224,8 @@ class GEMDenoiser:
         the selection's switches (see :func:`gem`'s notes)."""
         from . import gem as _gem
 
-        x = _color("color", color, shape=self.mean_var.shape)
-        info = _gem.select(x, self.mean_var.astype(x.dtype, copy=False), gamma=self.gamma,
-                           final=self.final, n=self.n, bias=self.bias)
+        x, v = self._working(_color("color", color, shape=self.mean_var.shape))
+        info = _gem.select(x, v, gamma=self.gamma, final=self.final, n=self.n, bias=self.bias)
         var = np.take_along_axis(info["variances"], info["scales"][None, ..., None], axis=0)[0]
         return np.asarray(var, np.float64), np.asarray(info["image"], np.float64)
 

@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -333,3 +334,22 @@ def test_gaussian_and_gem_denoisers_average_within_the_input_range_on_any_image(
     assert var.shape == x.shape and np.isfinite(var).all() and var.min() >= 0
     if not v.any():
         assert not var.any()
+
+
+def test_gem_denoiser_on_float32_color_whose_variance_exceeds_float32():
+    # Regression (found by a magnitude sweep): GEMDenoiser cast its finite float64
+    # `mean_var` to the colour's float32, which overflowed to inf past 3.4e38 (a 1e19
+    # pixel with standard deviation 3e19) and was refused as "`mean_var` holds Inf
+    # values". The reconstruction now runs in float64 there; float32 out, as documented.
+    x = np.full((2, 3, 1), 1e19, np.float32)
+    x[0, 0] = 3e19
+    v = np.full((2, 3, 1), 1e39)
+    f = D.gem(v)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")            # no overflow in a cast either
+        y = f(x)
+        var, img = f.output_variance(x)
+    assert y.dtype == np.float32
+    np.testing.assert_array_equal(y, f(x.astype(np.float64)).astype(np.float32))
+    assert np.isfinite(var).all() and var.min() > 0
+    np.testing.assert_array_equal(img, f(x.astype(np.float64)))
