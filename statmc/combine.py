@@ -816,10 +816,15 @@ def _full_weights(mom, mean, k, B, H, W, ridge):
     both = valid[..., :, None] & valid[..., None, :]
     M = np.where(both, M, 0.0)
     M = M + eye * np.where(valid, ridge * scale[..., None], 1.0)[..., None, :]
-    a = np.linalg.solve(M, valid.astype(np.float64)[..., None])[..., 0]
-    a /= a.sum(axis=-1, keepdims=True)
-    w = a.reshape(H, W, B, k, k)
-    return w.astype(np.float32)
+    a = _solve_or_nan(M, valid.astype(np.float64))     # NaN where M is singular (ridge 0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        a /= a.sum(axis=-1, keepdims=True)
+        w = a.reshape(H, W, B, k, k).astype(np.float32)
+    # the documented fallback, as for the other methods: 1 / B on each bin's centre tap
+    bad = ~np.isfinite(w).all(axis=(2, 3, 4))
+    w[bad] = 0.0
+    w[bad, :, k // 2, k // 2] = np.float32(1.0 / B)
+    return w
 
 
 def _unbroadcast(a):
@@ -948,6 +953,9 @@ def statistical_weights(y, z, var_y, cov_z, size, *, method="coherent", z_bias="
     finite number.  Input within the limits above keeps every moment finite, so only a
     numerically singular solve of ``G = I + Σ d_i U_i U_iᵀ`` (positive definite, ``>= I``)
     could trigger it; the compiled kernel and the NumPy path apply the same rule.
+    ``"full"`` falls back the same way where ``M`` is singular (``ridge=0`` on pixels whose
+    taps have no variance and no bias, e.g. flat noiseless regions) or its weights are not
+    finite.
 
     The paper fits the weights with a network because the moments are unknown (§4.3).
     Given estimated moments (``PixelStats.mean_var``, :func:`buffer_moments`,

@@ -2137,3 +2137,51 @@ def test_combine_bias_variance_of_constant_biases_and_non_negative_variance(seed
     assert var.min() >= 0
     if zero_frac == 1.0:
         assert not var.any()
+
+
+@settings(max_examples=30, deadline=None)
+@given(k=st.sampled_from([1, 3]), z_bias=st.sampled_from(["estimate", "zero"]),
+       ridge=st.sampled_from([0.0, 1e-9]), **_IMAGES)
+def test_full_statistical_weights_are_finite_and_normalised_on_any_image(seed, h, w, c, dtype,
+                                                                        scale, zero_frac, k,
+                                                                        z_bias, ridge):
+    # "full" solves M a ∝ 1 with signs free (ridge-regularised, a singular M falls back to
+    # the centre tap): finite, zero outside the image, summing to 1 per pixel, also when
+    # every variance is 0 (M is then the bias term alone, or 0).
+    y, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    z = np.roll(y, 1, axis=1) * 0.5 + 0.5 * y
+    wt = statistical_weights(y, z, v, v, k, method="full", z_bias=z_bias, ridge=ridge)
+    assert wt.shape == (h, w, 1, k, k) and np.isfinite(wt).all()
+    r = k // 2
+    for dy in range(k):
+        for dx in range(k):
+            ys = slice(max(0, r - dy), h - max(0, dy - r))
+            xs = slice(max(0, r - dx), w - max(0, dx - r))
+            outside = np.ones((h, w), bool)
+            outside[ys, xs] = False
+            assert not wt[outside, 0, dy, dx].any()
+    np.testing.assert_allclose(wt.sum(axis=(2, 3, 4)), 1.0, rtol=1e-4)
+
+
+def test_full_statistical_weights_with_ridge_0_on_a_singular_system_do_not_raise_linalgerror():
+    # Regression (found by property testing): method="full" with ridge=0 (allowed, >= 0)
+    # and zero variances gives M = 0 in flat pixels; np.linalg.solve raised a raw
+    # LinAlgError("Singular matrix"). Such pixels now take the documented fallback, weight
+    # 1/B on each bin's centre tap; pixels with a regular M are solved as before.
+    y = np.ones((3, 4, 1))
+    v = np.zeros_like(y)
+    for zb in ("zero", "estimate"):
+        wt = statistical_weights(y, y, v, v, 3, method="full", ridge=0.0, z_bias=zb)
+        centre = np.zeros((3, 4, 1, 3, 3), np.float32)
+        centre[..., 1, 1] = 1.0
+        np.testing.assert_array_equal(wt, centre)
+    wt2 = statistical_weights(np.stack([y, y]), np.stack([y, y]), v, v, 3, method="full",
+                              ridge=0.0, z_bias="zero")
+    assert np.isfinite(wt2).all() and (wt2[..., 1, 1] == np.float32(0.5)).all()
+    rng = np.random.default_rng(3)
+    y = rng.random((4, 5, 2))
+    v = 0.01 + rng.random((4, 5, 2))
+    wt3 = statistical_weights(y, y + 0.1, v, v, 3, method="full", ridge=0.0)
+    assert np.isfinite(wt3).all() and np.abs(wt3[:, :, 0, 0, 0]).max() > 0   # solved
+    np.testing.assert_allclose(wt3.sum(axis=(2, 3, 4)), 1.0, rtol=1e-5)
+
