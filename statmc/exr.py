@@ -543,8 +543,11 @@ def _colour_hint(arrays) -> str:
 def _count_nonfinite(a) -> tuple[int, int]:
     if a is None or not np.issubdtype(a.dtype, np.floating):
         return 0, 0
+    finite = np.isfinite(a)
+    if finite.all():            # the usual case: one scan, not two and two sums
+        return 0, 0
     n_nan = int(np.isnan(a).sum())
-    return n_nan, int((~np.isfinite(a)).sum()) - n_nan
+    return n_nan, int(a.size - np.count_nonzero(finite)) - n_nan
 
 
 def _check_policy(nonfinite, replace_value):
@@ -1540,9 +1543,8 @@ def write_png_preview(path, image, *, exposure: float = 0.0, tonemap: str = "srg
     u8 = np.round(disp, out=disp).astype(np.uint8)
 
     def write(tmp):
-        # zlib level 1, not Pillow's default 6: lossless all the same, 2.5x faster at
-        # 1920x1080 (0.67 against 1.68 s) and no larger on rendered images (2198 against
-        # 2300 KiB for a GEM reconstruction)
+        # zlib level 1, not Pillow's default 6: lossless all the same; at 1920x1080 2-3x
+        # faster (0.16-0.28 against 0.39-0.54 s) for a file 7 % smaller to 8 % larger
         Image.fromarray(u8).save(tmp, format="PNG", compress_level=_PNG_LEVEL)
 
     _atomic_write(path, write, overwrite=overwrite, protect=protect)
