@@ -84,6 +84,18 @@ def _check_float32(name, x):
                          f"Rescale `{name}` (and its variance by the square of the factor).")
 
 
+def _probe(x, h, b, eps):
+    """The float32 probe ``x + h b``, refused naming ``eps`` where the step throws it out
+    of float32's range (the denoiser would see Inf and blame its `color`)."""
+    p = x + h * b
+    m = float(np.abs(p).max())
+    if m > _F32_MAX:
+        raise InputError(f"`eps`={eps!r} moves the probe x + h·b to {m:.3g}, beyond float32's "
+                         f"range ({_F32_MAX:.3g}) in which denoisers are called; use a small "
+                         "step such as the default (1e-4 for mc_sure, 1e-3 for output_variance).")
+    return p.astype(np.float32)
+
+
 class _Noise:
     """The covariance of ``x``: diagonal ``(H, W, C)`` or per-pixel ``(H, W, C, C)``."""
 
@@ -321,7 +333,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     if h is not None:
         for _ in range(k):
             b = noise.apply(gen.standard_normal(xx.shape))
-            fp = _call(f, (xx + h * b).astype(np.float32))
+            fp = _call(f, _probe(xx, h, b, eps))
             calls += 1
             fp -= fx
             fp *= b
@@ -447,7 +459,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
         for _ in range(k):
             v = noise.apply(gen.integers(0, 2, xx.shape) * 2.0 - 1.0)
             if method == "fd":
-                jv = (_call(f, (xx + h * v).astype(np.float32)) - fx) / h
+                jv = (_call(f, _probe(xx, h, v, eps)) - fx) / h
             else:
                 y, jv = f.jvp(x32, v.astype(np.float32))
                 jv = _checked_output(jv, xx.shape)

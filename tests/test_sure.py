@@ -618,3 +618,17 @@ def test_mc_sure_of_the_identity_has_a_non_negative_divergence_on_any_image(seed
         assert not d.any()
     g = S.mc_sure(D.gaussian(1.0), x, v, k=k, rng=seed, relative=relative)
     assert g.shape == x.shape and np.isfinite(g).all()
+
+
+def test_a_step_that_throws_the_probe_out_of_float32_is_refused_naming_eps():
+    # Regression (found by an option sweep): eps = 1e300 (accepted, > 0) made the probe
+    # x + h·b overflow float32 and the denoiser refused its input as "`color` holds Inf
+    # values", naming no parameter of the call; now `eps` is named.
+    rng = np.random.default_rng(0)
+    x = rng.random((3, 4, 2))
+    v = 0.1 + rng.random((3, 4, 2))
+    with pytest.raises(InputError, match="`eps`"):
+        S.mc_sure(D.gaussian(1.0), x, v, eps=1e300, k=1, rng=0)
+    with pytest.raises(InputError, match="`eps`"):
+        S.output_variance(D.gaussian(1.0), x, v, eps=1e300, k=1, rng=0)
+    S.mc_sure(D.gaussian(1.0), x, v, eps=1e-2, k=1, rng=0)       # ordinary steps still run
