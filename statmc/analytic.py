@@ -967,7 +967,8 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     stats : PixelStats
         Statistics so far.  Pixels with ``n <= 1`` have no variance of their own and
         take the pooled variance of their neighbourhood (:func:`pooled_sample_variance`);
-        an empty pixel (``n = 0``) is filled up like its neighbours (tested).
+        an empty pixel (``n = 0``) is filled up like its neighbours (tested;
+        ``objective="conditional"`` refuses it: it needs a current estimate).
     budget : int
         Samples to add; the counts sum to it exactly.
     rng : numpy Generator or int, optional
@@ -1039,6 +1040,12 @@ def expected_error_sampler(stats, budget: int, rng=None, *, sigma: float = 1.0,
     n_c = n[..., None] if var_est.ndim == 3 else n
     b = _whole_budget(budget)
     if objective == "conditional":
+        if np.any(n <= 0):
+            raise InputError(f"`stats` must have >= 1 sample in every pixel for "
+                             f"objective='conditional' (its model needs a current estimate); "
+                             f"got {int((n <= 0).sum())} empty pixels. Render a first pass, "
+                             "or use objective='unconditional' (the default), which fills "
+                             "them like their neighbours.")
         smap = optimal_sample_map(kernels, stats.mean, n, stats.mean, var_est, b,
                                   loss=loss, eps=eps)
     else:

@@ -1142,3 +1142,55 @@ def test_pooled_sample_variance_stays_within_the_input_range_on_any_image(seed, 
     lo, hi = v[dof].min(axis=0), v[dof].max(axis=0)
     assert (out <= hi * (1 + 1e-12)).all()
     assert (out[dof] >= lo * (1 - 1e-12)).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(budget_per_pixel=st.sampled_from([0, 1, 5]), extra=st.integers(0, 20),
+       loss=st.sampled_from(["mrse", "mse"]), objective=st.sampled_from(["unconditional", "conditional"]),
+       kernels=st.sampled_from([None, "gem"]), mix=st.sampled_from([0.0, 0.5, 1.0]),
+       nmax=st.sampled_from([1, 2, 8]), **_ANY)
+def test_expected_error_sampler_hands_out_the_budget_exactly_on_any_image(
+        seed, h, w, c, scale, zero_frac, budget_per_pixel, extra, loss, objective, kernels, mix,
+        nmax):
+    # The sampler rounds its map with counts_from_density: counts >= 0 summing to the
+    # budget exactly — with pixels of 0 or 1 samples (no variance of their own; the
+    # conditional objective refuses empty ones, GEM needs n >= 2), black or noiseless
+    # images, GEM's kernels, and budgets below the pixel count; the pilot sampler holds
+    # its first kernels and places the same budget.
+    x, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    rng = np.random.default_rng(seed + 3)
+    n = rng.integers(0, nmax + 1, size=(h, w))
+    n[0, 0] = max(nmax, 2)                          # at least one pixel with a variance
+    from statmc import PixelStats
+    stt = PixelStats.from_mean_var(x * (n > 0)[..., None], v * (n > 1)[..., None], n)
+    budget = budget_per_pixel * h * w + extra
+    if kernels == "gem" and n.min() < 2:
+        kernels = None                              # GEM needs a variance in every pixel
+    if objective == "conditional" and n.min() == 0:
+        with pytest.raises(InputError, match="`stats`"):    # documented: needs an estimate
+            an.expected_error_sampler(stt, budget, rng=seed, objective=objective)
+        objective = "unconditional"
+    cnt = an.expected_error_sampler(stt, budget, rng=seed, loss=loss, objective=objective,
+                                    kernels=kernels, mix=mix)
+    assert cnt.shape == (h, w) and cnt.dtype.kind == "i"
+    assert cnt.min() >= 0 and int(cnt.sum()) == budget
+    if n.min() >= 2:
+        s = an.PilotKernelSampler("gem", loss=loss, mix=mix)
+        for _ in range(2):
+            cnt = s(stt, budget, seed)
+            assert cnt.min() >= 0 and int(cnt.sum()) == budget
+        assert s.kernels.shape[:2] == (h, w) and np.isfinite(s.kernels).all()
+
+
+def test_conditional_expected_error_sampler_refuses_empty_pixels_naming_stats_not_s_bar():
+    # Regression (found by property testing): objective="conditional" on stats with an
+    # empty pixel (n = 0) failed inside optimal_sample_map with "`s_bar` must be > 0",
+    # a parameter the caller never passed; now the refusal names `stats` and the option.
+    from statmc import PixelStats
+    n = np.full((3, 4), 4)
+    n[1, 2] = 0
+    stt = PixelStats.from_mean_var(np.ones((3, 4, 1)) * (n > 0)[..., None],
+                                   0.1 * np.ones((3, 4, 1)) * (n > 0)[..., None], n)
+    with pytest.raises(InputError, match=r"`stats`.*objective='conditional'"):
+        an.expected_error_sampler(stt, 10, rng=0, objective="conditional")
+    assert an.expected_error_sampler(stt, 10, rng=0).sum() == 10     # the default fills it
