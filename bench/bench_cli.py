@@ -8,7 +8,9 @@ The peer of each command is the least a script would do for the same output, mea
 the same run: interpreter start with numpy + OpenEXR imported, ``OpenEXR.File`` reading the
 input channels, the computation through the Python API on those arrays (warm: imports and
 numba compiles done once beforehand, as in ``make bench``), and ``OpenEXR.File`` writing
-the output's channels with statmc's compression (ZIP).  ``ratio`` = command / peer: what
+the output's channels with statmc's compression (ZIP; the peer on OpenEXR's default of no
+worker threads, the command on its thread pool sized to the CPUs, which helps only when a
+CPU is idle: on a loaded machine the two read alike).  ``ratio`` = command / peer: what
 the command line costs beyond its work.  OIDN's peer is ``pyoidn`` called directly (imported, as statmc does, with passive
 OpenMP waits: a plain ``import pyoidn`` loads torch's spinning runtime, which made the
 peer's numba kernels after it up to 2x slower).
