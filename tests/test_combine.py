@@ -15,8 +15,10 @@ from scipy import stats
 
 from _memory import traced_peak
 from statmc import _combine_kernels as ck
+from statmc import denoisers
 from statmc.analytic import apply_kernels
-from statmc.combine import (buffer_moments, combine, combine_bias_variance, combine_boosting,
+from statmc.combine import (buffer_moments, combine, combine_bias_variance, combine_bin_images,
+                            combine_bins, combine_boosting,
                             combine_denoised, combine_multi, denoiser_moments,
                             filter_covariance, gaussian_weights, statistical_weights,
                             uniform_weights)
@@ -2185,3 +2187,32 @@ def test_full_statistical_weights_with_ridge_0_on_a_singular_system_do_not_raise
     assert np.isfinite(wt3).all() and np.abs(wt3[:, :, 0, 0, 0]).max() > 0   # solved
     np.testing.assert_allclose(wt3.sum(axis=(2, 3, 4)), 1.0, rtol=1e-5)
 
+
+
+@settings(max_examples=25, deadline=None)
+@given(mix=st.sampled_from(["local", "global", None]), size=st.sampled_from([1, 3]),
+       denoiser=st.sampled_from(["gaussian", "gem"]), **_IMAGES)
+def test_combined_denoisers_stay_within_the_per_tap_estimates_on_any_image(seed, h, w, c, dtype,
+                                                                          scale, zero_frac, mix,
+                                                                          size, denoiser):
+    # Each β̂ averages the per-tap estimates e_t = y_t + z_c − z_t with normalised weights
+    # >= 0, and the mix takes a convex combination of z and the β̂: with z = a filtered y
+    # (a Gaussian or GEM, inside y's range) the output is finite and within
+    # [min y − span, max y + span] per channel, span = max y − min y, for combine_denoised,
+    # combine_bins and combine_bin_images alike.
+    y, v = _any_image(seed, h, w, c, np.float64, scale, zero_frac)
+    f = denoisers.gaussian(1.0) if denoiser == "gaussian" else denoisers.gem(v)
+    lo, hi = y.min(axis=(0, 1)), y.max(axis=(0, 1))
+    span = hi - lo
+    # the denoiser is called on float32 (the protocol): z carries float32 rounding of y
+    slack = 8 * np.finfo(np.float32).eps * np.abs(y).max(axis=(0, 1)) + 1e-300
+
+    def check(out, ref_lo, ref_hi, sp):
+        assert out.shape == (h, w, c) and np.isfinite(out).all()
+        assert (out >= ref_lo - sp - slack).all() and (out <= ref_hi + sp + slack).all()
+
+    check(combine_denoised(y, v, f, size=size, mix=mix, rng=seed), lo, hi, span)
+    ys = np.stack([y, np.roll(y, 1, axis=0)])
+    check(combine_bins(ys, 2 * v, f, size=size, mix=mix, rng=seed), lo, hi, span)
+    zs = np.stack([f(b) for b in ys])
+    check(combine_bin_images(ys, zs, size=size), lo, hi, span)
