@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy import optimize, stats as sps
 
+from _images import any_image, image_args
 from _memory import assert_central_part, traced_peak
 from statmc import InputError
 from statmc import _analytic_kernels as ak
@@ -1029,23 +1030,8 @@ def test_gamma_parameters_takes_a_count_map_with_colour_images():
 
 
 # --------------------------------------------------------------- properties on any image
-def _any_image(seed, h, w, c, scale, zero_frac, nonneg=False):
-    """Means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is 0;
-    signed unless ``nonneg``) and heavy-tailed (gamma 0.3) sample variances, a fraction
-    ``zero_frac`` of them exactly 0."""
-    rng = np.random.default_rng(seed)
-    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    if nonneg:
-        m = np.abs(m)
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
-    return m, v
 
-
-_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 8), w=st.integers(1, 8),
-            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
-            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_ANY = image_args(8)
 _COUNTS = st.sampled_from([0.0, 0.3, 1.0, 7.0, 1e6])
 
 
@@ -1056,7 +1042,7 @@ def test_future_moments_and_kernel_bias_variance_on_any_image(seed, h, w, c, sca
     # Eq. 6 is a convex combination of x_t and x_g, Eq. 19/7 are >= 0 (0 without new
     # samples), and Lemma A.1 with the identity kernel gives back exactly those moments:
     # bias = E[Y] − x_g, var = Var[Y].  Counts per pixel mix 0, fractions and 1e6.
-    x_g, v = _any_image(seed, h, w, c, scale, zero_frac)
+    x_g, v = any_image(seed, h, w, c, scale, zero_frac)
     rng = np.random.default_rng(seed + 1)
     x_t = x_g + scale * rng.normal(size=x_g.shape)
     s_bar = np.where(rng.uniform(size=(h, w)) < 0.5, sb, s)
@@ -1082,7 +1068,7 @@ def test_gamma_parameters_match_the_moments_where_defined_on_any_image(seed, h, 
                                                                       zero_frac, s):
     # Eq. 9: α/β = x_g and α/β² = var_g/s wherever x_g·s·var_g > 0 (both > 0 and finite
     # there), NaN exactly where the law is a point mass.
-    x_g, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    x_g, v = any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
     a, b = gamma_parameters(x_g, v, np.full((h, w), s))
     ok = (x_g > 0) & (v > 0) & (s > 0)
     assert np.array_equal(np.isnan(a), ~ok) and np.array_equal(np.isnan(b), ~ok)
@@ -1104,7 +1090,7 @@ def test_optimal_sample_counts_hand_out_the_budget_exactly_on_any_image(seed, h,
     # Eq. 1–2 with Lemma A.1: the real map is >= 0, under its cap and sums to the budget
     # (to rounding); the integer counts meet it exactly — with zero variances, black
     # images and budgets smaller than the pixel count.
-    x_g, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    x_g, v = any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
     rng = np.random.default_rng(seed + 1)
     K = rng.gamma(1.0, 1.0, size=(h, w, ks, ks))
     K /= K.sum(axis=(2, 3), keepdims=True)
@@ -1131,7 +1117,7 @@ def test_pooled_sample_variance_stays_within_the_input_range_on_any_image(seed, 
     # combination of it and s²: within [min s², max s²] of the pixels with n >= 2 per
     # channel where n >= 2, and in [0, max] where n = 1 (no degree of freedom: the pool,
     # 0 when the window has none either, as documented).
-    _, v = _any_image(seed, h, w, c, scale, zero_frac)
+    _, v = any_image(seed, h, w, c, scale, zero_frac)
     n = np.random.default_rng(seed + 2).integers(1, nmax + 1, size=(h, w))
     out = an.pooled_sample_variance(v, n, sigma=sigma, prior_dof=prior_dof)
     assert out.shape == v.shape and np.isfinite(out).all() and out.min() >= 0
@@ -1157,7 +1143,7 @@ def test_expected_error_sampler_hands_out_the_budget_exactly_on_any_image(
     # conditional objective refuses empty ones, GEM needs n >= 2), black or noiseless
     # images, GEM's kernels, and budgets below the pixel count; the pilot sampler holds
     # its first kernels and places the same budget.
-    x, v = _any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
+    x, v = any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
     rng = np.random.default_rng(seed + 3)
     n = rng.integers(0, nmax + 1, size=(h, w))
     n[0, 0] = max(nmax, 2)                          # at least one pixel with a variance

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from _images import any_image, image_args
 from _memory import traced_peak
 from statmc import _combine_kernels as ck
 from statmc import denoisers
@@ -2017,18 +2018,6 @@ def test_reconstruct_stats_combine_reads_the_mix_without_the_sure_terms(monkeypa
 from hypothesis import given, settings, strategies as st  # noqa: E402
 
 
-def _any_image(seed, h, w, c, dtype, scale, zero_frac, b=None):
-    """Signed means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is
-    0) and heavy-tailed (gamma 0.3) variances, a fraction ``zero_frac`` of them exactly 0;
-    ``b`` bins give a leading axis."""
-    rng = np.random.default_rng(seed)
-    lead = () if b is None else (b,)
-    m = rng.normal(size=lead + (h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[..., : h // 2, : w // 2, :] = m[..., :1, :1, :]          # a flat region
-    return m.astype(dtype), v.astype(dtype)
-
 
 def _any_weights(seed, h, w, k, wscale, dtype, b=None):
     """Non-negative window weights, a third of the taps exactly 0, the centre > 0."""
@@ -2039,10 +2028,7 @@ def _any_weights(seed, h, w, k, wscale, dtype, b=None):
     return (wt * wscale).astype(dtype)
 
 
-_IMAGES = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 12), w=st.integers(1, 12),
-               c=st.integers(1, 3), dtype=st.sampled_from([np.float32, np.float64]),
-               scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
-               zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_IMAGES = image_args(12, dtype=True)
 
 
 def _in_range(out, lo, hi, dtype):
@@ -2060,7 +2046,7 @@ def test_combine_with_a_flat_z_is_a_convex_average_of_y_on_any_image(seed, h, w,
     # non-negative weights normalised by W_c make a convex average: each output lies
     # between the channel's smallest and largest y, for Eq. 8 (combine), Eq. 14 with one
     # bin (combine_multi) and Eq. 15 (combine_boosting) alike.
-    y, _ = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    y, _ = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     z = np.full_like(y, zconst)
     wt = _any_weights(seed, h, w, k, wscale, dtype)
     lo, hi = y.min(axis=(0, 1)), y.max(axis=(0, 1))
@@ -2081,7 +2067,7 @@ def test_combine_of_an_image_with_itself_returns_it_on_any_image(seed, h, w, c, 
                                                                 zero_frac, k, wscale):
     # z = y makes every e_t = y_t + y_c − y_t = y_c (Eq. 8), so β̂_c = y_c whatever the
     # (normalised, non-negative) weights: up to the rounding of y_t + y_c − y_t.
-    y, _ = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    y, _ = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     wt = _any_weights(seed, h, w, k, wscale, dtype)
     tol = 16 * np.finfo(dtype).eps * np.abs(y).max(axis=(0, 1))
     for out in (combine(y, y, wt), combine_boosting(y, y, wt)):
@@ -2101,7 +2087,7 @@ def test_statistical_weights_are_normalised_and_non_negative_on_any_image(seed, 
     # the combination with them a convex average of the per-tap estimates.
     if z_bias == "pairs" and b < 2:
         b = 2
-    y, v = _any_image(seed, h, w, c, dtype, scale, zero_frac, b=b)
+    y, v = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype, bins=b)
     z = np.roll(y, 1, axis=-2) * 0.5 + 0.5 * y                 # a blurred-like z
     wt = statistical_weights(y, z, np.broadcast_to(v, y.shape), v, k, method=method,
                              z_bias=z_bias)
@@ -2129,7 +2115,7 @@ def test_combine_bias_variance_of_constant_biases_and_non_negative_variance(seed
     # Eq. 10: a constant z bias cancels in z_c − z_t and a constant y bias is averaged by
     # normalised weights, so bias = y_bias exactly; Eq. 11 with uncorrelated pixels is a
     # sum of w² var terms / W², hence >= 0, and 0 where every variance is 0.
-    _, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    _, v = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     wt = _any_weights(seed, h, w, k, wscale, dtype, b=b)
     bias, var = combine_bias_variance(wt, v, v, z_bias=np.full_like(v, zb),
                                       y_bias=np.full_like(v, yb))
@@ -2150,7 +2136,7 @@ def test_full_statistical_weights_are_finite_and_normalised_on_any_image(seed, h
     # "full" solves M a ∝ 1 with signs free (ridge-regularised, a singular M falls back to
     # the centre tap): finite, zero outside the image, summing to 1 per pixel, also when
     # every variance is 0 (M is then the bias term alone, or 0).
-    y, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    y, v = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     z = np.roll(y, 1, axis=1) * 0.5 + 0.5 * y
     wt = statistical_weights(y, z, v, v, k, method="full", z_bias=z_bias, ridge=ridge)
     assert wt.shape == (h, w, 1, k, k) and np.isfinite(wt).all()
@@ -2200,7 +2186,7 @@ def test_combined_denoisers_stay_within_the_per_tap_estimates_on_any_image(seed,
     # (a Gaussian or GEM, inside y's range) the output is finite and within
     # [min y − span, max y + span] per channel, span = max y − min y, for combine_denoised,
     # combine_bins and combine_bin_images alike.
-    y, v = _any_image(seed, h, w, c, np.float64, scale, zero_frac)
+    y, v = any_image(seed, h, w, c, scale, zero_frac, dtype=np.float64)
     f = denoisers.gaussian(1.0) if denoiser == "gaussian" else denoisers.gem(v)
     lo, hi = y.min(axis=(0, 1)), y.max(axis=(0, 1))
     span = hi - lo

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats as sst
 
+from _images import any_image, image_args
 from statmc import da_sampling as da
 from statmc import denoisers
 from statmc.adaptive import adaptive_render
@@ -332,19 +333,12 @@ from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E
 
 
 def _any_stats(seed, h, w, c, scale, zero_frac, n):
-    """Non-negative means of magnitude up to ``scale`` (a flat block, all black when
-    ``scale`` is 0), heavy-tailed variances, a fraction ``zero_frac`` exactly 0."""
-    rng = np.random.default_rng(seed)
-    m = np.abs(rng.normal(size=(h, w, c))) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[: h // 2, : w // 2] = m[0, 0]
+    """Statistics of ``n`` samples per pixel of a non-negative :func:`any_image`."""
+    m, v = any_image(seed, h, w, c, scale, zero_frac, nonneg=True)
     return PixelStats.from_mean_var(m, v, np.full((h, w), n))
 
 
-_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 9), w=st.integers(1, 9),
-            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
-            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_ANY = image_args(9)
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy import stats as sps
 
+from _images import any_image, image_args
 from statmc import InputError, gem, metrics
 from statmc import filters as F
 
@@ -1054,21 +1055,8 @@ def test_fused_stages_equal_the_scale_by_scale_loop(monkeypatch, dt):
 
 
 # --------------------------------------------------------------- properties on any image
-def _any_image(seed, h, w, c, dtype, scale, zero_frac):
-    """Signed means of magnitude up to ``scale`` with heavy-tailed (gamma 0.3) variances,
-    a fraction of them exactly 0, and a constant block (all-black when ``scale`` is 0)."""
-    rng = np.random.default_rng(seed)
-    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
-    return m.astype(dtype), v.astype(dtype)
 
-
-_IMAGES = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 40), w=st.integers(1, 40),
-               c=st.integers(1, 3), dtype=st.sampled_from([np.float32, np.float64]),
-               scale=st.sampled_from([0.0, 1e-20, 1.0, 1e4, 1e15]),
-               zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_IMAGES = image_args(40, dtype=True, scales=(0.0, 1e-20, 1.0, 1e4, 1e15))
 
 
 @settings(max_examples=60, deadline=None)
@@ -1080,7 +1068,7 @@ def test_reconstruct_is_a_normalised_average_of_the_input_on_any_image(seed, h, 
     # Rousselle 2011), so each output value lies between the channel's smallest and
     # largest input: a crash-proofing property over shapes down to 1x1, zero and
     # heavy-tailed variances, flat and all-black regions and magnitudes from 1e-20 to 1e15.
-    m, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    m, v = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     img, ex = gem.reconstruct(m, v, final=final, bias=bias, extra_output=True)
     assert img.shape == m.shape and img.dtype == m.dtype
     assert np.isfinite(img).all()
@@ -1101,7 +1089,7 @@ def test_sampling_map_hands_out_the_budget_exactly_on_any_image(seed, h, w, c, d
     # §5 of Rousselle 2011 distributes an iteration's budget; the integer map must meet
     # it exactly (DESIGN.md) whatever the image: zero variances, flat or black regions,
     # 1-pixel images, budgets smaller than the pixel count.
-    m, v = _any_image(seed, h, w, c, dtype, scale, zero_frac)
+    m, v = any_image(seed, h, w, c, scale, zero_frac, dtype=dtype)
     budget = budget_per_pixel * h * w + extra
     counts = gem.sampling_map(m, v, np.full((h, w), n0), budget, rng=seed)
     assert counts.shape == (h, w) and counts.dtype.kind == "i"

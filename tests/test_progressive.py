@@ -16,6 +16,7 @@ from scipy import optimize
 from scipy import stats as sst
 from scipy.special import ndtr
 
+from _images import any_image, image_args
 from _memory import traced_peak
 from statmc import _progressive_kernels as pk
 from statmc import denoisers
@@ -1125,20 +1126,8 @@ def test_elementwise_helpers_refuse_bad_input():
 
 
 # --------------------------------------------------------------- properties on any image
-def _any_image(seed, h, w, c, scale, zero_frac):
-    """Signed means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is
-    0) and heavy-tailed (gamma 0.3) variances, a fraction ``zero_frac`` of them exactly 0."""
-    rng = np.random.default_rng(seed)
-    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
-    return m, v
 
-
-_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 10), w=st.integers(1, 10),
-            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
-            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_ANY = image_args(10)
 
 
 @settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -1154,7 +1143,7 @@ def test_alpha_and_gate_stay_in_the_unit_interval_on_any_image(seed, h, w, c, sc
     # Eq. 9/10 clamp α to [0, 1] and the gate of Eq. 18 only scales it down by a factor in
     # [0, 1], so 0 <= α' <= α <= 1 finite, whatever the magnitudes: 1e-20 variances
     # (relative_eps), 1e15 values, zero variances and 1-pixel images.
-    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    x, v = any_image(seed, h, w, c, scale, zero_frac)
     rng = np.random.default_rng(seed + 1)
     y = x + scale * rng.normal(size=x.shape) * (rng.uniform(size=x.shape) < 0.5)
     sure = (y - x) ** 2 - v * rng.uniform(0, 2, size=x.shape)       # may be negative
@@ -1177,7 +1166,7 @@ def test_progressive_denoise_lies_between_render_and_denoised_on_any_image(seed,
                                                                            gate, n):
     # z = x + α'(y − x) with α' in [0, 1] (§4 of Firmino 2023): every value lies between
     # the render x and the denoised y, and an all-black render stays black.
-    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    x, v = any_image(seed, h, w, c, scale, zero_frac)
     stt = PixelStats.from_mean_var(x, v * n, np.full((h, w), n))
     f = denoisers.gaussian(1.0) if denoiser == "gaussian" else denoisers.gem(v)
     # one sample per pixel has no sample variance: the variances are passed instead

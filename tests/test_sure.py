@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
+from _images import any_image, image_args
 from statmc import denoisers as D
 from statmc import sure as S
 from statmc.analytic import apply_kernels
@@ -559,20 +560,8 @@ def test_estimators_handle_any_small_finite_input():
 from hypothesis import given, settings, strategies as st  # noqa: E402
 
 
-def _any_image(seed, h, w, c, scale, zero_frac):
-    """Signed means of magnitude up to ``scale`` (a flat block, all black when ``scale`` is
-    0) and heavy-tailed (gamma 0.3) variances, a fraction ``zero_frac`` of them exactly 0."""
-    rng = np.random.default_rng(seed)
-    m = rng.normal(size=(h, w, c)) * scale * rng.gamma(0.5, 1, size=(h, w, 1))
-    v = rng.gamma(0.3, 1, size=(h, w, c)) * (scale ** 2 + 1e-30)
-    v[rng.uniform(size=(h, w)) < zero_frac] = 0.0
-    m[: h // 2, : w // 2] = m[0, 0]                   # a flat region
-    return m, v
 
-
-_ANY = dict(seed=st.integers(0, 2 ** 31), h=st.integers(1, 10), w=st.integers(1, 10),
-            c=st.integers(1, 3), scale=st.sampled_from([0.0, 1e-20, 1.0, 1e15]),
-            zero_frac=st.sampled_from([0.0, 0.3, 1.0]))
+_ANY = image_args(10)
 
 
 @settings(max_examples=50, deadline=None)
@@ -583,7 +572,7 @@ def test_sure_and_kernel_variance_of_the_identity_and_of_any_kernel_on_any_image
     # Eq. 1 with the identity kernel: data term 0, divergence σ², so SURE = σ² exactly and
     # Σ_j K_ij² σ_j² = σ²; for any kernel the variance is a sum of squares times σ² >= 0,
     # 0 where every σ² is 0, and SURE reduces to the data term (Kx − x)² there.
-    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    x, v = any_image(seed, h, w, c, scale, zero_frac)
     eye = np.zeros((h, w, ks, ks))
     eye[..., ks // 2, ks // 2] = 1.0
     np.testing.assert_array_equal(S.sure(eye, x, v), v)
@@ -607,7 +596,7 @@ def test_mc_sure_of_the_identity_has_a_non_negative_divergence_on_any_image(seed
     # For f(x) = x the Monte Carlo divergence (Eq. 2) is Σ_k b_k (round(x + h b_k) − round(x))
     # / (h K): float32 rounding is monotone, so each product is >= 0; the data term is 0
     # and SURE = 2 D − σ².  Without noise (all σ² = 0) there is nothing to probe: D = 0.
-    x, v = _any_image(seed, h, w, c, scale, zero_frac)
+    x, v = any_image(seed, h, w, c, scale, zero_frac)
     s, info = S.mc_sure(D.identity(), x, v, k=k, rng=seed, relative=relative, extra_output=True)
     assert s.shape == x.shape and s.dtype == np.float64 and np.isfinite(s).all()
     d = info["divergence"]
