@@ -67,6 +67,21 @@ def import_passively(name: str):
     return importlib.import_module(name)
 
 
+class LazyModule:
+    """Module ``name``, imported at the first use of one of its attributes: a module that
+    holds compiled kernels (and so imports numba, about 0.4 s) costs nothing to a caller
+    that never runs one, such as ``statmc denoise --denoiser oidn``."""
+
+    def __init__(self, name: str):
+        self._name = name
+
+    def __getattr__(self, attr):
+        return getattr(importlib.import_module(self._name), attr)
+
+    def __repr__(self) -> str:
+        return f"<lazily imported module {self._name!r}>"
+
+
 def wait_passively_in_numba() -> None:
     """Make numba start its thread pool, when it does, with passive OpenMP waits.
 

@@ -30,10 +30,13 @@ import math
 
 import numpy as np
 
-from . import _filter_kernels as _k
-from ._threads import serial_when_small
+from ._threads import LazyModule, serial_when_small
 from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
                      check_same_shape, real_or_nan)
+
+# the compiled kernels (numba) load at the first filter pass, not with this module:
+# statmc.denoisers imports it, and `statmc denoise --denoiser oidn` runs no kernel
+_k = LazyModule("statmc._filter_kernels")
 
 __all__ = [
     "ADAPTIVE_SIGMAS", "FINAL_SIGMAS", "DEFAULT_TRUNCATE",

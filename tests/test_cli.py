@@ -2525,6 +2525,9 @@ def test_commands_read_and_write_exr_files_on_all_cpus(tmp_path, monkeypatch):
     (["reconstruct", "{y}", "--out", "{o}", "-q"], ["matplotlib", "torch", "statmc.sure"]),
     (["combine", "{y}", "{z}", "--weights", "statistical", "--out", "{o}", "-q"],
      ["matplotlib", "torch", "statmc.gem"]),
+    # OIDN runs no numba kernel (pyoidn itself imports torch when it is installed)
+    (["denoise", "{y}", "--denoiser", "oidn", "--out", "{o}", "-q"],
+     ["numba", "matplotlib", "statmc.gem", "statmc._filter_kernels"]),
 ])
 def test_commands_do_not_import_what_they_do_not_use(tmp_path, command, absent):
     """A command imports no heavy module it does not use (torch: 2.3 s; matplotlib, numba
