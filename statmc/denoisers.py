@@ -212,7 +212,8 @@ class GEMDenoiser:
         """``(color, mean_var)`` in the colour's dtype, or both in float64 where the
         variance does not fit it (a finite float64 ``mean_var`` beyond float32's 3.4e38 would
         become inf); GEM's output is an average of the colour, so it fits back."""
-        if self.mean_var.size and float(self.mean_var.max()) > float(np.finfo(x.dtype).max):
+        if (self.mean_var.dtype.itemsize > x.dtype.itemsize and self.mean_var.size
+                and float(self.mean_var.max()) > float(np.finfo(x.dtype).max)):
             return x.astype(np.float64), self.mean_var.astype(np.float64, copy=False)
         return x, self.mean_var.astype(x.dtype, copy=False)
 

@@ -92,7 +92,8 @@ def _probe(x, h, b, eps):
     if m > _F32_MAX:
         raise InputError(f"`eps`={eps!r} moves the probe x + h·b to {m:.3g}, beyond float32's "
                          f"range ({_F32_MAX:.3g}) in which denoisers are called; use a small "
-                         "step such as the default (1e-4 for mc_sure, 1e-3 for output_variance).")
+                         f"step such as the default ({DEFAULT_EPS:g} for mc_sure, "
+                         f"{DEFAULT_VARIANCE_EPS:g} for output_variance).")
     return p.astype(np.float32)
 
 
