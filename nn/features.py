@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from statmc.errors import InputError, as_float_array, as_number, check_finite
-from statmc.progressive import _image, _like, _variance, bind_denoiser
+from statmc.progressive import as_mix_inputs, bind_denoiser
 from statmc.stats import PixelStats, check_stats
 
 __all__ = ["pixel_features", "feature_channels", "REL_EPS", "VAR_FLOOR", "DIST_EPS",
@@ -245,11 +245,7 @@ def mix_features(x, mean_var, y, sure_y, divergence, *, relative: bool = True,
         raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
     relative, gain = _check_mix_options(relative, gain)
     # the checks of statmc.progressive, whose progressive_denoise hands these to `alpha`
-    xx = _image("x", x)
-    shape = xx.shape
-    v = _variance(mean_var, shape)
-    yy, sy, d = (_like(name, a, shape) for name, a in
-                 (("y", y), ("sure_y", sure_y), ("divergence", divergence)))
+    xx, yy, v, sy, d = as_mix_inputs(x, y, mean_var, sure_y, divergence)
     scale = gain / ((xx * xx + yy * yy) / 2.0 + MIX_REL_EPS) if relative else gain
     planes = [np.log1p(np.maximum(xx, 0.0)), np.arctan(scale * v),
               np.log1p(np.maximum(yy, 0.0)), np.arctan(scale * sy),

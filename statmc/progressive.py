@@ -36,7 +36,7 @@ from .stats import PixelStats, check_stats
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
            "bind_denoiser", "auto_sigma_s", "DEFAULT_SMOOTH", "DEFAULT_RELATIVE_EPS",
            "DEFAULT_SHRINK", "DEFAULT_WINDOW", "DEFAULT_C", "DEFAULT_CHANNELS",
-           "DEFAULT_A", "DEFAULT_EPS_T", "outlier_alpha", "DEFAULT_OUTLIER"]
+           "DEFAULT_A", "DEFAULT_EPS_T", "outlier_alpha", "DEFAULT_OUTLIER", "as_mix_inputs"]
 
 #: Standard deviation (pixels) of the Gaussian that smooths σ², SURE and the divergence
 #: before Eq. 9: their per-pixel estimates are far too noisy to use directly (§4.1 and
@@ -113,6 +113,57 @@ def _variance(mean_var, shape, dtype=np.float64, check=True):
         check_finite("mean_var", v)
         check_nonnegative("mean_var", v)
     return v
+
+
+def as_mix_inputs(x, y, mean_var, sure_y, divergence):
+    """The five per-pixel maps of Eq. 8–10 of [1]_, checked as :func:`mixing_weights`
+    checks them, as ``(H, W, C)`` float64 arrays.
+
+    These are the maps that :func:`progressive_denoise` hands to a callable ``alpha`` (its
+    dict ``x``, ``y``, ``mean_var``, ``sure``, ``divergence``), and the inputs of the
+    mixing network of §4.3 of [1]_ (:func:`statmc.nn.mix_features` calls this).
+
+    Parameters
+    ----------
+    x : (H, W, C) array_like
+        The render (pixel means); non-empty.
+    y : (H, W, C) array_like
+        The denoised image ``f(x)``.
+    mean_var : (H, W, C) or (H, W, C, C) array_like
+        ``σ²``, the **variance of the mean** of ``x``, or a per-pixel channel covariance
+        of the mean, of which only the diagonal is returned; ``>= 0`` on the diagonal.
+    sure_y : (H, W, C) array_like
+        Per-pixel SURE of ``y`` (Eq. 1, or Eq. 2 for MC-SURE); may be negative.
+    divergence : (H, W, C) array_like
+        ``σ² f'(x) = (J_f Σ)_ii`` (may be negative).
+
+    Returns
+    -------
+    x, y, mean_var, sure_y, divergence : (H, W, C) float64 ndarrays
+        New arrays or the inputs themselves (when already float64); ``mean_var`` is the
+        diagonal of a covariance.
+
+    Raises
+    ------
+    InputError
+        Naming the map: not 3-d (``mean_var``: 3-d or 4-d), not the shape of ``x``, empty
+        ``x``, NaN or Inf anywhere, or a negative variance.
+
+    Examples
+    --------
+    >>> x = np.ones((2, 2, 3)); v = np.full((2, 2, 3), 0.01)
+    >>> _, _, s2, _, _ = as_mix_inputs(x, x, v[..., None] * np.eye(3), v, 0 * v)
+    >>> bool(np.array_equal(s2, v))            # a covariance's diagonal
+    True
+    >>> as_mix_inputs(x, x[:1], v, v, v)
+    Traceback (most recent call last):
+    ...
+    statmc.errors.InputError: `y` must have the shape of `x` (2, 2, 3); got (1, 2, 3).
+    """
+    xx = _image("x", x)
+    shape = xx.shape
+    return (xx, _like("y", y, shape), _variance(mean_var, shape),
+            _like("sure_y", sure_y, shape), _like("divergence", divergence, shape))
 
 
 def _smooth(a, sigma):
@@ -279,10 +330,8 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     >>> bool(np.allclose(a, 1.0))   # σ² = (y − x)²: all of y
     True
     """
-    xx = _image("x", x)
+    xx, yy, s2, sy, d = as_mix_inputs(x, y, mean_var, sure_y, divergence)
     shape = xx.shape
-    yy = _like("y", y, shape)
-    s2 = _variance(mean_var, shape)
     cov = None
     if np.ndim(mean_var) == 4:
         cov = as_float_array("mean_var", mean_var, dtype=np.float64)
@@ -291,8 +340,6 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
         raise InputError(f"`channel_noise` must be 'correlated' or 'independent'; got "
                          f"{channel_noise!r}.")
     cn = channel_noise
-    sy = _like("sure_y", sure_y, shape)
-    d = _like("divergence", divergence, shape)
     sm = as_number("smooth", smooth, lo=0.0)
     if relative_eps is not None:
         relative_eps = as_number("relative_eps", relative_eps, lo=0.0, lo_open=True)

@@ -1179,3 +1179,41 @@ def test_progressive_denoise_lies_between_render_and_denoised_on_any_image(seed,
     assert (z >= lo - slack).all() and (z <= hi + slack).all()
     if scale == 0.0:
         assert not z.any()
+
+
+# =========================================================================== as_mix_inputs
+def test_as_mix_inputs_is_the_check_of_mixing_weights_and_of_the_alpha_dict():
+    """as_mix_inputs (public; statmc.nn.mix_features uses it) returns the five maps of
+    Eq. 8-10 as float64, a covariance's diagonal for mean_var, and refuses each bad map
+    with the InputError that mixing_weights gives for it, naming the map."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0, 2, (4, 5, 3)).astype(np.float32)
+    y, sure, div = (rng.normal(1, 0.3, x.shape) for _ in range(3))
+    v = rng.uniform(0.01, 0.1, x.shape)
+    cov = v[..., None] * np.eye(3) + 0.001
+    got = pg.as_mix_inputs(x, y, cov, sure, div)
+    for g, w in zip(got, (x, y, v + 0.001, sure, div)):
+        assert g.dtype == np.float64 and g.shape == x.shape
+        np.testing.assert_array_equal(g, np.asarray(w, np.float64))
+    # the dict progressive_denoise hands to a callable alpha passes unchanged
+    st_ = ToyRenderer("mixed", width=8, height=8).render_uniform(4, seed=0)
+    seen = {}
+
+    def alpha(inp):
+        seen.update(inp)
+        return np.full(inp["x"].shape[:2], 0.5)
+    pg.progressive_denoise(st_, denoisers.gaussian(1.0), alpha=alpha, rng=0)
+    back = pg.as_mix_inputs(seen["x"], seen["y"], seen["mean_var"], seen["sure"], seen["divergence"])
+    for g, key in zip(back, ("x", "y", "mean_var", "sure", "divergence")):
+        np.testing.assert_array_equal(g, seen[key])
+    bad = {"x": (x[..., :0], "`x`"), "y": (y[:2], "`y` must have the shape"),
+           "mean_var": (-v, "`mean_var`"), "sure_y": (sure * np.nan, "`sure_y`"),
+           "divergence": (div * np.inf, "`divergence`")}
+    good = {"x": x, "y": y, "mean_var": v, "sure_y": sure, "divergence": div}
+    for name, (value, match) in bad.items():
+        args = dict(good, **{name: value})
+        with pytest.raises(InputError, match=match) as e1:
+            pg.as_mix_inputs(**args)
+        with pytest.raises(InputError) as e2:
+            pg.mixing_weights(**args)
+        assert str(e1.value) == str(e2.value), name
