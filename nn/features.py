@@ -275,25 +275,37 @@ def swap_mix_planes(features: torch.Tensor) -> torch.Tensor:
     return groups[..., list(MIX_SWAP), :, :, :].flatten(-4, -3)
 
 
-def mix_inputs(stats: PixelStats, denoiser, *, k: int = 4, eps: float = 1e-4, rng=None) -> dict:
+def mix_inputs(stats: PixelStats, denoiser, *, mean_var=None, k: int = 4, eps: float = 1e-4,
+               rng=None) -> dict:
     """Denoise a render and compute its MC-SURE: the inputs of :func:`mix_features`.
 
     Returns the dict that :func:`statmc.progressive.progressive_denoise` hands to a callable
-    ``alpha``: ``x`` (``stats.mean``), ``y`` (the denoised image), ``mean_var`` (σ²),
-    ``sure`` (per-pixel MC-SURE of ``y``, Eq. 1 with Eq. 2 of Firmino 2022) and
+    ``alpha`` (given the same ``mean_var``, ``k``, ``eps`` and ``rng``): ``x``
+    (``stats.mean``), ``y`` (the denoised image), ``mean_var`` (σ², the variance of the
+    mean), ``sure`` (per-pixel MC-SURE of ``y``, Eq. 1 with Eq. 2 of Firmino 2022) and
     ``divergence`` (``σ² f'(x)``), from :func:`statmc.sure.mc_sure` with ``k``, ``eps``,
     ``rng``.  ``denoiser`` is a callable or a name bound to ``stats`` by
     :func:`statmc.progressive.bind_denoiser` (e.g. ``"oidn"``).
+
+    ``mean_var`` ((H, W, C) variance of the mean or (H, W, C, C) per-pixel channel
+    covariance), as in ``progressive_denoise``, replaces ``stats.mean_var`` for MC-SURE and
+    VAR (the dict then holds its diagonal), so a network trained on these inputs sees what
+    ``progressive_denoise(..., mean_var=...)`` gives its ``alpha``.  Without it every pixel
+    needs ``n >= 2`` (``InputError`` otherwise).
     """
     from statmc.sure import mc_sure
 
     check_stats(stats)
-    stats.require_variance(why="for VAR and MC-SURE of the mixing network's inputs",
-                           hint=" Render a uniform pass of >= 2 spp first.")
+    if mean_var is None:
+        stats.require_variance(why="for VAR and MC-SURE of the mixing network's inputs",
+                               hint=" Render a uniform pass of >= 2 spp first, or pass "
+                                    "`mean_var`.")
+    mv = stats.mean_var if mean_var is None else mean_var
+    x = np.asarray(stats.mean, np.float64)
+    _, _, s2, _, _ = as_mix_inputs(x, x, mv, x, x)       # σ², or a covariance's diagonal
     f = bind_denoiser(denoiser, stats) if isinstance(denoiser, str) else denoiser
-    s, info = mc_sure(f, stats.mean, stats.mean_var, k=k, eps=eps, rng=rng, extra_output=True)
-    return {"x": np.asarray(stats.mean, np.float64), "y": info["denoised"],
-            "mean_var": np.asarray(stats.mean_var, np.float64), "sure": s,
+    s, info = mc_sure(f, stats.mean, mv, k=k, eps=eps, rng=rng, extra_output=True)
+    return {"x": x, "y": info["denoised"], "mean_var": s2, "sure": s,
             "divergence": info["divergence"]}
 
 

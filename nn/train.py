@@ -159,6 +159,12 @@ def random_swap(features, x, y, *, p: float = 0.5, generator=None):
     features, x, y : tensors
         The batch with the swapped samples swapped (new tensors; the inputs are untouched).
     swapped : (N,) bool tensor
+
+    Raises
+    ------
+    InputError
+        For tensors of the wrong shape, dtype or device, NaN or Inf in ``features``, ``x``
+        or ``y`` (as the ops of :mod:`statmc.nn.ops`), or ``p`` outside [0, 1].
     """
     check_tensor("features", features, 4, "(N, 6C, H, W)")
     check_tensor("x", x, 4, "(N, C, H, W)")
@@ -171,6 +177,9 @@ def random_swap(features, x, y, *, p: float = 0.5, generator=None):
                          f"{tuple(x.shape)} (mix_features planes); got {tuple(features.shape)}.")
     check_like("y", y, "x", x)
     check_like("features", features, "x", x)
+    # the outputs hold exactly the inputs' values, so a NaN/Inf would pass through silently
+    for name, t in (("features", features), ("x", x), ("y", y)):
+        check_finite_tensor(name, t)
     p = as_number("p", p, lo=0.0)
     if p > 1.0:
         raise InputError(f"`p` must be a probability in [0, 1]; got {p!r}.")

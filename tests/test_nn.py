@@ -804,6 +804,54 @@ def test_mix_inputs_is_mc_sure_with_its_options():
     assert not np.array_equal(snn.mix_inputs(st, f, rng=5)["divergence"], info["divergence"])
 
 
+@pytest.mark.parametrize("name", ["features", "x", "y"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_random_swap_refuses_nan_and_inf_naming_the_tensor(name, bad):
+    """Regression: random_swap returned NaN/Inf inputs permuted, without a word (the rest
+    of statmc.nn refuses them with an InputError that names the tensor and counts them).
+    A single bad value in an unswapped or a swapped sample is refused (p = 0 and 1)."""
+    feats, x, y, _ = _mix_batch(N=2)
+    args = {"features": feats.clone(), "x": x.clone(), "y": y.clone()}
+    args[name][1, 0, 2, 3] = bad
+    for p in (0.0, 1.0):
+        with pytest.raises(InputError, match=f"`{name}` holds .*{'1 NaN' if bad != bad else '1 Inf'}"):
+            snn.random_swap(args["features"], args["x"], args["y"], p=p)
+    with pytest.raises(InputError, match=f"`{name}` holds"):
+        snn.swap_mix_loss(snn.MixNet(inputs="mix", width=4), args["features"], args["x"],
+                          args["y"], x, p=0.0)
+
+
+def test_mix_inputs_takes_progressive_denoises_mean_var_override():
+    """mix_inputs(..., mean_var=cov) is the dict that progressive_denoise(..., mean_var=cov)
+    hands to a callable alpha (MC-SURE with the covariance, VAR its diagonal), as
+    mix_inputs without it is the dict without it; with mean_var, n = 1 pixels are taken."""
+    from statmc import denoisers
+    st = _render(size=10, spp=4)
+    f = denoisers.gaussian(1.0)
+    rng = np.random.default_rng(0)
+    m = rng.normal(0, 1, (10, 10, 3, 3)) * 0.05
+    cov = st.mean_var[..., None] * np.eye(3) + m @ np.swapaxes(m, -1, -2) * 1e-3
+    for mv in (None, cov):
+        seen = {}
+
+        def alpha(inp):
+            seen.update(inp)
+            return np.full((10, 10), 0.5)
+        progressive.progressive_denoise(st, f, alpha=alpha, mean_var=mv, rng=3)
+        inp = snn.mix_inputs(st, f, mean_var=mv, rng=3)
+        assert set(inp) == set(seen)
+        for key in inp:
+            np.testing.assert_array_equal(inp[key], seen[key], err_msg=key)
+    np.testing.assert_array_equal(inp["mean_var"], np.diagonal(cov, axis1=-2, axis2=-1))
+    assert not np.array_equal(inp["sure"], snn.mix_inputs(st, f, rng=3)["sure"])
+    var = np.full(_ST1.mean.shape, 0.01)
+    assert snn.mix_inputs(_ST1, f, mean_var=var, rng=0)["mean_var"].shape == _ST1.mean.shape
+    with pytest.raises(InputError, match="or pass `mean_var`"):
+        snn.mix_inputs(_ST1, f, rng=0)
+    with pytest.raises(InputError, match="`mean_var`"):
+        snn.mix_inputs(st, f, mean_var=-cov, rng=0)
+
+
 def test_mix_net_with_mix_inputs_goes_through_progressive_denoise():
     """MixNet(inputs="mix").alpha_from is the `alpha` callable of progressive_denoise: it
     sees the same y, MC-SURE and divergence that the pipeline mixes and gates."""
