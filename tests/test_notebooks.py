@@ -4,8 +4,8 @@ output, and no notebook metadata).
 
 Each notebook is executed by nbclient in a fresh ``python3`` kernel of this interpreter
 (ipykernel is in the ``test`` extra; jupyter_client launches the kernel with
-``sys.executable``), with notebooks/ as the working directory.  Marked ``slow`` (about a
-minute in all; deselect with ``-m "not slow"``); the Mitsuba notebook is also marked
+``sys.executable``), with notebooks/ as the working directory.  Marked ``slow`` (one to two
+minutes in all with numba's cache warm; deselect with ``-m "not slow"``); the Mitsuba notebook is also marked
 ``mitsuba``.
 """
 
