@@ -240,6 +240,38 @@ def test_postprocessing_kernel_equals_reference(final, map_scale):
     assert (dist[got != ref] < 1e-5).all(), dist[got != ref].max()
 
 
+@pytest.mark.parametrize("final,sigmas", [(False, F.ADAPTIVE_SIGMAS), (True, (0.0, 1.0, 2.0, 4.0))])
+def test_postprocessing_filters_pair_k_with_the_coarse_scale(final, sigmas):
+    """§4.4/§6: stopping map k (pair σ_k → σ_{k+1}) is filtered with a Gaussian of the
+    coarse scale σ_{k+1} (2σ_{k+1} in the final reconstruction), centre left out.
+    Closed form at the centre of an L×L block of 'stop' on an empty map far from the
+    borders: the centre-excluded mean is ``(P − w0)/(1 − w0)``, ``P = (Σ_{|j|<=L/2} g_j)²``
+    and ``w0 = g_0²``, ``g`` the 1-D taps of that σ; the block's centre stays 'stop' iff
+    it is >= 1/2.  The block sizes are chosen so that the fine scale would decide
+    otherwise for some of them."""
+    h = 61
+    c = h // 2
+    factor = 2.0 if final else 1.0
+    km1 = len(sigmas) - 1
+    differs = np.zeros(km1, bool)
+    for L in range(1, 22, 2):
+        raw = np.zeros((km1, h, h), np.float32)
+        raw[:, c - L // 2:c + L // 2 + 1, c - L // 2:c + L // 2 + 1] = 1.0
+        out = gem.postprocess_stop_maps(raw, sigmas, final=final)
+        for k in range(km1):
+            def keeps(sigma):
+                g = F.gaussian_kernel_1d(sigma)
+                r = len(g) // 2
+                p = g[max(0, r - L // 2):r + L // 2 + 1].sum() ** 2
+                return (p - g[r] ** 2) / (1 - g[r] ** 2) >= 0.5
+            want = keeps(factor * sigmas[k + 1])
+            assert out[k, c, c] == want, (k, L)
+            if sigmas[k] > 0:
+                differs[k] |= keeps(factor * sigmas[k]) != want
+    assert differs[1:].all()
+
+
+
 @pytest.mark.parametrize("bias", ["paper", "pooled"])
 def test_selection_kernels_equal_numpy_reference(bias):
     rng = np.random.default_rng(3)
@@ -267,6 +299,23 @@ def test_selection_kernels_equal_numpy_reference(bias):
     # fast path (summed variances, rolling buffers) makes the same choice
     img = gem.reconstruct(m, mv, n=n, gamma=0.2, bias=bias)
     assert np.mean(img == info["image"]) > 0.999
+
+
+def test_paper_selector_weight_is_z_gamma_without_counts_and_rho_z_with_them():
+    """§4.3: the bias term of Eq. 1 is weighted by ``ρ·z(γ)``, ``ρ = 1 − 1/|P|``; without
+    sample counts ``ρ = 1``, the weight is ``z(γ)`` itself.  The raw stopping maps of
+    :func:`gem.select` (compiled) against :func:`gem.selector` with that weight."""
+    rng = np.random.default_rng(47)
+    m, mv = _noisy(np.zeros((40, 44, 3)), 8, 1.0, rng)
+    n = rng.integers(2, 12, (40, 44))
+    z = gem.error_rate_weight(0.3)
+    for counts, weight in ((None, z), (n, z * (1 - 1 / n))):
+        info = gem.select(m, mv, gamma=0.3, n=counts, final=False, postprocess=False)
+        S = gem.selector(info["values"], info["variances"], info["r2"], weight=weight)
+        sure = np.abs(S) > 1e-9 * info["variances"].sum(-1)[1:]
+        assert sure.mean() > 0.999
+        np.testing.assert_array_equal((S > 0)[sure], info["stop_raw"][sure])
+
 
 
 def test_pixels_that_never_stop_take_the_coarsest_scale():
@@ -342,6 +391,28 @@ def test_pooled_selection_kernels_equal_numpy_reference(dtype, sigmas):
         sure = np.abs(S1) > tol * np.abs(info["variances"][:2]).sum((0, -1))
         assert sure.mean() > 0.99
         np.testing.assert_array_equal((out > 0.5)[sure], (S1 > 0)[sure])
+
+
+def test_pooled_selector_clamps_the_pooled_bias_estimate_at_zero():
+    """``B_k = max(G_pool * [Σ_c (v_{k+1} − v_k)² − Var(v_{k+1} − v_k)], 0)``: the bias
+    term of :func:`gem.pooled_selector` is never negative, so ``S_k`` never falls below
+    the variance term ``Σ_c (Var_{k+1} − Var_k)``.  On a constant noisy image (no bias)
+    the noise-corrected estimate has mean 0 and is negative in many pixels, where
+    ``S_k`` then equals the variance term exactly.  Without the clamp ``S_k`` drops
+    below it there, and where the coarser scale's variance is larger (a quiet pixel
+    among noisy ones) the decision flips from stop to go on."""
+    rng = np.random.default_rng(46)
+    m, mv = _noisy(np.zeros((32, 32, 1)), 4, 1.0, rng)
+    sig = F.ADAPTIVE_SIGMAS
+    vals, vars_ = F.filter_bank(m, mv, sig)
+    r2 = np.array([F.kernel_moment2(s) for s in sig])
+    S = gem.pooled_selector(vals, vars_, gem.difference_variance(mv, sig), r2, weight=0.8)
+    dvar = (vars_[1:] - vars_[:-1]).sum(-1)
+    assert np.all(S - dvar >= 0)
+    clamped = (S - dvar == 0).mean(axis=(1, 2))
+    print("fraction of pixels with the bias estimate clamped, per pair:", clamped)
+    assert np.all(clamped > 0.2)
+
 
 
 def test_float32_and_float64_agree():
