@@ -131,7 +131,8 @@ def as_mix_inputs(x, y, mean_var, sure_y, divergence):
         The denoised image ``f(x)``.
     mean_var : (H, W, C) or (H, W, C, C) array_like
         ``σ²``, the **variance of the mean** of ``x``, or a per-pixel channel covariance
-        of the mean, of which only the diagonal is returned; ``>= 0`` on the diagonal.
+        of the mean, of which only the diagonal is returned; ``>= 0`` on the diagonal
+        (a covariance must be finite everywhere, as :func:`mixing_weights` requires).
     sure_y : (H, W, C) array_like
         Per-pixel SURE of ``y`` (Eq. 1, or Eq. 2 for MC-SURE); may be negative.
     divergence : (H, W, C) array_like
@@ -162,8 +163,12 @@ def as_mix_inputs(x, y, mean_var, sure_y, divergence):
     """
     xx = _image("x", x)
     shape = xx.shape
-    return (xx, _like("y", y, shape), _variance(mean_var, shape),
-            _like("sure_y", sure_y, shape), _like("divergence", divergence, shape))
+    yy = _like("y", y, shape)
+    s2 = _variance(mean_var, shape)
+    if np.ndim(mean_var) == 4:      # off the diagonal too: mixing_weights uses it whole
+        check_finite("mean_var", as_float_array("mean_var", mean_var, dtype=np.float64))
+    return (xx, yy, s2, _like("sure_y", sure_y, shape),
+            _like("divergence", divergence, shape))
 
 
 def _smooth(a, sigma):
@@ -333,9 +338,8 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     xx, yy, s2, sy, d = as_mix_inputs(x, y, mean_var, sure_y, divergence)
     shape = xx.shape
     cov = None
-    if np.ndim(mean_var) == 4:
+    if np.ndim(mean_var) == 4:      # checked whole (finite) by as_mix_inputs
         cov = as_float_array("mean_var", mean_var, dtype=np.float64)
-        check_finite("mean_var", cov)
     if channel_noise not in ("correlated", "independent"):
         raise InputError(f"`channel_noise` must be 'correlated' or 'independent'; got "
                          f"{channel_noise!r}.")

@@ -1217,3 +1217,14 @@ def test_as_mix_inputs_is_the_check_of_mixing_weights_and_of_the_alpha_dict():
         with pytest.raises(InputError) as e2:
             pg.mixing_weights(**args)
         assert str(e1.value) == str(e2.value), name
+    # a covariance is checked whole, as mixing_weights (and progressive_denoise) check it,
+    # though only its diagonal is returned
+    for bad_value in (np.nan, np.inf):
+        c = cov.copy()
+        c[1, 2, 0, 2] = bad_value
+        args = dict(good, mean_var=c)
+        with pytest.raises(InputError, match="`mean_var` holds") as e1:
+            pg.as_mix_inputs(**args)
+        with pytest.raises(InputError) as e2:
+            pg.mixing_weights(**args)
+        assert str(e1.value) == str(e2.value)
