@@ -271,7 +271,6 @@ def test_postprocessing_filters_pair_k_with_the_coarse_scale(final, sigmas):
     assert differs[1:].all()
 
 
-
 @pytest.mark.parametrize("bias", ["paper", "pooled"])
 def test_selection_kernels_equal_numpy_reference(bias):
     rng = np.random.default_rng(3)
@@ -315,7 +314,6 @@ def test_paper_selector_weight_is_z_gamma_without_counts_and_rho_z_with_them():
         sure = np.abs(S) > 1e-9 * info["variances"].sum(-1)[1:]
         assert sure.mean() > 0.999
         np.testing.assert_array_equal((S > 0)[sure], info["stop_raw"][sure])
-
 
 
 def test_pixels_that_never_stop_take_the_coarsest_scale():
@@ -412,7 +410,6 @@ def test_pooled_selector_clamps_the_pooled_bias_estimate_at_zero():
     clamped = (S - dvar == 0).mean(axis=(1, 2))
     print("fraction of pixels with the bias estimate clamped, per pair:", clamped)
     assert np.all(clamped > 0.2)
-
 
 
 def test_float32_and_float64_agree():

@@ -38,7 +38,7 @@ def test_relmse_of_values_whose_squares_overflow_keeps_eps():
     """``(x − r)²/(r² + ε)`` where ``x²`` overflows float64 but the ratio does not: the
     rescaled branch must keep ε in the denominator (``hypot(r/s, √ε/s)``).  Closed form
     ``(x/√(r² + ε))²``, evaluated without overflow; with r = 1 and ε = 0.01 ε is 1% of the
-    denominator, and with ε = 0 or r = 0 the value is ``(x/r)²`` or ``x²/ε``."""
+    denominator, and with ε = 0 the value is ``(x/r)²``."""
     x = 1.345e154                                  # x² = 1.809e308 overflows, x²/1.01 does not
     for r, eps in ((1.0, 0.01), (3.0, 1.0), (2.0, 0.0)):
         want = (x / math.sqrt(r * r + eps)) ** 2 if eps else (x / r) ** 2
@@ -46,7 +46,6 @@ def test_relmse_of_values_whose_squares_overflow_keeps_eps():
         got = relmse(np.array([[x]]), np.array([[r]]), eps=eps)
         assert got == pytest.approx(want, rel=1e-12), (r, eps)
         assert relmse(np.array([[-x]]), np.array([[-r]]), eps=eps) == pytest.approx(want, rel=1e-12)
-
 
 
 def test_mse_rmse_closed_form():
