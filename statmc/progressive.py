@@ -10,6 +10,8 @@ classical part:
 * :func:`mixing_weights` — the mixing parameter that minimises the expected squared error
   of ``z`` (Eq. 8), Eq. 9 (and Eq. 10, ``β = 1 − α``), from locally smoothed estimates of
   ``σ²``, ``SURE(y)`` and the divergence ``σ² f'(x)``; :func:`mix_error` is Eq. 8 itself;
+  :func:`as_mix_inputs` checks and converts the five maps of Eq. 8–10 (what a network
+  predicting ``α`` gets, :func:`statmc.nn.mix_features`);
 * :func:`confidence_gate` — the t-statistic gating of Eq. 12–18 (11×11 neighbourhood,
   max-variance neighbour, ``σ_s``, ``S`` = normal CDF, ``c = 4.2``, ``a = 2``), which
   also takes a network-predicted ``α`` (:mod:`statmc.nn`) unchanged;
