@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernel_inputs import readonly, readonly_strided
 from ._threads import serial_below, wait_passively_in_numba
 from numba import njit, prange
 
@@ -137,24 +138,32 @@ def apply_numpy(K, img, out):
 
 
 # =========================================================================== numba
+@njit(cache=True, nogil=True)
+def _moments_planar_row(xt, sb, sm, xg, vg, mvt, use_mvt, m, v, y):  # pragma: no cover - compiled
+    """One row of :func:`_moments_planar`, compiled on its own: numba's parallel passes
+    are slow on a large loop body (see :func:`statmc._combine_kernels._bias_task`)."""
+    H, W, C = xt.shape
+    for x in range(W):
+        a = sb[y, x]
+        b = sm[y, x]
+        n = a + b
+        for c in range(C):
+            if n <= 0.0:
+                m[c, y, x] = xt[y, x, c]
+                v[c, y, x] = 0.0
+            elif use_mvt:
+                m[c, y, x] = xg[y, x, c]
+                v[c, y, x] = (a * a * mvt[y, x, c] + b * vg[y, x, c]) / (n * n)
+            else:
+                m[c, y, x] = (a * xt[y, x, c] + b * xg[y, x, c]) / n
+                v[c, y, x] = b * vg[y, x, c] / (n * n)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _moments_planar(xt, sb, sm, xg, vg, mvt, use_mvt, m, v):  # pragma: no cover - compiled
     H, W, C = xt.shape
     for y in prange(H):
-        for x in range(W):
-            a = sb[y, x]
-            b = sm[y, x]
-            n = a + b
-            for c in range(C):
-                if n <= 0.0:
-                    m[c, y, x] = xt[y, x, c]
-                    v[c, y, x] = 0.0
-                elif use_mvt:
-                    m[c, y, x] = xg[y, x, c]
-                    v[c, y, x] = (a * a * mvt[y, x, c] + b * vg[y, x, c]) / (n * n)
-                else:
-                    m[c, y, x] = (a * xt[y, x, c] + b * xg[y, x, c]) / n
-                    v[c, y, x] = b * vg[y, x, c] / (n * n)
+        _moments_planar_row(xt, sb, sm, xg, vg, mvt, use_mvt, m, v, np.int64(y))
 
 
 @njit(inline="always")
@@ -162,64 +171,78 @@ def _weight(g, rel, eps):  # pragma: no cover - compiled
     return 1.0 / (g * g + eps) if rel else 1.0
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _bias_var_group(K, m, v, xg, c0, nc, rel, eps, bias, var, rows):  # pragma: no cover
-    """Channels ``c0 .. c0+nc-1`` (``nc <= 3``): bias, var and per-row loss sums."""
+@njit(cache=True, nogil=True)
+def _bias_var_group_row(K, m, v, xg, c0, nc, rel, eps, bias, var, rows, y):  # pragma: no cover
+    """A row of :func:`_bias_var_group` (see :func:`_moments_planar_row`)."""
     H, W, k, _ = K.shape
     r = k // 2
     c1 = c0 + min(1, nc - 1)
     c2 = c0 + min(2, nc - 1)
+    tot = 0.0
+    dy0 = max(0, r - y)
+    dy1 = min(k, H - y + r)
+    for x in range(W):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        b0 = 0.0
+        b1 = 0.0
+        b2 = 0.0
+        dx0 = max(0, r - x)
+        dx1 = min(k, W - x + r)
+        for dy in range(dy0, dy1):
+            yy = y + dy - r
+            for dx in range(dx0, dx1):
+                xx = x + dx - r
+                w = np.float64(K[y, x, dy, dx])
+                w2 = w * w
+                a0 += w * m[c0, yy, xx]
+                a1 += w * m[c1, yy, xx]
+                a2 += w * m[c2, yy, xx]
+                b0 += w2 * v[c0, yy, xx]
+                b1 += w2 * v[c1, yy, xx]
+                b2 += w2 * v[c2, yy, xx]
+        e = a0 - xg[y, x, c0]
+        bias[c0, y, x] = e
+        var[c0, y, x] = b0
+        tot += _weight(xg[y, x, c0], rel, eps) * (e * e + b0)
+        if nc > 1:
+            e = a1 - xg[y, x, c1]
+            bias[c1, y, x] = e
+            var[c1, y, x] = b1
+            tot += _weight(xg[y, x, c1], rel, eps) * (e * e + b1)
+        if nc > 2:
+            e = a2 - xg[y, x, c2]
+            bias[c2, y, x] = e
+            var[c2, y, x] = b2
+            tot += _weight(xg[y, x, c2], rel, eps) * (e * e + b2)
+    rows[y] += tot
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _bias_var_group(K, m, v, xg, c0, nc, rel, eps, bias, var, rows):  # pragma: no cover
+    """Channels ``c0 .. c0+nc-1`` (``nc <= 3``): bias, var and per-row loss sums."""
+    H, W, k, _ = K.shape
     for y in prange(H):
-        tot = 0.0
-        dy0 = max(0, r - y)
-        dy1 = min(k, H - y + r)
-        for x in range(W):
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            b0 = 0.0
-            b1 = 0.0
-            b2 = 0.0
-            dx0 = max(0, r - x)
-            dx1 = min(k, W - x + r)
-            for dy in range(dy0, dy1):
-                yy = y + dy - r
-                for dx in range(dx0, dx1):
-                    xx = x + dx - r
-                    w = np.float64(K[y, x, dy, dx])
-                    w2 = w * w
-                    a0 += w * m[c0, yy, xx]
-                    a1 += w * m[c1, yy, xx]
-                    a2 += w * m[c2, yy, xx]
-                    b0 += w2 * v[c0, yy, xx]
-                    b1 += w2 * v[c1, yy, xx]
-                    b2 += w2 * v[c2, yy, xx]
-            e = a0 - xg[y, x, c0]
-            bias[c0, y, x] = e
-            var[c0, y, x] = b0
-            tot += _weight(xg[y, x, c0], rel, eps) * (e * e + b0)
-            if nc > 1:
-                e = a1 - xg[y, x, c1]
-                bias[c1, y, x] = e
-                var[c1, y, x] = b1
-                tot += _weight(xg[y, x, c1], rel, eps) * (e * e + b1)
-            if nc > 2:
-                e = a2 - xg[y, x, c2]
-                bias[c2, y, x] = e
-                var[c2, y, x] = b2
-                tot += _weight(xg[y, x, c2], rel, eps) * (e * e + b2)
-        rows[y] += tot
+        _bias_var_group_row(K, m, v, xg, c0, nc, rel, eps, bias, var, rows, np.int64(y))
+
+
+@njit(cache=True, nogil=True)
+def _adjoint_weights_row(bias, xg, rel, eps, scale, wb, wn, y):  # pragma: no cover - compiled
+    """A row of :func:`_adjoint_weights` (see :func:`_moments_planar_row`)."""
+    C, H, W = bias.shape
+    for x in range(W):
+        for c in range(C):
+            wt = scale * _weight(xg[y, x, c], rel, eps)
+            wn[c, y, x] = wt
+            wb[c, y, x] = 2.0 * wt * bias[c, y, x]
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def _adjoint_weights(bias, xg, rel, eps, scale, wb, wn):  # pragma: no cover - compiled
     C, H, W = bias.shape
     for y in prange(H):
-        for x in range(W):
-            for c in range(C):
-                wt = scale * _weight(xg[y, x, c], rel, eps)
-                wn[c, y, x] = wt
-                wb[c, y, x] = 2.0 * wt * bias[c, y, x]
+        _adjoint_weights_row(bias, xg, rel, eps, scale, wb, wn, np.int64(y))
 
 
 @njit(inline="always")
@@ -236,79 +259,95 @@ def _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, y, x, c):  # pragma: no cover - co
     return (xg[y, x, c] - mean) / n, vg[y, x, c] * (a - b) / (n * n * n)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _adjoint_group(K, wb, wn, xt, sb, sm, xg, vg, mvt, use_mvt, c0, nc, grad):  # pragma: no cover
-    """``grad[q] += Σ_c dm_qc Σ_o K[p,o] wb[c,p] + dv_qc Σ_o K[p,o]² wn[c,p]``, ``p = q + r − o``."""
+@njit(cache=True, nogil=True)
+def _adjoint_group_row(K, wb, wn, xt, sb, sm, xg, vg, mvt, use_mvt, c0, nc, grad,
+                       qy):  # pragma: no cover - compiled
+    """A row of :func:`_adjoint_group` (see :func:`_moments_planar_row`)."""
     H, W, k, _ = K.shape
     r = k // 2
     c1 = c0 + min(1, nc - 1)
     c2 = c0 + min(2, nc - 1)
+    dy0 = max(0, qy + r - H + 1)
+    dy1 = min(k, qy + r + 1)
+    for qx in range(W):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        b0 = 0.0
+        b1 = 0.0
+        b2 = 0.0
+        dx0 = max(0, qx + r - W + 1)
+        dx1 = min(k, qx + r + 1)
+        for dy in range(dy0, dy1):
+            py = qy + r - dy
+            for dx in range(dx0, dx1):
+                px = qx + r - dx
+                w = np.float64(K[py, px, dy, dx])
+                w2 = w * w
+                a0 += w * wb[c0, py, px]
+                a1 += w * wb[c1, py, px]
+                a2 += w * wb[c2, py, px]
+                b0 += w2 * wn[c0, py, px]
+                b1 += w2 * wn[c1, py, px]
+                b2 += w2 * wn[c2, py, px]
+        dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c0)
+        g = dm * a0 + dv * b0
+        if nc > 1:
+            dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c1)
+            g += dm * a1 + dv * b1
+        if nc > 2:
+            dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c2)
+            g += dm * a2 + dv * b2
+        grad[qy, qx] += g
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _adjoint_group(K, wb, wn, xt, sb, sm, xg, vg, mvt, use_mvt, c0, nc, grad):  # pragma: no cover
+    """``grad[q] += Σ_c dm_qc Σ_o K[p,o] wb[c,p] + dv_qc Σ_o K[p,o]² wn[c,p]``, ``p = q + r − o``."""
+    H, W, k, _ = K.shape
     for qy in prange(H):
-        dy0 = max(0, qy + r - H + 1)
-        dy1 = min(k, qy + r + 1)
-        for qx in range(W):
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            b0 = 0.0
-            b1 = 0.0
-            b2 = 0.0
-            dx0 = max(0, qx + r - W + 1)
-            dx1 = min(k, qx + r + 1)
-            for dy in range(dy0, dy1):
-                py = qy + r - dy
-                for dx in range(dx0, dx1):
-                    px = qx + r - dx
-                    w = np.float64(K[py, px, dy, dx])
-                    w2 = w * w
-                    a0 += w * wb[c0, py, px]
-                    a1 += w * wb[c1, py, px]
-                    a2 += w * wb[c2, py, px]
-                    b0 += w2 * wn[c0, py, px]
-                    b1 += w2 * wn[c1, py, px]
-                    b2 += w2 * wn[c2, py, px]
-            dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c0)
-            g = dm * a0 + dv * b0
-            if nc > 1:
-                dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c1)
-                g += dm * a1 + dv * b1
-            if nc > 2:
-                dm, dv = _derivs(xt, sb, sm, xg, vg, mvt, use_mvt, qy, qx, c2)
-                g += dm * a2 + dv * b2
-            grad[qy, qx] += g
+        _adjoint_group_row(K, wb, wn, xt, sb, sm, xg, vg, mvt, use_mvt, c0, nc, grad,
+                           np.int64(qy))
+
+
+@njit(cache=True, nogil=True)
+def _column_weights_group_row(K, wv, fq, c0, nc, out, qy):  # pragma: no cover - compiled
+    """A row of :func:`_column_weights_group` (see :func:`_moments_planar_row`)."""
+    H, W, k, _ = K.shape
+    r = k // 2
+    c1 = c0 + min(1, nc - 1)
+    c2 = c0 + min(2, nc - 1)
+    dy0 = max(0, qy + r - H + 1)
+    dy1 = min(k, qy + r + 1)
+    for qx in range(W):
+        b0 = 0.0
+        b1 = 0.0
+        b2 = 0.0
+        dx0 = max(0, qx + r - W + 1)
+        dx1 = min(k, qx + r + 1)
+        for dy in range(dy0, dy1):
+            py = qy + r - dy
+            for dx in range(dx0, dx1):
+                px = qx + r - dx
+                w = np.float64(K[py, px, dy, dx])
+                w2 = w * w
+                b0 += w2 * wv[c0, py, px]
+                b1 += w2 * wv[c1, py, px]
+                b2 += w2 * wv[c2, py, px]
+        tot = fq[c0, qy, qx] * b0
+        if nc > 1:
+            tot += fq[c1, qy, qx] * b1
+        if nc > 2:
+            tot += fq[c2, qy, qx] * b2
+        out[qy, qx] += tot
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def _column_weights_group(K, wv, fq, c0, nc, out):  # pragma: no cover - compiled
     """``out[q] += Σ_{c in group} fq[c,q] Σ_o K[p,o]² wv[c,p]``, ``p = q + r − o``."""
     H, W, k, _ = K.shape
-    r = k // 2
-    c1 = c0 + min(1, nc - 1)
-    c2 = c0 + min(2, nc - 1)
     for qy in prange(H):
-        dy0 = max(0, qy + r - H + 1)
-        dy1 = min(k, qy + r + 1)
-        for qx in range(W):
-            b0 = 0.0
-            b1 = 0.0
-            b2 = 0.0
-            dx0 = max(0, qx + r - W + 1)
-            dx1 = min(k, qx + r + 1)
-            for dy in range(dy0, dy1):
-                py = qy + r - dy
-                for dx in range(dx0, dx1):
-                    px = qx + r - dx
-                    w = np.float64(K[py, px, dy, dx])
-                    w2 = w * w
-                    b0 += w2 * wv[c0, py, px]
-                    b1 += w2 * wv[c1, py, px]
-                    b2 += w2 * wv[c2, py, px]
-            tot = fq[c0, qy, qx] * b0
-            if nc > 1:
-                tot += fq[c1, qy, qx] * b1
-            if nc > 2:
-                tot += fq[c2, qy, qx] * b2
-            out[qy, qx] += tot
+        _column_weights_group_row(K, wv, fq, c0, nc, out, np.int64(qy))
 
 
 def _groups(C):
@@ -322,6 +361,10 @@ def evaluate_numba(K, xt, sb, sm, xg, vg, mvt, rel, eps, want_grad):
     ``bias`` and ``var`` are returned as ``(H, W, C)`` views of planar buffers.
     """
     H, W, C = xt.shape
+    # one compiled variant per dtype of K: read-only C inputs, K C or a strided view
+    K = readonly_strided(K)
+    xt, sb, sm, xg, vg = (readonly(a) for a in (xt, sb, sm, xg, vg))
+    mvt = None if mvt is None else readonly(mvt)
     with _threads_for(H * W * C * K.shape[2] ** 2):
         return _evaluate_numba(K, xt, sb, sm, xg, vg, mvt, rel, eps, want_grad)
 
@@ -353,8 +396,9 @@ def _evaluate_numba(K, xt, sb, sm, xg, vg, mvt, rel, eps, want_grad):
 def column_weights_numba(K, wv, fq):
     """``a_q = Σ_c fq_qc Σ_p K_pq² wv_pc`` (the variance weight of pixel q's samples)."""
     H, W, C = wv.shape
-    planar = np.ascontiguousarray(wv.transpose(2, 0, 1))
-    fplanar = np.ascontiguousarray(fq.transpose(2, 0, 1))
+    K = readonly_strided(K)
+    planar = readonly(wv.transpose(2, 0, 1))
+    fplanar = readonly(fq.transpose(2, 0, 1))
     out = np.zeros((H, W))
     with _threads_for(H * W * C * K.shape[2] ** 2):
         for c0, nc in _groups(C):
@@ -364,32 +408,41 @@ def column_weights_numba(K, wv, fq):
 
 def apply_numba(K, img, out):
     """``out = K * img`` for a stack ``img`` of shape ``(N, H, W, C)``."""
+    K, img = readonly_strided(K), readonly(img)
     with _threads_for(img.size * K.shape[2] ** 2):
         _apply(K, img, out)
+
+
+@njit(cache=True, nogil=True)
+def _apply_row(K, img, out, t):  # pragma: no cover - compiled
+    """One task of :func:`_apply`, compiled on its own (see :func:`_moments_planar_row`)."""
+    N, H, W, C = img.shape
+    k = K.shape[2]
+    r = k // 2
+    n = t // H
+    y = t % H
+    acc = np.empty(C)
+    dy0 = max(0, r - y)
+    dy1 = min(k, H - y + r)
+    for x in range(W):
+        for c in range(C):
+            acc[c] = 0.0
+        dx0 = max(0, r - x)
+        dx1 = min(k, W - x + r)
+        for dy in range(dy0, dy1):
+            yy = y + dy - r
+            for dx in range(dx0, dx1):
+                w = np.float64(K[y, x, dy, dx])
+                xx = x + dx - r
+                for c in range(C):
+                    acc[c] += w * img[n, yy, xx, c]
+        for c in range(C):
+            out[n, y, x, c] = acc[c]
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def _apply(K, img, out):  # pragma: no cover - compiled
     N, H, W, C = img.shape
-    k = K.shape[2]
-    r = k // 2
     for t in prange(N * H):
-        n = t // H
-        y = t % H
-        acc = np.empty(C)
-        dy0 = max(0, r - y)
-        dy1 = min(k, H - y + r)
-        for x in range(W):
-            for c in range(C):
-                acc[c] = 0.0
-            dx0 = max(0, r - x)
-            dx1 = min(k, W - x + r)
-            for dy in range(dy0, dy1):
-                yy = y + dy - r
-                for dx in range(dx0, dx1):
-                    w = np.float64(K[y, x, dy, dx])
-                    xx = x + dx - r
-                    for c in range(C):
-                        acc[c] += w * img[n, yy, xx, c]
-            for c in range(C):
-                out[n, y, x, c] = acc[c]
+        _apply_row(K, img, out, np.int64(t))
+

@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from ._kernel_inputs import writable
 from ._threads import LazyModule, serial_when_small
 from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
                      check_same_shape, real_or_nan)
@@ -270,9 +271,13 @@ def _as_image(name, a, dtype=None):
 
 
 def _rows(img):
-    """(H, W) or (H, W, C) -> contiguous (H, W*C) view and C."""
+    """(H, W) or (H, W, C) -> contiguous, writable (H, W*C) view and C.
+
+    A read-only image is copied: the kernels are compiled for the writable arrays the
+    library allocates itself, and a read-only one compiled each of them anew.
+    """
     c = 1 if img.ndim == 2 else img.shape[2]
-    return np.ascontiguousarray(img).reshape(img.shape[0], img.shape[1] * c), c
+    return writable(img).reshape(img.shape[0], img.shape[1] * c), c
 
 
 def _run(x, c, v, cv, sigma, truncate, *, normalize=True, out_x=None, out_v=None):

@@ -102,6 +102,67 @@ def test_array_layouts_give_the_contiguous_result(name, func, args, layout):
         np.testing.assert_array_equal(other, before)
 
 
+# The kernel modules whose inputs are normalised (statmc._kernel_inputs), and the calls
+# that reach them only (GEM, progressive and sampling prepare their own inputs).
+NORMALISED = ("statmc._combine_kernels", "statmc._analytic_kernels", "statmc._filter_kernels")
+ONE_VARIANT = ["filters.gaussian_filter", "filters.gaussian_spread", "filters.filter_bank",
+               "sure.sure", "analytic.apply_kernels", "combine.combine",
+               "combine.statistical_weights"]
+
+
+def _entry_kernels():
+    """(module, name, dispatcher) of the compiled kernels that Python code calls, i.e. not
+    only from other kernels (those are typed when their caller compiles)."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+    out = []
+    for mod_name in NORMALISED:
+        mod = importlib.import_module(mod_name)
+        disp = {n: d for n, d in vars(mod).items() if isinstance(d, CPUDispatcher)}
+        nested = {n for d in disp.values() for n in d.py_func.__code__.co_names if n in disp}
+        out += [(mod, n, d) for n, d in disp.items() if n not in nested]
+    return out
+
+
+def _same_kernel_types(got, ref, strided_ok):
+    """``got`` and ``ref`` (kernel name, argument types) equal; with ``strided_ok`` an array
+    may also be the read-only strided view of the same array (layout ``'A'``)."""
+    from numba.core import types
+    if len(got) != len(ref) or got[0] != ref[0]:
+        return False
+    return all(g == r or (strided_ok and isinstance(g, types.Array) and isinstance(r, types.Array)
+                          and g == r.copy(layout="A", readonly=True)) for g, r in zip(got, ref))
+
+
+@pytest.mark.parametrize("layout", ["big-endian", "strided", "reversed", "fortran", "readonly"])
+@pytest.mark.parametrize("name,func,args", [c for c in CALLS if c[0] in ONE_VARIANT],
+                         ids=ONE_VARIANT)
+def test_array_layouts_reuse_the_compiled_kernels(name, func, args, layout, monkeypatch):
+    """A read-only, foreign-byte-order or Fortran-ordered input reaches each kernel with the
+    argument types of the contiguous call, so numba compiles nothing new: a read-only
+    ``var_y`` compiled the statistical weights' kernels anew (30-60 s on a cold cache, for
+    the same numbers), and likewise the combination, filter and kernel-apply kernels.  A
+    strided one is copied, except the weights and kernels (up to 7 GiB at 1080p), which
+    stay views, read through their strides: the kernels' one other layout."""
+    seen = []
+    for mod, kname, disp in _entry_kernels():
+        def spy(*a, _d=disp, _n=kname, **kw):
+            seen.append((_n,) + tuple(_d.typeof_pyval(x) for x in a) + tuple(
+                (k, _d.typeof_pyval(v)) for k, v in sorted(kw.items())))
+            return _d(*a, **kw)
+        monkeypatch.setattr(mod, kname, spy)
+    func(*args)
+    contiguous = set(seen)
+    assert contiguous, f"{name} reached none of the kernels watched"
+    for i, a in enumerate(args):
+        seen.clear()
+        func(*args[:i], _layouts(np.asarray(a))[layout], *args[i + 1:])
+        new = [g for g in set(seen) if not any(
+            _same_kernel_types(g, r, layout in ("strided", "reversed")) for r in contiguous)]
+        assert not new, f"{name} argument {i} {layout}: new kernel argument types {new}"
+
+
 def test_big_endian_float32_counts_and_images():
     """``'>f4'`` images (OpenEXR-like float32 in foreign byte order) and ``'>i8'`` count
     maps into GEM: the result equals the native float32 / int64 one."""
