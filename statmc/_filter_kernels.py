@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ._kernel_inputs import writable
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -215,7 +216,8 @@ def sep_filter_add(x, w, sy, sx, out):  # pragma: no cover - compiled
         y1 = min(H, y0 + _ROW_BLOCK)
         acc = np.empty(_STRIP, x.dtype)
         T = _padded_rows(y1 - y0, L, r, x.dtype)
-        _block(x, 1, w, sy, sx, y0, y1, out, T, acc, True)
+        _block(x, np.int64(1), w, sy, sx, y0, y1, out, T, acc, True)   # not a literal 1:
+        # that compiled _block and _hpass once more, specialised to C = 1
 
 
 @njit(nogil=True, cache=True)
@@ -562,10 +564,18 @@ def _scan_count_row(nr, o, tally):  # pragma: no cover - compiled
             tally[2] += 1
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def scan_counts(n, out):  # pragma: no cover - compiled
+def scan_counts(n, out):
     """``out = float64(n)``; returns the numbers of non-finite, non-integer and < 2
-    entries (the sample-count checks of ``gem._check_inputs``) in one pass."""
+    entries (the sample-count checks of ``gem._check_inputs``) in one pass.
+
+    ``n`` reaches the kernel C-contiguous and writable (a read-only, strided or Fortran
+    count map is copied, 16 MB at 1080p), so each dtype compiles one variant."""
+    return _scan_counts(writable(n), out)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _scan_counts(n, out):  # pragma: no cover - compiled
+    """:func:`scan_counts`."""
     H = n.shape[0]
     tally = np.zeros((H, 3), np.int64)
     for y in prange(H):
