@@ -828,12 +828,13 @@ def _full_weights(mom, mean, k, B, H, W, ridge):
 
 
 def _unbroadcast(a):
-    """A moment broadcast over bins as its stored ``(1, ...)`` block, contiguous float64."""
+    """A moment broadcast over bins as its stored ``(1, ...)`` block (the kernel's wrapper
+    makes it contiguous float64)."""
     if a is None:
         return None
     if a.shape[0] > 1 and a.strides[0] == 0:
         a = a[:1]
-    return np.ascontiguousarray(a, dtype=np.float64)
+    return a
 
 
 def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo, rows=None):
@@ -850,7 +851,7 @@ def _statistical_weights_compiled(ys, zs, mom, zb, z_bias, method, k, patch, loo
             part[:] = 0.0
             part[:, :, :, k // 2, k // 2] = 1.0
     code = _ck.METHOD_COHERENT if method == "coherent" else _ck.METHOD_DIAGONAL
-    _ck.statistical_weights_numba(np.ascontiguousarray(ys), np.ascontiguousarray(zs),
+    _ck.statistical_weights_numba(ys, zs,
                                   _unbroadcast(mom.var_y), _unbroadcast(mom.cov_z),
                                   _unbroadcast(mom.cov_yz), _unbroadcast(zb), mode, code, k,
                                   patch, out, loo=loo, rows=rows,
