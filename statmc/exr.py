@@ -21,7 +21,8 @@ pass the render's uniform ``spp``.
 
 Arrays hold the file's data window (a crop or an overscan region as stored);
 :func:`exr_windows` says where it lies, and ``write_exr(..., data_window=, display_window=)``
-writes a result back in the same place.
+writes a result back in the same place (a ``PixelStats`` from :func:`read_exr` is written back
+where its ``meta`` says, with its ``chromaticities``, unless these arguments are given).
 
 Every failure to read raises :class:`~statmc.errors.FileFormatError` naming the file.
 Writes are atomic (temporary file beside the target, then ``os.replace``) and refuse
@@ -1233,13 +1234,19 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
         Where the pixels lie (OpenEXR's inclusive corners, as :func:`exr_windows` and
         ``read_exr(...).meta`` give them): the data window must have the image's size; the
         display window, the frame the image belongs to, defaults to the data window.  Left
-        out, the image lies at the origin, ``[0, 0, W - 1, H - 1]``.  Pass an input's
-        windows to write a result in the input's place (a crop render stays a crop).
+        out (both), a ``PixelStats`` is written where its ``meta["data_window"]`` and
+        ``meta["display_window"]`` say (``read_exr`` sets them, so a read crop is written
+        back as a crop; a meta window of another size than the image is refused), and a
+        plain image, or statistics without them, at the origin, ``[0, 0, W - 1, H - 1]``.
+        Given, they win over ``meta``: pass an input's windows to write a result in the
+        input's place.
     chromaticities : sequence of 8 floats, optional
         The RGB primaries and white point ``(rx, ry, gx, gy, bx, by, wx, wy)`` of the
         data (OpenEXR's ``chromaticities`` attribute; ``read_exr(...).meta`` gives an
-        input's).  Left out, none is written, which readers take as Rec. 709/sRGB; pass an
-        input's to keep, say, an ACEScg render's colours.
+        input's).  Left out, a ``PixelStats``'s ``meta["chromaticities"]`` is written if
+        it has one, else none, which readers take as Rec. 709/sRGB; given, it wins: pass
+        an input's to keep, say, an ACEScg render's colours in a result computed from it.
+        (Set a ``meta`` entry to None to write statistics without it.)
     overwrite : bool, default True
         With ``False``, an existing ``path`` raises :class:`InputError`.
     protect : path or sequence of paths
@@ -1256,8 +1263,16 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
     ``.npy``, ...) is refused: the file would not be what its name says.
     """
     _check_extension(path, "exr", "write_png_preview writes an 8-bit PNG preview", protect)
+    chroma_name, window_names = "chromaticities", None     # None: the caller's windows
     if isinstance(data, PixelStats):
         channels = _stats_channels(data)
+        meta = data.meta if isinstance(data.meta, dict) else {}
+        if chromaticities is None:
+            chromaticities = meta.get("chromaticities")
+            chroma_name = "data.meta['chromaticities']"
+        if data_window is None and display_window is None:
+            data_window, display_window = meta.get("data_window"), meta.get("display_window")
+            window_names = ("data.meta['data_window']", "data.meta['display_window']")
     else:
         channels = _image_channels(data)
     hw = next(iter(channels.values())).shape
@@ -1276,15 +1291,23 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
         except (TypeError, ValueError):
             c = ()
         if len(c) != 8 or not all(np.isfinite(c)):
-            raise InputError("`chromaticities` must be 8 finite numbers (rx, ry, gx, gy, bx, by, "
+            raise InputError(f"`{chroma_name}` must be 8 finite numbers (rx, ry, gx, gy, bx, by, "
                              f"wx, wy); got {chromaticities!r}.")
         attrs["chromaticities"] = c
     windows = None
     if data_window is not None or display_window is not None:
-        box = _check_window("data_window", data_window if data_window is not None
-                            else [0, 0, hw[1] - 1, hw[0] - 1], hw)
-        windows = (box, box if display_window is None
-                   else _check_window("display_window", display_window))
+        names = window_names or ("data_window", "display_window")
+        try:
+            box = _check_window(names[0], data_window if data_window is not None
+                                else [0, 0, hw[1] - 1, hw[0] - 1], hw)
+            windows = (box, box if display_window is None
+                       else _check_window(names[1], display_window))
+        except InputError as e:
+            if window_names is None:
+                raise
+            raise InputError(f"{str(e).rstrip('.')}; pass data_window= (and display_window=) "
+                             "for where the image lies, or set these meta entries to None for "
+                             "the origin.") from None
 
     def write(tmp):
         try:

@@ -921,6 +921,59 @@ def test_data_and_display_windows_are_read_and_written_back(tmp_path, windows):
     assert exr.exr_windows(q) == ([0, 0, w - 1, h - 1], [0, 0, w - 1, h - 1])
 
 
+def test_write_exr_of_read_stats_keeps_their_windows_and_chromaticities(tmp_path):
+    # before: write_exr(path, read_exr(crop)) put the image at the origin with display =
+    # data window and wrote no chromaticities unless the caller passed them again, so a
+    # read -> write round trip of a pbrt-v4 crop (or an ACEScg render) lost both silently
+    rng = np.random.default_rng(5)
+    windows = ([3, 2, 12, 9], [0, 0, 19, 15])
+    ch = _stats_channels_for(8, 10, rng)
+    p = tmp_path / "crop.exr"
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+           "chromaticities": ACESCG,
+           "dataWindow": (np.array([3, 2], np.int32), np.array([12, 9], np.int32)),
+           "displayWindow": (np.array([0, 0], np.int32), np.array([19, 15], np.int32))}
+    OpenEXR.File(hdr, {k: v.copy() for k, v in ch.items()}).write(str(p))
+    s = read_exr(p)
+    q = tmp_path / "out.exr"
+    write_exr(q, s)
+    t = read_exr(q)
+    assert exr.exr_windows(q) == tuple(list(w) for w in windows)
+    assert t.meta["chromaticities"] == s.meta["chromaticities"]
+    np.testing.assert_allclose(t.meta["chromaticities"], ACESCG, rtol=1e-7)
+    np.testing.assert_array_equal(t.mean, s.mean)
+    np.testing.assert_array_equal(t.sample_var, s.sample_var)
+    # explicit arguments win; a window passed alone places the image as before (display
+    # window = data window), the chromaticities still from meta
+    write_exr(q, s, data_window=[0, 0, 9, 7])
+    assert exr.exr_windows(q) == ([0, 0, 9, 7], [0, 0, 9, 7])
+    np.testing.assert_allclose(exr_info(q)["chromaticities"], ACESCG, rtol=1e-7)
+    rec709 = (0.64, 0.33, 0.3, 0.6, 0.15, 0.06, 0.3127, 0.329)
+    write_exr(q, s, display_window=[0, 0, 29, 29], chromaticities=rec709)
+    assert exr.exr_windows(q) == ([0, 0, 9, 7], [0, 0, 29, 29])
+    np.testing.assert_allclose(exr_info(q)["chromaticities"], rec709, rtol=1e-6)
+    # meta is the state: entries set to None (or absent) mean none / the origin
+    plain = PixelStats(s.n, s.mean, s.m2, meta={**s.meta, "chromaticities": None,
+                                                 "data_window": None, "display_window": None})
+    write_exr(q, plain)
+    assert exr_info(q)["chromaticities"] is None
+    assert exr.exr_windows(q) == ([0, 0, 9, 7], [0, 0, 9, 7])
+    # a plain array carries no meta: the origin, no chromaticities, as before
+    write_exr(q, s.mean)
+    assert exr.exr_windows(q) == ([0, 0, 9, 7], [0, 0, 9, 7])
+    assert exr_info(q)["chromaticities"] is None
+    # a meta window that no longer fits the image (statistics cut out of a read file with
+    # its meta) is refused by name before anything is written, not silently dropped
+    cut = PixelStats(s.n[:4], s.mean[:4], s.m2[:4], meta=dict(s.meta))
+    r = tmp_path / "cut.exr"
+    with pytest.raises(InputError, match=r"`data.meta\['data_window'\]` \[3, 2, 12, 9\] is 10x8 "
+                       r"\(W x H\) but the image is 10x4.*pass data_window="):
+        write_exr(r, cut)
+    assert not r.exists()
+    write_exr(r, cut, data_window=[3, 2, 12, 5], display_window=[0, 0, 19, 15])
+    assert exr.exr_windows(r) == ([3, 2, 12, 5], [0, 0, 19, 15])
+
+
 @pytest.mark.parametrize("kw, needle", [
     ({"data_window": [0, 0, 3, 3]}, r"`data_window` \[0, 0, 3, 3\] is 4x4 \(W x H\) but the image is 5x6"),
     ({"data_window": [0, 0, 4]}, r"`data_window` must be \[x0, y0, x1, y1\]"),
