@@ -162,8 +162,7 @@ def _block(src, C, w, sy, sxr, y0, y1, out, T, acc, add):  # pragma: no cover - 
                     o[j] = acc[j] * (s * f[j])
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def sep_filter(x, C, v, Cv, w, sy, sx, out_x, out_v):  # pragma: no cover - compiled
+def sep_filter(x, C, v, Cv, w, sy, sx, out_x, out_v):
     """Separable filter of ``x`` with taps ``w`` and of ``v`` with the squared taps.
 
     x : (H, W*C) rows; v : (H, W*Cv) rows, or (H, 0) to skip the variance.
@@ -173,51 +172,21 @@ def sep_filter(x, C, v, Cv, w, sy, sx, out_x, out_v):  # pragma: no cover - comp
     out_x = Σ_q (sy w)(sx w) x_q ;  out_v = Σ_q (sy w)² (sx w)² v_q — the variance of
         ``out_x`` when the ``x_q`` are uncorrelated with variances ``v_q`` (Eq. 2 of
         Rousselle et al. 2011).
+
+    One job of :func:`sep_filter_many` (the one compiled filter kernel: a kernel of its
+    own compiled the filter passes again, 3-4 s per dtype on a cold cache).
     """
-    H = x.shape[0]
-    Lx = x.shape[1]
-    Lv = v.shape[1]
-    do_var = Lv > 0
-    K = w.shape[0]
-    r = K // 2
-    w2 = w * w
-    sy2 = sy * sy
-    W = Lx // C
-    sxx = np.empty(Lx, x.dtype)
-    for i in range(W):
-        for c in range(C):
-            sxx[i * C + c] = sx[i]
-    sxv = np.empty(Lv, x.dtype)
-    if do_var:
-        for i in range(W):
-            for c in range(Cv):
-                sxv[i * Cv + c] = sx[i] * sx[i]
-    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
-    for b in prange(nblk):
-        y0 = b * _ROW_BLOCK
-        y1 = min(H, y0 + _ROW_BLOCK)
-        acc = np.empty(_STRIP, x.dtype)
-        T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
-        _block(x, C, w, sy, sxx, y0, y1, out_x, T, acc, False)
-        if do_var:
-            Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
-            _block(v, Cv, w2, sy2, sxv, y0, y1, out_v, Tv, acc, False)
+    _sep_filter_jobs(x[None], C, v[None], Cv, np.zeros(1, np.int64), w[None], np.array([w.shape[0]]),
+                     sy[None], sx[None], out_x[None], out_v[None], False)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def sep_filter_add(x, w, sy, sx, out):  # pragma: no cover - compiled
+def sep_filter_add(x, w, sy, sx, out):
     """``out += Σ_q (sy w)(sx w) x_q`` for one-channel (H, W) ``x`` (see
-    :func:`sep_filter`): accumulates several filtered maps without a temporary."""
-    H, L = x.shape
-    r = w.shape[0] // 2
-    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
-    for b in prange(nblk):
-        y0 = b * _ROW_BLOCK
-        y1 = min(H, y0 + _ROW_BLOCK)
-        acc = np.empty(_STRIP, x.dtype)
-        T = _padded_rows(y1 - y0, L, r, x.dtype)
-        _block(x, np.int64(1), w, sy, sx, y0, y1, out, T, acc, True)   # not a literal 1:
-        # that compiled _block and _hpass once more, specialised to C = 1
+    :func:`sep_filter`): accumulates several filtered maps without a temporary.
+    One job of :func:`sep_filter_many`, adding."""
+    none = np.empty((1, x.shape[0], 0), x.dtype)
+    _sep_filter_jobs(x[None], 1, none, 1, np.zeros(1, np.int64), w[None], np.array([w.shape[0]]),
+                     sy[None], sx[None], out[None], none, True)
 
 
 @njit(nogil=True, cache=True)
@@ -916,8 +885,7 @@ def place_points(cum, r, u, counts):  # pragma: no cover - compiled
 # NumPy reference of each: the single kernel called job by job (tests/test_threads.py).
 # ---------------------------------------------------------------------------------------
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):  # pragma: no cover
+def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):
     """:func:`sep_filter` for K jobs in one region: job k filters ``x[src[k]]`` (and
     ``v[src[k]]``) with the taps ``taps[k, :ntaps[k]]`` and factors ``sy[k]``, ``sx[k]``
     into ``out_x[k]`` (``out_v[k]``).
@@ -926,6 +894,15 @@ def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):  # pra
     src : (K,) int64; taps : (K, T) padded taps, ntaps : (K,) their odd lengths;
     sy : (K, H); sx : (K, W); out_x : (K, H, W*C); out_v : (K, H, W*Cv) or (K, H, 0).
     """
+    _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, False)
+
+
+@njit(parallel=True, cache=True, fastmath=True, nogil=True)
+def _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, add):  # pragma: no cover
+    """:func:`sep_filter_many`; with ``add`` the results are added to ``out_x`` (and
+    ``out_v``) instead of written (:func:`sep_filter_add`).  ``add`` is a run-time flag,
+    not a literal, so the filter passes are compiled once per dtype, into this kernel
+    only."""
     K = src.shape[0]
     H = x.shape[1]
     Lx = x.shape[2]
@@ -955,12 +932,12 @@ def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):  # pra
         y1 = min(H, y0 + _ROW_BLOCK)
         acc = np.empty(_STRIP, x.dtype)
         T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
-        _block(x[src[k]], C, w, syk, sxx[k], y0, y1, out_x[k], T, acc, False)
+        _block(x[src[k]], C, w, syk, sxx[k], y0, y1, out_x[k], T, acc, add)
         if do_var:
             w2 = w * w
             sy2 = syk * syk
             Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
-            _block(v[src[k]], Cv, w2, sy2, sxv[k], y0, y1, out_v[k], Tv, acc, False)
+            _block(v[src[k]], Cv, w2, sy2, sxv[k], y0, y1, out_v[k], Tv, acc, add)
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
