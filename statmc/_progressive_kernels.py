@@ -30,6 +30,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ._kernel_inputs import readonly
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -122,114 +123,135 @@ def _tstat(num, var, eps):  # pragma: no cover - compiled
     return math.inf if num > 0.0 else -math.inf
 
 
-@njit(parallel=True, cache=True, nogil=True, fastmath=_FLAGS)
+@njit(parallel=True, cache=True, nogil=True)
 def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
                 finish, alpha, shared, a, cc, eps, logistic, fast, t_out,
                 a_out):  # pragma: no cover
-    """Bands of output rows: horizontal pass with halo, vertical sums and argmax, the gather
-    of Eq. 13/14, and (``finish``) Eq. 17/18.  ``keep``: write num/var (else row scratch)."""
+    """Bands of output rows in parallel, each by :func:`_gate_band`: the loop body stays
+    a call, so numba's parallel passes handle a small function.  ``np.int64(b)``: the
+    loop index is typed int64, then uint64 in the parallel lowering, which compiled
+    ``_gate_band`` twice."""
+    h = u.shape[0]
+    nb = (h + band - 1) // band
+    for b in prange(nb):
+        _gate_band(np.int64(b), u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
+                   finish, alpha, shared, a, cc, eps, logistic, fast, t_out, a_out)  # one type
+
+
+@njit(cache=True, nogil=True, fastmath=_FLAGS)
+def _gate_band(b, u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
+               finish, alpha, shared, a, cc, eps, logistic, fast, t_out,
+               a_out):  # pragma: no cover - compiled
+    """Band ``b`` of output rows: horizontal pass with halo, vertical sums and argmax, the
+    gather of Eq. 13/14, and (``finish``) Eq. 17/18.  ``keep``: write num/var (else row
+    scratch)."""
     h, n = u.shape
     w = n // c
     inv_sqrt2 = 1.0 / math.sqrt(2.0)
-    nb = (h + band - 1) // band
-    for b in prange(nb):
-        y0 = b * band
-        y1 = min(h, y0 + band)
-        h0 = max(0, y0 - r)
-        h1 = min(h, y1 + r)
-        m = h1 - h0
-        su = np.empty((m, n), u.dtype)
-        sv = np.empty((m, n), u.dtype)
-        rm = np.empty((m, n), u.dtype)
-        ri = np.empty((m, n), np.int32)
-        for yy in range(h0, h1):
-            i = yy - h0
-            _hrow(u[yy], v[yy], g, g2, r, c, su[i], sv[i], rm[i], ri[i])
-        best = np.empty(n, u.dtype)
-        bdy = np.empty(n, np.int32)
-        s_num = np.empty(n, u.dtype)
-        s_var = np.empty(n, u.dtype)
-        for y in range(y0, y1):
-            o_num = num[y] if keep else s_num
-            o_var = var[y] if keep else s_var
-            for j in range(n):
-                o_num[j] = 0.0
-                o_var[j] = 0.0
-                best[j] = -np.inf
-                bdy[j] = 0
-            for k in range(-r, r + 1):
-                yy = y + k
-                if yy < 0 or yy >= h:
-                    continue
-                i = yy - h0
-                p_su = su[i]
-                p_sv = sv[i]
-                p_rm = rm[i]
-                wk = g[k + r]
-                wk2 = g2[k + r]
-                for j in range(n):
-                    o_num[j] += wk * p_su[j]
-                    o_var[j] += wk2 * p_sv[j]
-                    val = p_rm[j]
-                    cur = best[j]
-                    gt = val > cur
-                    best[j] = val if gt else cur
-                    bdy[j] = k if gt else bdy[j]
-            for j in range(n):
-                ym = y + bdy[j]
-                jm = j + ri[ym - h0, j] * c
-                o_num[j] = u[ym, jm] + norm * o_num[j]
-                o_var[j] = v[ym, jm] + norm2 * o_var[j]
-            if not finish:
+    y0 = b * band
+    y1 = min(h, y0 + band)
+    h0 = max(0, y0 - r)
+    h1 = min(h, y1 + r)
+    m = h1 - h0
+    su = np.empty((m, n), u.dtype)
+    sv = np.empty((m, n), u.dtype)
+    rm = np.empty((m, n), u.dtype)
+    ri = np.empty((m, n), np.int32)
+    for yy in range(h0, h1):
+        i = yy - h0
+        _hrow(u[yy], v[yy], g, g2, r, c, su[i], sv[i], rm[i], ri[i])
+    best = np.empty(n, u.dtype)
+    bdy = np.empty(n, np.int32)
+    s_num = np.empty(n, u.dtype)
+    s_var = np.empty(n, u.dtype)
+    for y in range(y0, y1):
+        o_num = num[y] if keep else s_num
+        o_var = var[y] if keep else s_var
+        for j in range(n):
+            o_num[j] = 0.0
+            o_var[j] = 0.0
+            best[j] = -np.inf
+            bdy[j] = 0
+        for k in range(-r, r + 1):
+            yy = y + k
+            if yy < 0 or yy >= h:
                 continue
-            i_a = alpha[y]
-            o_a = a_out[y]
-            for x in range(w):
-                j0 = x * c
-                if shared:
-                    sn = 0.0
-                    sw = 0.0
-                    for k in range(c):
-                        sn += o_num[j0 + k]
-                        sw += o_var[j0 + k]
-                    t = _tstat(sn, sw, eps)
-                    scale = _scale(a * (abs(t) - cc), logistic, fast, inv_sqrt2)
-                    for k in range(c):
-                        if keep:
-                            t_out[y, j0 + k] = t
-                        o_a[j0 + k] = scale * i_a[j0 + k]
-                else:
-                    for k in range(c):
-                        t = _tstat(o_num[j0 + k], o_var[j0 + k], eps)
-                        if keep:
-                            t_out[y, j0 + k] = t
-                        o_a[j0 + k] = _scale(a * (abs(t) - cc), logistic, fast,
-                                             inv_sqrt2) * i_a[j0 + k]
+            i = yy - h0
+            p_su = su[i]
+            p_sv = sv[i]
+            p_rm = rm[i]
+            wk = g[k + r]
+            wk2 = g2[k + r]
+            for j in range(n):
+                o_num[j] += wk * p_su[j]
+                o_var[j] += wk2 * p_sv[j]
+                val = p_rm[j]
+                cur = best[j]
+                gt = val > cur
+                best[j] = val if gt else cur
+                bdy[j] = k if gt else bdy[j]
+        for j in range(n):
+            ym = y + bdy[j]
+            jm = j + ri[ym - h0, j] * c
+            o_num[j] = u[ym, jm] + norm * o_num[j]
+            o_var[j] = v[ym, jm] + norm2 * o_var[j]
+        if not finish:
+            continue
+        i_a = alpha[y]
+        o_a = a_out[y]
+        for x in range(w):
+            j0 = x * c
+            if shared:
+                sn = 0.0
+                sw = 0.0
+                for k in range(c):
+                    sn += o_num[j0 + k]
+                    sw += o_var[j0 + k]
+                t = _tstat(sn, sw, eps)
+                scale = _scale(a * (abs(t) - cc), logistic, fast, inv_sqrt2)
+                for k in range(c):
+                    if keep:
+                        t_out[y, j0 + k] = t
+                    o_a[j0 + k] = scale * i_a[j0 + k]
+            else:
+                for k in range(c):
+                    t = _tstat(o_num[j0 + k], o_var[j0 + k], eps)
+                    if keep:
+                        t_out[y, j0 + k] = t
+                    o_a[j0 + k] = _scale(a * (abs(t) - cc), logistic, fast,
+                                         inv_sqrt2) * i_a[j0 + k]
 
 
 def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
     """``u`` and ``v`` set the working precision (``v`` is cast to ``u``'s dtype); ``alpha``
-    keeps its own dtype, which is that of the gated output."""
+    keeps its own dtype, which is that of the gated output.
+
+    Inputs reach the kernel read-only, C-contiguous and native (:func:`readonly`), so a
+    read-only caller's array does not compile the kernel anew; without ``alpha`` the
+    unused ``alpha`` and output are the float64 ones of :func:`gate` with float64 ``alpha``
+    (one compiled kernel for both).
+    """
     h, w, c = u.shape
-    dt = u.dtype
-    u2 = np.ascontiguousarray(u).reshape(h, w * c)
-    v2 = np.ascontiguousarray(v, dtype=dt).reshape(h, w * c)
+    u2 = readonly(u).reshape(h, w * c)
+    dt = u2.dtype
+    v2 = readonly(v, dt).reshape(h, w * c)
     d = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (d / sigma_s) ** 2)
     norm = 1.0 / (sigma_s * math.sqrt(2.0 * math.pi))
-    gd, g2d = g.astype(dt), (g * g).astype(dt)
+    gd, g2d = readonly(g.astype(dt)), readonly((g * g).astype(dt))
     empty = np.empty((h, 0), dt)
     num = np.empty_like(u2) if keep else empty
     var = np.empty_like(u2) if keep else empty
     if alpha is None:
-        args = (False, empty, False, 0.0, 0.0, 0.0, False, False, empty, empty)
+        no_alpha = np.empty((h, 0), np.float64)
+        args = (False, readonly(no_alpha), False, 0.0, 0.0, 0.0, False, False, empty, no_alpha)
     else:
-        a2 = np.ascontiguousarray(alpha)
+        a2 = np.asarray(alpha)
         if a2.dtype not in (np.float32, np.float64):
             a2 = a2.astype(np.float64)
-        a2 = a2.reshape(h, w * c)
+        a2 = readonly(a2).reshape(h, w * c)
         t = np.empty_like(u2) if keep else empty
-        out = np.empty_like(a2)
+        out = np.empty(a2.shape, a2.dtype)
         fast = bool(finish.get("fast_cdf", dt == np.float32))
         args = (True, a2, bool(finish["shared"]), float(finish["a"]), float(finish["c"]),
                 float(finish["eps"]), bool(finish["logistic"]), fast, t, out)
@@ -298,9 +320,9 @@ def prepare(x, y, v, alpha, work=None):
     :data:`SINGLE_MAX`; ``Σv`` is float64.
     """
     h, w, c = x.shape
-    dt = x.dtype
+    dt = x.dtype.newbyteorder("=")
     work = dt if work is None else np.dtype(work)
-    as2 = lambda a: np.ascontiguousarray(a, dtype=dt).reshape(h, w * c)   # noqa: E731
+    as2 = lambda a: readonly(a, dt).reshape(h, w * c)   # noqa: E731  (one kernel type)
     v2 = as2(v)
     u = np.empty((h, w * c), work)
     cast = work != dt
