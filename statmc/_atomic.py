@@ -86,10 +86,12 @@ def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     directory = os.path.dirname(os.path.abspath(path))
     mode = _final_mode(path)
     suffix = suffix if suffix is not None else os.path.splitext(path)[1]
+    made = _missing_directories(directory)
     try:
         os.makedirs(directory, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".statmc-", suffix=suffix, dir=directory)
     except OSError as e:
+        _remove_made(made)
         # name the target and the directory, not the hidden temporary file or a bare errno
         raise _cannot_write(path, directory, e) from None
     os.close(fd)
@@ -102,7 +104,31 @@ def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(tmp)
+        _remove_made(made)
         raise
+
+
+def _missing_directories(directory: str) -> list:
+    """The components of ``directory`` that do not exist yet, deepest first (what
+    ``os.makedirs`` will create)."""
+    made = []
+    d = directory
+    while d and not os.path.lexists(d):
+        made.append(d)
+        parent = os.path.dirname(d)
+        if parent == d:
+            break
+        d = parent
+    return made
+
+
+def _remove_made(made) -> None:
+    """Remove the directories a failed write created (deepest first), if still empty."""
+    for d in made:
+        try:
+            os.rmdir(d)
+        except OSError:           # not empty (someone else wrote there) or already gone
+            break
 
 
 def write_text(path, text: str, *, protect=()) -> None:

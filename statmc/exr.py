@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import numbers
 import os
 import re
 import sys
@@ -886,12 +887,20 @@ def _check_counts(p, count):
 
 
 def _spp_map(spp, hw):
+    if (isinstance(spp, numbers.Integral) and not isinstance(spp, bool)
+            and not -2 ** 63 <= spp < 2 ** 63):       # NumPy would hold it as an object
+        raise InputError(f"`spp` must be a whole number of samples per pixel from 0 to "
+                         f"2**63 - 1; got {spp}.")
     a = np.asarray(spp)
     if a.dtype == bool or not np.issubdtype(a.dtype, np.number):
         raise InputError(f"`spp` must be a whole number of samples per pixel; got {spp!r}.")
     if a.ndim not in (0, 2) or (a.ndim == 2 and a.shape != tuple(hw)):
         raise InputError(f"`spp` must be a number or an {tuple(hw)} count map; got shape {a.shape}.")
     af = a.astype(np.float64)
+    if np.any(np.isfinite(af) & (af >= 2.0 ** 63)):      # beyond the int64 counts
+        raise InputError(f"`spp` must be a whole number of samples per pixel from 0 to "
+                         f"2**63 - 1; got {spp}." if a.ndim == 0 else "`spp` must hold whole "
+                         f"numbers from 0 to 2**63 - 1; the map's largest is {af.max():.4g}.")
     if not np.all(np.isfinite(af)) or np.any(af < 0) or np.any(af != np.round(af)):
         raise InputError(f"`spp` must hold whole numbers >= 0; got {spp!r}." if a.ndim == 0 else
                          "`spp` must hold whole numbers >= 0; the map has other values.")

@@ -373,6 +373,26 @@ def test_failed_write_leaves_existing_file_and_no_temp(tmp_path, monkeypatch):
     np.testing.assert_array_equal(read_image(p), 1.0)
 
 
+def test_failed_write_removes_the_directories_it_made(tmp_path, monkeypatch):
+    # before: write_exr (and write_png_preview) created a missing output directory and left
+    # it behind, empty, when the write then failed (disk full, an encoder error): the
+    # failure was not "nothing written". A directory that existed stays.
+    def broken(tmp, channels, *rest):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(exr, "_write_exr_file", broken)
+    with pytest.raises(OSError, match="disk full"):
+        write_exr(tmp_path / "a" / "b" / "out.exr", np.zeros((4, 4, 3)))
+    assert os.listdir(tmp_path) == []
+    (tmp_path / "kept").mkdir()
+    with pytest.raises(OSError, match="disk full"):
+        write_exr(tmp_path / "kept" / "new" / "out.exr", np.zeros((4, 4, 3)))
+    assert os.listdir(tmp_path) == ["kept"] and os.listdir(tmp_path / "kept") == []
+    monkeypatch.undo()
+    write_exr(tmp_path / "a" / "b" / "out.exr", np.ones((4, 4, 3)))      # made when it works
+    np.testing.assert_array_equal(read_image(tmp_path / "a" / "b" / "out.exr"), 1.0)
+
+
 def test_failed_png_write_leaves_existing_file(tmp_path, monkeypatch):
     p = tmp_path / "prev.png"
     write_png_preview(p, np.ones((4, 4, 3)))
@@ -972,6 +992,19 @@ def test_write_exr_of_read_stats_keeps_their_windows_and_chromaticities(tmp_path
     assert not r.exists()
     write_exr(r, cut, data_window=[3, 2, 12, 5], display_window=[0, 0, 19, 15])
     assert exr.exr_windows(r) == ([3, 2, 12, 5], [0, 0, 19, 15])
+
+
+@pytest.mark.parametrize("spp", [2 ** 63, 10 ** 23, -(2 ** 70)])
+def test_an_spp_beyond_int64_is_named_as_too_large(tmp_path, spp):
+    # before: "`spp` must be a whole number of samples per pixel; got 1180591620717411303424"
+    # for a whole number too large for the int64 counts (NumPy holds it as an object array)
+    p = tmp_path / "nocount.exr"
+    ch = _stats_channels_for(3, 4, np.random.default_rng(0))
+    del ch["SampleCount"]
+    _write_with(p, ch)
+    with pytest.raises(InputError, match=rf"`spp` must be a whole number of samples per pixel "
+                       rf"from 0 to 2\*\*63 - 1; got {spp}\."):
+        read_exr(p, spp=spp)
 
 
 @pytest.mark.parametrize("kw, needle", [
