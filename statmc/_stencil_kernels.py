@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ._kernel_inputs import readonly
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -28,13 +29,23 @@ def add_neighbour_products(prod, a, b, R):
     add_neighbour_products_sum(prod, a[None], b[None], R, np.ones(1, np.bool_))
 
 
-@njit(parallel=True, cache=True)
 def add_neighbour_products_sum(prod, a, b, R, use):
     """Compiled ``add_neighbour_products(prod, a[i], b[i], R)`` for every ``i`` with
     ``use[i]``, in order (``a``, ``b`` ``(K, H, W, C)``): each element of ``prod`` is read
     once, gets its ``K`` products added one by one in the same order, and is written once,
     so the sums are those of the ``K`` calls to the bit (``prod`` makes one trip through
-    memory instead of ``K``)."""
+    memory instead of ``K``).
+
+    ``a``, ``b`` and ``use`` reach the kernel read-only, C-contiguous and native
+    (:func:`readonly`; a copy of a strided slab such as ``jv[:, s0:s1]`` is ``m²`` times
+    smaller than ``prod``), so a slab view does not compile the kernel once more.
+    """
+    _add_neighbour_products_sum(prod, readonly(a), readonly(b), int(R), readonly(use, np.bool_))
+
+
+@njit(parallel=True, cache=True)
+def _add_neighbour_products_sum(prod, a, b, R, use):  # pragma: no cover - compiled
+    """The kernel of :func:`add_neighbour_products_sum`."""
     K, H, W, C = a.shape
     for y in prange(H):
         for dy in range(-R, R + 1):
