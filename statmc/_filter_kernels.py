@@ -211,44 +211,44 @@ def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover - com
     out : (H, W) float32, 1 where ``S = weight·fk·Σ_c (c − f)² + Σ_c (Var c − Var f) > 0``
     (stop at the fine scale), else 0.
     """
-    H, Lx = f0.shape
-    W = Lx // C
+    H = f0.shape[0]
     for y in prange(H):
-        a = f0[y]
-        b = f1[y]
-        va = v0[y]
-        vb = v1[y]
-        g = weight[y]
-        o = out[y]
-        s = np.empty(W, f0.dtype)
-        if Cv == 1:
-            for i in range(W):
-                s[i] = vb[i] - va[i]
-        elif Cv == 3:
-            for i in range(W):
-                s[i] = ((vb[3 * i] - va[3 * i]) + (vb[3 * i + 1] - va[3 * i + 1])
-                        + (vb[3 * i + 2] - va[3 * i + 2]))
-        else:
-            for i in range(W):
-                s[i] = 0.0
-            for i in range(W):
-                for c in range(Cv):
-                    s[i] += vb[i * Cv + c] - va[i * Cv + c]
-        if C == 3:  # the common case, unrolled so that LLVM vectorises it
-            for i in range(W):
-                d0 = b[3 * i] - a[3 * i]
-                d1 = b[3 * i + 1] - a[3 * i + 1]
-                d2 = b[3 * i + 2] - a[3 * i + 2]
-                s[i] += g[i] * fk * (d0 * d0 + d1 * d1 + d2 * d2)
-        else:
-            for i in range(W):
-                acc = s[i] - s[i]
-                for c in range(C):
-                    d = b[i * C + c] - a[i * C + c]
-                    acc += d * d
-                s[i] += g[i] * fk * acc
+        _stop_pair_row(f0[y], f1[y], v0[y], v1[y], weight[y], C, Cv, fk, out[y])
+
+
+@njit(fastmath=True, nogil=True, cache=True)
+def _stop_pair_row(a, b, va, vb, g, C, Cv, fk, o):  # pragma: no cover - compiled
+    """One row of :func:`stop_pair`."""
+    W = o.shape[0]
+    s = np.empty(W, a.dtype)
+    if Cv == 1:
         for i in range(W):
-            o[i] = 1.0 if s[i] > 0.0 else 0.0
+            s[i] = vb[i] - va[i]
+    elif Cv == 3:
+        for i in range(W):
+            s[i] = ((vb[3 * i] - va[3 * i]) + (vb[3 * i + 1] - va[3 * i + 1])
+                    + (vb[3 * i + 2] - va[3 * i + 2]))
+    else:
+        for i in range(W):
+            s[i] = 0.0
+        for i in range(W):
+            for c in range(Cv):
+                s[i] += vb[i * Cv + c] - va[i * Cv + c]
+    if C == 3:  # the common case, unrolled so that LLVM vectorises it
+        for i in range(W):
+            d0 = b[3 * i] - a[3 * i]
+            d1 = b[3 * i + 1] - a[3 * i + 1]
+            d2 = b[3 * i + 2] - a[3 * i + 2]
+            s[i] += g[i] * fk * (d0 * d0 + d1 * d1 + d2 * d2)
+    else:
+        for i in range(W):
+            acc = s[i] - s[i]
+            for c in range(C):
+                d = b[i * C + c] - a[i * C + c]
+                acc += d * d
+            s[i] += g[i] * fk * acc
+    for i in range(W):
+        o[i] = 1.0 if s[i] > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -376,9 +376,9 @@ def scan_inputs(x, v, C, vsum):  # pragma: no cover - compiled
     and write ``vsum`` (H, W), the channel sum of ``v`` (H, W*C)."""
     H, L = x.shape
     W = L // C
-    bad_x = np.zeros(H, np.int64)
-    bad_v = np.zeros(H, np.int64)
-    neg_v = np.zeros(H, np.int64)
+    bad_x = np.empty(H, np.int64)       # every row writes its counts; not np.zeros and
+    bad_v = np.empty(H, np.int64)       # .sum(): in a parallel kernel each is a parallel
+    neg_v = np.empty(H, np.int64)       # loop of its own, compiled for nothing
     for y in prange(H):
         xr = x[y]
         vr = v[y]
@@ -400,7 +400,12 @@ def scan_inputs(x, v, C, vsum):  # pragma: no cover - compiled
         bad_x[y] = nx
         bad_v[y] = nv
         neg_v[y] = ng
-    return bad_x.sum(), bad_v.sum(), neg_v.sum()
+    tx = tv = tg = 0
+    for y in range(H):
+        tx += bad_x[y]
+        tv += bad_v[y]
+        tg += neg_v[y]
+    return tx, tv, tg
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
@@ -522,6 +527,9 @@ def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # 
 
 @njit(cache=True, nogil=True)  # no fastmath: it would assume away NaN
 def _scan_count_row(nr, o, tally):  # pragma: no cover - compiled
+    tally[0] = 0
+    tally[1] = 0
+    tally[2] = 0
     for i in range(nr.shape[0]):
         a = np.float64(nr[i])
         o[i] = a
@@ -546,10 +554,15 @@ def scan_counts(n, out):
 def _scan_counts(n, out):  # pragma: no cover - compiled
     """:func:`scan_counts`."""
     H = n.shape[0]
-    tally = np.zeros((H, 3), np.int64)
-    for y in prange(H):
+    tally = np.empty((H, 3), np.int64)  # zeroed by the rows: np.zeros and tally[:, j].sum()
+    for y in prange(H):                 # were parallel loops of their own, compiled too
         _scan_count_row(n[y], out[y], tally[y])
-    return tally[:, 0].sum(), tally[:, 1].sum(), tally[:, 2].sum()
+    bad = frac = low = 0
+    for y in range(H):
+        bad += tally[y, 0]
+        frac += tally[y, 1]
+        low += tally[y, 2]
+    return bad, frac, low
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -709,16 +722,21 @@ def _rank_key(keys, hist, q):  # pragma: no cover - compiled
         cand = nxt
         if cand.size <= 64:
             break
-    srt = np.sort(cand)[::-1]
-    key = srt[q]
-    j = 0
-    while srt[j] > key:
-        j += 1
-    ties = 0
-    for i in range(srt.size):
-        if srt[i] == key:
-            ties += 1
-    return key, above + j, ties
+    # the key at rank q of the few left (at most 64, or all equal after the last digit):
+    # the candidate with fewer than q + 1 keys above it and at least q + 1 at or above it
+    # (counted, not sorted: np.sort compiled a quicksort for these few, 2-3 s cold)
+    for i in range(cand.size):
+        key = cand[i]
+        j = 0
+        ties = 0
+        for c in range(cand.size):
+            if cand[c] > key:
+                j += 1
+            elif cand[c] == key:
+                ties += 1
+        if j <= q < j + ties:
+            return key, above + j, ties
+    return cand[0], above, 0            # not reached: 0 <= q < cand.size
 
 
 @njit(cache=True, nogil=True)
@@ -793,7 +811,7 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):  # 
     step = (size + P - 1) // P
     fb = float(batch)
     keys = g.view(np.uint64)
-    npos_c = np.zeros(P, np.int64)
+    npos_c = np.empty(P, np.int64)      # every chunk writes its count
     for p in prange(P):
         npos_c[p] = _start_chunk(rel, n, fb, amount, r, nn, g, keys, hists[p],
                                  min(size, p * step), min(size, (p + 1) * step))
@@ -801,38 +819,57 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):  # 
         part = budget // rounds + (1 if it < budget % rounds else 0)
         if part == 0:
             continue
-        t = np.inf                      # nobody above: only the base amount
-        need = 0
-        cut = -1
-        extra = fb
-        if npos_c.sum() == 0:           # nothing to gain anywhere: uniform
-            base = part / size
-        else:
-            m = part // batch
-            rem = part - m * batch
-            full = m // size
-            m -= full * size
-            base = float(full * batch)
-            if m > 0 or rem > 0:
-                q = m if rem > 0 else m - 1            # last rank that gets samples
-                hist = hists.sum(axis=0)
-                tkey = np.empty(1, np.uint64)
-                tkey[0], above, ties = _rank_key(keys, hist, q)
-                t = tkey.view(np.float64)[0]
-                need = q + 1 - above                   # ties at t taken, by index
-                if rem > 0:
-                    extra = float(rem)                 # for the last one taken
-                if ties > 1:
-                    k = 0
-                    for i in range(size):
-                        if g[i] == t:
-                            k += 1
-                            if k == need:
-                                cut = i
-                                break
+        base, t, need, cut, extra = _round_plan(part, size, batch, fb, npos_c, keys, hists, g)
         for p in prange(P):
             npos_c[p] = _assign_chunk(base, t, need, cut, extra, fb, amount, r, nn, g, keys,
                                       hists[p], min(size, p * step), min(size, (p + 1) * step))
+
+
+@njit(cache=True, nogil=True)
+def _round_plan(part, size, batch, fb, npos_c, keys, hists, g):  # pragma: no cover - compiled
+    """What one round of :func:`allocate_rounds` hands out: ``(base, t, need, cut,
+    extra)`` for :func:`_assign_chunk`, from the ``part`` samples of the round, the
+    chunks' counts of pixels that can gain (``npos_c``) and first-digit histograms.
+
+    Serial, outside the parallel kernel: there its array sums and allocations were
+    parallel loops of their own, each compiled (cold cache) for nothing.
+    """
+    t = np.inf                      # nobody above: only the base amount
+    need = 0
+    cut = -1
+    extra = fb
+    npos = 0
+    for p in range(npos_c.shape[0]):
+        npos += npos_c[p]
+    if npos == 0:                   # nothing to gain anywhere: uniform
+        base = part / size
+    else:
+        m = part // batch
+        rem = part - m * batch
+        full = m // size
+        m -= full * size
+        base = float(full * batch)
+        if m > 0 or rem > 0:
+            q = m if rem > 0 else m - 1            # last rank that gets samples
+            hist = np.zeros(hists.shape[1], np.int64)  # not hists.sum(axis=0): the
+            for p in range(hists.shape[0]):              # generic axis sum compiled too
+                for b in range(hists.shape[1]):
+                    hist[b] += hists[p, b]
+            tkey = np.empty(1, np.uint64)
+            tkey[0], above, ties = _rank_key(keys, hist, q)
+            t = tkey.view(np.float64)[0]
+            need = q + 1 - above                   # ties at t taken, by index
+            if rem > 0:
+                extra = float(rem)                 # for the last one taken
+            if ties > 1:
+                k = 0
+                for i in range(size):
+                    if g[i] == t:
+                        k += 1
+                        if k == need:
+                            cut = i
+                            break
+    return base, t, need, cut, extra
 
 
 @njit(cache=True, nogil=True)
