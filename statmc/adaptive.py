@@ -224,7 +224,11 @@ def adaptive_render(renderer, spp: float, *, sampler="gem", initial_spp: int = 4
                          f"render(counts, *, seed, features) -> PixelStats; got "
                          f"{type(renderer).__name__}{hint}.")
     h, w = renderer.height, renderer.width
-    total = int(round(as_number("spp", spp, lo=0.0) * h * w))
+    spp_value = as_number("spp", spp, lo=0.0)
+    if spp_value * h * w > 2 ** 53:
+        raise InputError(f"`spp` × H × W must be at most 2**53 samples (float64 counts them "
+                         f"exactly); got {spp_value:g} × {h} × {w}.")
+    total = int(round(spp_value * h * w))
     initial_spp = as_whole("initial_spp", initial_spp, what="number of samples per pixel")
     if iterations is not None:
         iterations = as_whole("iterations", iterations, what="number of passes")

@@ -158,3 +158,13 @@ def test_no_iterations_spreads_the_fractional_remainder():
     n = res.stats.n
     assert int(n.sum()) == round(4.25 * 480) and len(res.counts) == 1
     assert n.min() == 4 and n.max() == 5 and int((n == 5).sum()) == 120
+
+
+@pytest.mark.parametrize("spp", [1e30, 2.0 ** 50])
+def test_a_budget_beyond_float_precision_is_named_by_spp(spp):
+    # before: "`budget` must be a whole number <= 9007199254740992; got 3.2e+33", naming an
+    # internal variable the caller never passed
+    r = ToyRenderer("mixed", width=16, height=16)
+    with pytest.raises(InputError, match=r"`spp` × H × W must be at most 2\*\*53 samples "
+                       r"\(float64 counts them exactly\); got .* × 16 × 16"):
+        adaptive_render(r, spp, sampler="uniform")
