@@ -149,6 +149,12 @@ RENDER_OUTPUTS = ("render.exr", "render.png", "counts.exr", "counts.png", "recon
                   "reconstruction.png", "scales.exr", "scales.png", "bins.exr", "report.json")
 
 
+#: Extensions that name a file, not the directory `render --out` writes (a directory of
+#: that name that already exists is still taken).
+_FILE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".npy", ".npz",
+                    ".json", ".txt", ".pfm")
+
+
 def _check_out_dir(path: str, inputs=()) -> None:
     """Refuse, before rendering, an output directory that is a file, cannot be written, or
     would receive a file onto one of ``inputs``."""
@@ -156,6 +162,12 @@ def _check_out_dir(path: str, inputs=()) -> None:
     if os.path.lexists(path) and not os.path.isdir(path):
         raise InputError(f"--out {path!r} exists and is not a directory; render writes a "
                          f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...).")
+    ext = os.path.splitext(os.path.normpath(path))[1]
+    if not os.path.lexists(path) and ext.lower() in _FILE_EXTENSIONS:
+        # `render --out cb16.exr` would make a directory cb16.exr/ holding render.exr
+        raise InputError(f"--out {path!r} ends in {ext!r} like a file, but render writes a "
+                         f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...); name a "
+                         f"directory, e.g. {os.path.splitext(os.path.normpath(path))[0]!r}.")
     for name in RENDER_OUTPUTS:
         check_not_input(os.path.join(path, name), inputs)
         if os.path.isdir(os.path.join(path, name)):
@@ -172,6 +184,10 @@ def load_sample_map(path: str) -> np.ndarray:
         try:
             m = np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError) as e:  # EOFError: an empty file
+            if "Object arrays cannot be loaded" in str(e):   # np.save of Python objects
+                raise InputError(f"sample map {path} holds Python objects (dtype object, saved "
+                                 "with pickle); expected one (H, W) array of numbers saved with "
+                                 "numpy.save.") from None
             why = ("not a NumPy .npy array file" if "pickle" in str(e) or isinstance(e, EOFError)
                    else str(e))
             raise InputError(f"cannot read sample map {path}: {why}.") from None
@@ -202,9 +218,11 @@ def load_sample_map(path: str) -> np.ndarray:
     m = m.astype(np.float64)
     bad = ~np.isfinite(m)
     if bad.any():
-        raise InputError(f"sample map {path} holds {int(bad.sum())} NaN/Inf values.")
+        raise InputError(f"sample map {path} holds {int(bad.sum())} NaN/Inf values; expected "
+                         "finite numbers >= 0 (per-pixel counts or a density).")
     if (m < 0).any():
-        raise InputError(f"sample map {path} holds {int((m < 0).sum())} negative values.")
+        raise InputError(f"sample map {path} holds {int((m < 0).sum())} negative values; "
+                         "expected finite numbers >= 0 (per-pixel counts or a density).")
     return m
 
 
@@ -1185,8 +1203,17 @@ LAYER_HELP = ("read the channels of this EXR layer as if unprefixed, e.g. ViewLa
 _LAYER_COMMANDS = ("reconstruct", "denoise", "progressive", "combine", "metrics")
 
 
+def _layer_type(text: str) -> str:
+    """``--layer`` and ``--<file>-layer``: a layer name, refused while parsing (naming the
+    option given) when empty or ending in a dot, as ``read_exr(layer=)`` would refuse it."""
+    if not text or text.endswith("."):
+        raise argparse.ArgumentTypeError("expected a layer name such as 'ViewLayer.Combined' "
+                                         f"(without the channel's last part); got {text!r}")
+    return text
+
+
 def _add_layer_option(parser, what: str = "the input") -> None:
-    parser.add_argument("--layer", default=None, metavar="NAME",
+    parser.add_argument("--layer", type=_layer_type, default=None, metavar="NAME",
                         help=LAYER_HELP.replace("EXR layer", f"layer of {what}"))
     parser.add_argument("--part", type=_part_type, default=None, metavar="INDEX|NAME",
                         help=f"the part of a multi-part EXR to read, of {what}: its index (from "
@@ -1223,7 +1250,7 @@ def _add_file_layer_options(parser, *files: str) -> None:
     ``--layer``'s (which names both files' layer)."""
     for which in files:
         upper = which.upper()
-        parser.add_argument(f"--{which}-layer", default=None, metavar="NAME",
+        parser.add_argument(f"--{which}-layer", type=_layer_type, default=None, metavar="NAME",
                             help=f"the layer of {upper} alone, in place of --layer's (say "
                                  f"ViewLayer.Combined for a Blender render beside an "
                                  f"unlayered file)")

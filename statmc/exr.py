@@ -235,6 +235,7 @@ class _Channels(dict):
     ``{"part", "name", "channels"}`` of every part of the file (:func:`_parts_summary`)."""
     parts: list = []
     read_part: int = 0
+    layer: str | None = None      # the layer these channels were selected from (names inside it)
 
     @property
     def note(self) -> str:
@@ -506,8 +507,11 @@ def _color_names(p, arrays):
         return _RGB
     if "Y" in arrays:
         return ("Y",)
-    raise FileFormatError(f"{p!r} has no colour channels R, G, B (or Y); channels present: "
-                          f"{_present(arrays)}.{_colour_hint(arrays)}")
+    inside = getattr(arrays, "layer", None)
+    where = "" if inside is None else f" in layer {inside!r}"
+    raise FileFormatError(f"{p!r} has no colour channels R, G, B (or Y){where}; channels "
+                          f"present{' there' if inside else ''}: {_present(arrays)}."
+                          f"{_colour_hint(arrays, inside)}")
 
 
 # Layers whose R, G, B are statmc's or pbrt-v4's own channels, not an image's colour.
@@ -516,9 +520,11 @@ _NOT_COLOUR_LAYERS = ("variance", "relativevariance", "albedo", "covariance")
 _BEAUTY_LAYERS = ("combined", "beauty", "rgba", "rgb", "color", "colour")
 
 
-def _colour_hint(arrays) -> str:
+def _colour_hint(arrays, inside=None) -> str:
     """What a file without ``R, G, B`` holds instead: a layer's ``<layer>.R/G/B`` (Blender's
-    ``ViewLayer.Combined.R``, a ``diffuse.R`` pass) or lowercase ``r, g, b``; "" if neither."""
+    ``ViewLayer.Combined.R``, a ``diffuse.R`` pass) or lowercase ``r, g, b``; "" if neither.
+    ``inside``: the layer ``arrays`` were selected from (their names are inside it); the
+    layers are then named in full (``ViewLayer`` + ``Combined``)."""
     import shlex
 
     # the beauty first (Blender's Combined), then by name
@@ -527,6 +533,8 @@ def _colour_hint(arrays) -> str:
                      and n[:-2].rsplit(".", 1)[-1].lower() not in _NOT_COLOUR_LAYERS
                      and not _BIN_CHANNEL.match(n)},
                     key=lambda x: (x.rsplit(".", 1)[-1].lower() not in _BEAUTY_LAYERS, x))
+    if inside is not None:
+        layers = [f"{inside}.{x}" for x in layers]
     if layers:
         which = ", ".join(repr(x) for x in layers[:4]) + (", ..." if len(layers) > 4 else "")
         first = layers[0]
@@ -591,7 +599,7 @@ def _select_layer(p, arrays, types, layer):
                          f"the channel's last part); got {layer!r}.")
     prefix = layer + "."
     out, kinds = _Channels(), {}
-    out.parts, out.read_part = arrays.parts, arrays.read_part
+    out.parts, out.read_part, out.layer = arrays.parts, arrays.read_part, layer
     for name, a in arrays.items():
         if name.startswith(prefix) and len(name) > len(prefix):
             out[name[len(prefix):]] = a

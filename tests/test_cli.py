@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -1390,6 +1391,85 @@ def test_bad_sample_map_files_are_one_line_errors(tmp_path, kind, needle):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("kind, needle", [
+    # before: "cannot read sample map ...: not a NumPy .npy array file." for a .npy of
+    # Python objects (np.save of a list of dicts), which is one
+    ("object", r"holds Python objects \(dtype object, saved with pickle\); expected one \(H, W\) "
+               r"array of numbers"),
+    # before: "holds 384 NaN/Inf values." / "holds 384 negative values." without the expectation
+    ("nan", r"holds 384 NaN/Inf values; expected finite numbers >= 0"),
+    ("negative", r"holds 384 negative values; expected finite numbers >= 0"),
+])
+def test_sample_map_errors_say_what_was_expected(tmp_path, kind, needle):
+    path = tmp_path / "map.npy"
+    if kind == "object":
+        np.save(path, np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    else:
+        np.save(path, np.full((16, 24), np.nan if kind == "nan" else -1.0))
+    out = tmp_path / "r"
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", path, "--out", out, "-q")
+    _assert_one_line_error(code, err, "")
+    assert re.search(needle, err), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["cb16.exr", "out.png", "report.json", "Render.EXR"])
+def test_render_out_named_like_a_file_is_refused(tmp_path, name):
+    # before: `statmc render toy:mixed --spp 2 --out cb16.exr` made a directory cb16.exr/
+    # holding render.exr, render.png, ... (the other commands' --out is a file)
+    out = tmp_path / name
+    code, _, err = run_cli("render", "toy:mixed", "--spp", "2", "--size", "8x8", "--out", out, "-q")
+    _assert_one_line_error(code, err, f"--out {str(out)!r} ends in {os.path.splitext(name)[1]!r} "
+                           "like a file, but render writes a directory of files (render.exr, "
+                           "render.png, counts.exr, ...)")
+    assert not out.exists() and os.listdir(tmp_path) == []
+    out.mkdir()                  # a directory that exists is taken as named
+    code, _, err = run_cli("render", "toy:mixed", "--spp", "2", "--size", "8x8", "--out", out, "-q")
+    assert code == 0, err
+    assert (out / "render.exr").is_file()
+
+
+@pytest.mark.parametrize("command, option", [
+    ("metrics", "--image-layer"), ("metrics", "--reference-layer"), ("metrics", "--layer"),
+    ("combine", "--y-layer"), ("combine", "--z-layer"), ("reconstruct", "--layer"),
+])
+@pytest.mark.parametrize("name", ["", "ViewLayer.Combined."])
+def test_a_bad_layer_name_is_refused_naming_the_option_given(tmp_path, command, option, name):
+    # before: `metrics A B --image-layer ''` said "--layer must be a layer name ...", an
+    # option the user had not given
+    files = {"metrics": ["a.exr", "b.exr"], "combine": ["a.exr", "b.exr", "--out", "c.exr"],
+             "reconstruct": ["a.exr", "--out", "c.exr"]}[command]
+    code, _, err = run_cli(command, *[tmp_path / f if f.endswith(".exr") else f for f in files],
+                           option, name)
+    _assert_one_line_error(code, err, f"argument {option}: expected a layer name such as "
+                           f"'ViewLayer.Combined' (without the channel's last part); got {name!r}")
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_parent_layer_hint_names_the_whole_layer(tmp_path):
+    # before: `--image-layer ViewLayer` on Blender's ViewLayer.Combined.R/G/B suggested
+    # "--image-layer 'Combined'" (the name inside the layer), which reads nothing
+    import OpenEXR
+    rng = np.random.default_rng(0)
+    p = tmp_path / "blender.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {f"ViewLayer.Combined.{c}": rng.random((4, 5)).astype(np.float32)
+                  for c in "RGB"}).write(str(p))
+    ref = tmp_path / "ref.exr"
+    from statmc.exr import write_exr
+    write_exr(ref, rng.random((4, 5, 3)))
+    code, _, err = run_cli("metrics", p, ref, "--image-layer", "ViewLayer")
+    _assert_one_line_error(code, err, "has no colour channels R, G, B (or Y) in layer "
+                           "'ViewLayer'; channels present there: ['Combined.B', 'Combined.G', "
+                           "'Combined.R']")
+    assert ("R, G, B are only inside layer(s) 'ViewLayer.Combined' (e.g. "
+            "'ViewLayer.Combined.R')") in err
+    assert "R=ViewLayer.Combined.R,G=ViewLayer.Combined.G,B=ViewLayer.Combined.B" in err
+    assert "give --image-layer 'ViewLayer.Combined' for IMAGE alone" in err
+    code, out, err = run_cli("metrics", p, ref, "--image-layer", "ViewLayer.Combined")
+    assert code == 0, err
+
+
 def _tree(root):
     """{relative path: bytes} of every file under ``root`` (hidden ones included)."""
     out = {}
@@ -2208,8 +2288,8 @@ def test_a_bad_layer_is_named_as_the_option(tmp_path):
     for bad in ("", "ViewLayer."):
         code, _, err = run_cli("reconstruct", p, "--layer", bad, "--out", tmp_path / "o.exr")
         assert code == 2 and err.count("\n") == 1, err
-        assert f"--layer must be a layer name such as 'ViewLayer.Combined' (without the channel's " \
-               f"last part); got {bad!r}." in err and "`layer`" not in err
+        assert f"argument --layer: expected a layer name such as 'ViewLayer.Combined' (without " \
+               f"the channel's last part); got {bad!r}" in err and "`layer`" not in err
 
 
 # ------------------------------------- session 12: files written by other tools (per-file options)
