@@ -996,6 +996,7 @@ class MitsubaRenderer:
                 dr.scatter_reduce(dr.ReduceOp.Add, bad, mi.UInt32(1), idx, active=~ok,
                                   mode=dr.ReduceMode.Direct)
                 dr.eval(s1, s2, s3, bad)
+                _release_chunk(dr)
                 n_chunks += 1
                 bar.update(int(pix.size))
         shape = (self.height, self.width, 3)
@@ -1056,9 +1057,23 @@ class MitsubaRenderer:
                 dr.scatter_reduce(dr.ReduceOp.Add, acc[c], dr.select(dr.isfinite(v), v, 0.0),
                                   idx, mode=mode)
             dr.eval(acc)
+            _release_chunk(dr)
         out = np.stack([np.asarray(a) for a in acc], axis=-1).reshape(self.height, self.width, 6)
         out = (out / spp).astype(np.float32)
         return out[..., :3].copy(), out[..., 3:6].copy()
+
+
+def _release_chunk(dr) -> None:
+    """Hand the memory of a finished chunk back (``drjit.flush_malloc_cache``).
+
+    Without it Dr.Jit's allocation cache kept about 8 MB per 2**21-sample chunk until the
+    render ended: a 32x32 cornell-box at 32768 spp (16 chunks) peaked at 280 MB of
+    resident memory instead of 168 MB, 131072 spp at 691 MB, and a long render filled the
+    machine's memory and then took minutes to exit while the cache was freed.  The flush
+    costs nothing measurable next to a chunk's tracing (20.6 / 20.4 s CPU without it,
+    20.7 / 20.1 s with it, 32x32 at 16384 spp).
+    """
+    dr.flush_malloc_cache()
 
 
 def _neighbours(a: np.ndarray, R: int) -> np.ndarray:

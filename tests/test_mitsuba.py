@@ -523,6 +523,35 @@ def test_chunking_does_not_change_the_samples(cornell):
         _assert_same_samples(a, cornell.render(counts, seed=9, features=False, first_sample=f))
 
 
+def test_memory_of_a_render_does_not_grow_with_its_chunks(cornell):
+    """Dr.Jit's peak allocation over a render of 128 chunks is that of a render of 16 (and
+    so for the albedo/normal pass): each chunk's memory goes back after it.  Before,
+    Dr.Jit's allocation cache grew with every chunk until the render ended (here +80 %
+    from 16 to 128 chunks; about 8 MB of resident memory per default chunk), and long
+    renders filled the machine's memory."""
+    if not cornell._jit:
+        pytest.skip("the chunked wavefront is the JIT variants' path")
+    dr = cornell._dr
+    r = mb.MitsubaRenderer(cornell._scene, chunk_samples=2 ** 14)
+    ones = np.ones((SIZE, SIZE), np.int64)
+
+    def peak(spp, feature_spp=None):
+        dr.detail.malloc_clear_statistics()
+        out = r.render(spp * ones, seed=3, features=feature_spp is not None,
+                       feature_spp=feature_spp or 1)
+        return dr.detail.malloc_watermark(dr.JitBackend.LLVM), out.meta["chunks"]
+
+    peak(16)                                            # compiles the kernels
+    few, n_few = peak(256)
+    many, n_many = peak(2048)
+    assert (n_few, n_many) == (16, 128)
+    assert many <= 1.05 * few, f"peak {many} B over {n_many} chunks, {few} B over {n_few}"
+    peak(1, 16)
+    few, _ = peak(1, 256)
+    many, _ = peak(1, 2048)
+    assert many <= 1.05 * few, f"albedo/normal pass: peak {many} B, {few} B with 16 chunks"
+
+
 @pytest.mark.parametrize("variant", ["jit", "scalar_rgb"])
 def test_first_sample_continues_the_sequence(cornell, variant):
     """Two passes, the second starting where the first stopped, merge to one render of
