@@ -155,10 +155,46 @@ _FILE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".
                     ".json", ".txt", ".pfm")
 
 
+#: The first bytes of files that a SCENE argument can name by mistake (an image, an array).
+_NOT_SCENE_MAGIC = ((b"\x76\x2f\x31\x01", "an OpenEXR image"), (b"\x89PNG", "a PNG image"),
+                    (b"\xff\xd8\xff", "a JPEG image"), (b"#?RADIANCE", "a Radiance HDR image"),
+                    (b"#?RGBE", "a Radiance HDR image"), (b"II*\x00", "a TIFF image"),
+                    (b"MM\x00*", "a TIFF image"), (b"\x93NUMPY", "a NumPy .npy array"),
+                    (b"PK\x03\x04", "a zip archive (e.g. a NumPy .npz)"))
+
+_SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
+                   "Mitsuba XML scene file")
+
+
+def _check_scene_arg(scene: str) -> None:
+    """Refuse, in the command line's terms, a SCENE that is a directory or a file that is
+    not a scene (Mitsuba reported an EXR image as an XML parse error, a directory as
+    `scene`). Names of no file are left to ``make_renderer``, which lists the scenes."""
+    from .renderers import TOY_PREFIX
+    from .scenes import BUILTIN_SCENES
+    if scene.startswith(TOY_PREFIX) or scene in BUILTIN_SCENES or not os.path.exists(scene):
+        return
+    if os.path.isdir(scene):
+        raise InputError(f"SCENE {scene!r} is a directory; {_SCENE_EXPECTED}.")
+    try:
+        with open(scene, "rb") as f:
+            head = f.read(16)
+    except OSError as e:
+        raise InputError(f"cannot read SCENE {scene!r}: {e.strerror or e}.") from None
+    if not head:
+        raise InputError(f"SCENE {scene!r} is an empty file; {_SCENE_EXPECTED}.")
+    for magic, kind in _NOT_SCENE_MAGIC:
+        if head.startswith(magic):
+            raise InputError(f"SCENE {scene!r} is {kind}, not a scene file; {_SCENE_EXPECTED}.")
+
+
 def _check_out_dir(path: str, inputs=()) -> None:
     """Refuse, before rendering, an output directory that is a file, cannot be written, or
     would receive a file onto one of ``inputs``."""
     from ._atomic import check_not_input
+    # an input that does not exist is reported missing by its reader, not as an input
+    # that an output would overwrite
+    inputs = [p for p in inputs if p and os.path.exists(p)]
     if os.path.lexists(path) and not os.path.isdir(path):
         raise InputError(f"--out {path!r} exists and is not a directory; render writes a "
                          f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...).")
@@ -487,6 +523,7 @@ def cmd_render(args) -> int:
     from .plots import write_map_png
     from .renderers import make_renderer
 
+    _check_scene_arg(args.scene)
     width, height = _parse_size(args.size)
     inputs = [p for p in (args.sample_map, args.reference) if p]
     _check_out_dir(args.out, inputs)
@@ -1139,6 +1176,7 @@ def cmd_reference(args) -> int:
     from .demo import render_reference
     from .renderers import make_renderer
 
+    _check_scene_arg(args.scene)
     width, height = _parse_size(args.size)
     spp = _positive_int("--spp", args.spp)
     _check_count_range("--spp", spp)
@@ -1270,7 +1308,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     r = sub.add_parser("render", help="render a scene with uniform or mapped per-pixel sample counts")
-    r.add_argument("scene", help="built-in scene name (see `statmc scenes`), toy:NAME, or Mitsuba XML path")
+    r.add_argument("scene", metavar="SCENE", help="built-in scene name (see `statmc scenes`), toy:NAME, or Mitsuba XML path")
     r.add_argument("--spp", type=POSITIVE_INT,
                    help="samples per pixel, a positive integer; with an adaptive --sampler the "
                         "average budget, with --sample-map the budget the map (then a density, "
@@ -1330,7 +1368,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.set_defaults(func=cmd_reconstruct)
 
     ref = sub.add_parser("reference", help="render a high-spp reference in passes")
-    ref.add_argument("scene", help="as for `statmc render`")
+    ref.add_argument("scene", metavar="SCENE", help="as for `statmc render`")
     ref.add_argument("--spp", type=POSITIVE_INT, required=True, help="total samples per pixel")
     ref.add_argument("--out", required=True, help="output .exr (a .png preview goes beside it)")
     ref.add_argument("--size", help="WIDTHxHEIGHT (default: the scene's own size)")

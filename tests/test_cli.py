@@ -203,6 +203,55 @@ def test_render_never_overwrites_its_reference(tmp_path, toy_ref):
     assert ref_copy.read_bytes() == before
 
 
+_SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
+                   "Mitsuba XML scene file.")
+
+
+@pytest.mark.parametrize("command", ["render", "reference"])
+def test_scene_that_is_an_image_or_a_directory_is_refused_in_cli_terms(tmp_path, toy_ref, command):
+    # before: an EXR given as SCENE gave Mitsuba's "Parsing of XML file ... failed: No document
+    # element found (line 13, col 179)", and a directory "`scene` 'bad' is neither a built-in
+    # scene (...) nor an existing Mitsuba XML file" (the Python parameter's name)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    image = bad / "good.exr"
+    image.write_bytes(toy_ref.read_bytes())
+    empty = tmp_path / "empty.xml"
+    empty.write_bytes(b"")
+    out = tmp_path / ("o" if command == "render" else "o.exr")
+    for scene, what in ((image, "is an OpenEXR image, not a scene file"),
+                        (bad, "is a directory"), (empty, "is an empty file")):
+        code, _, err = run_cli(command, scene, "--spp", 4, "--out", out, "-q")
+        _assert_one_line_error(code, err, f"SCENE {str(scene)!r} {what}; {_SCENE_EXPECTED}")
+        assert "`scene`" not in err and "XML file" not in err
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["counts.exr", "render.exr"])
+def test_render_input_missing_in_out_is_missing_not_an_overwrite(tmp_path, toy_ref, name):
+    # before: `--sample-map OUT/counts.exr --out OUT` (or --reference OUT/render.exr) with no
+    # such file said "refusing to write 'OUT/counts.exr': it is the input file
+    # 'OUT/counts.exr'", a guard meant for an output that would overwrite an existing input
+    out = tmp_path / "OUT"
+    out.mkdir()
+    missing = out / name
+    option = "--sample-map" if name == "counts.exr" else "--reference"
+    spp = () if option == "--sample-map" else ("--spp", 2)
+    code, _, err = run_cli("render", "toy:mixed", "--size", "24x16", *spp, option, missing,
+                           "--out", out, "-q")
+    _assert_one_line_error(code, err, "does not exist")
+    assert "input file" not in err and str(missing) in err
+    assert os.listdir(out) == []
+    # the guard stays for a file that exists: a sample map render would overwrite
+    counts = out / "counts.exr"
+    from statmc.exr import write_exr
+    write_exr(counts, np.full((16, 24), 2.0, np.float32))   # one channel Y
+    before = counts.read_bytes()
+    code, _, err = run_cli("render", "toy:mixed", "--sample-map", counts, "--out", out, "-q")
+    _assert_one_line_error(code, err, f"it is the input file {str(counts)!r}")
+    assert counts.read_bytes() == before and os.listdir(out) == ["counts.exr"]
+
+
 def test_console_script_runs_as_a_process(tmp_path):
     exe = os.path.join(os.path.dirname(sys.executable), "statmc")
     r = subprocess.run([exe, "render", "toy:nope", "--spp", "1", "--out", str(tmp_path)],
