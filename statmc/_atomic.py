@@ -123,12 +123,15 @@ def _missing_directories(directory: str) -> list:
 
 
 def _remove_made(made) -> None:
-    """Remove the directories a failed write created (deepest first), if still empty."""
+    """Remove the directories a failed write created (deepest first), if still empty.
+
+    Every one is tried: a deeper one that is missing (``os.makedirs`` failed before making
+    it, e.g. on a name too long, after making its parents) does not stop the parents'
+    removal; a non-empty one stays, and so do its parents (``os.rmdir`` removes only
+    empty directories)."""
     for d in made:
-        try:
+        with contextlib.suppress(OSError):
             os.rmdir(d)
-        except OSError:           # not empty (someone else wrote there) or already gone
-            break
 
 
 def write_text(path, text: str, *, protect=()) -> None:

@@ -393,6 +393,14 @@ def test_failed_write_removes_the_directories_it_made(tmp_path, monkeypatch):
     np.testing.assert_array_equal(read_image(tmp_path / "a" / "b" / "out.exr"), 1.0)
 
 
+def test_a_write_failing_half_way_through_its_directories_removes_those_it_made(tmp_path):
+    # os.makedirs made a/ and a/b/, then failed on a name too long for the file system: the
+    # cleanup stopped at the deepest directory (never made, so not removable) and left a/b
+    with pytest.raises(OSError, match="too long"):
+        write_exr(tmp_path / "a" / "b" / ("x" * 300) / "out.exr", np.zeros((4, 4, 3)))
+    assert os.listdir(tmp_path) == []
+
+
 def test_failed_png_write_leaves_existing_file(tmp_path, monkeypatch):
     p = tmp_path / "prev.png"
     write_png_preview(p, np.ones((4, 4, 3)))
