@@ -351,8 +351,14 @@ def _staged_outputs(directory, inputs=()):
     while not os.path.lexists(d):
         made.append(d)
         d = os.path.dirname(d)
-    os.makedirs(directory, exist_ok=True)
-    tmpdir = tempfile.mkdtemp(prefix=".statmc-", dir=directory)
+    try:
+        os.makedirs(directory, exist_ok=True)
+        tmpdir = tempfile.mkdtemp(prefix=".statmc-", dir=directory)
+    except OSError:          # e.g. a name too long after makedirs made its parents
+        for m in made:
+            with contextlib.suppress(OSError):
+                os.rmdir(m)
+        raise
     staged = {}
 
     def stage(path):

@@ -1565,6 +1565,15 @@ def test_failed_write_leaves_earlier_outputs_as_they_were(tmp_path, toy_render, 
         assert ".statmc-" not in err + err2 + err3
 
 
+def test_an_out_whose_directories_cannot_all_be_made_leaves_none(tmp_path, toy_render):
+    """os.makedirs made a/ and a/b/ for --out a/b/<name too long>/out.exr, then failed: the
+    staging left a/b/ behind (its cleanup ran only once the directory was made)."""
+    code, _, err = run_cli("reconstruct", toy_render, "--out",
+                           tmp_path / "a" / "b" / ("x" * 300) / "out.exr", "-q")
+    _assert_one_line_error(code, err, "too long")
+    assert os.listdir(tmp_path) == []
+
+
 def test_sigterm_while_writing_is_cleaned_up_like_ctrl_c(tmp_path, monkeypatch):
     """SIGTERM (kill, timeout) ended the process without running `finally`, so a staged or
     temporary output stayed in the output directory; it now unwinds like Ctrl-C (exit 143)."""
