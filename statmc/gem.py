@@ -310,7 +310,7 @@ def _check_inputs(mean, mean_var, n=None):
         nn = np.asarray(n)
         if nn.shape != m.shape[:2]:
             raise InputError(f"`n` must be an (H, W) count map of shape {m.shape[:2]}; got {nn.shape}.")
-        if nn.dtype == bool or not np.issubdtype(nn.dtype, np.number) or np.iscomplexobj(nn):
+        if nn.dtype.kind not in "iuf":     # not bool, complex, or timedelta (an integer to NumPy)
             raise InputError(f"`n` must hold sample counts (integers); got dtype {nn.dtype}.")
         counts = nn.astype(_count_dtype(nn.dtype), copy=False)
         nn = np.empty(nn.shape)

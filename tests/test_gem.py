@@ -1192,3 +1192,16 @@ def test_count_maps_of_any_integer_or_float_dtype_reuse_one_count_scan_each():
                 got = gem.reconstruct(x, v, n=n.astype(dt), final=False)
                 np.testing.assert_array_equal(got, expected, err_msg=dt)
         assert len(seen) == len(kinds) and len(set(seen)) == 1, (kinds, sorted(set(map(str, seen))))
+
+
+@pytest.mark.parametrize("dtype", [bool, np.complex128, "m8[s]", object, "U3"])
+def test_count_maps_that_are_not_numbers_are_refused(dtype):
+    """Bool, complex, timedelta (an integer type to NumPy), object and string count maps
+    are refused by name: a timedelta map was taken as counts, or crashed in numba."""
+    rng = np.random.default_rng(2)
+    m, v = rng.random((6, 5, 3)), 0.01 * rng.random((6, 5, 3))
+    n = np.full((6, 5), 4).astype(dtype)
+    for call in (lambda: gem.reconstruct(m, v, n=n),
+                 lambda: gem.sampling_map(m, v, n, 100)):
+        with pytest.raises(InputError, match=r"`n` must hold sample counts"):
+            call()
