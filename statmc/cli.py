@@ -156,12 +156,6 @@ _FILE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".
 
 
 #: The first bytes of files that a SCENE argument can name by mistake (an image, an array).
-_NOT_SCENE_MAGIC = ((b"\x76\x2f\x31\x01", "an OpenEXR image"), (b"\x89PNG", "a PNG image"),
-                    (b"\xff\xd8\xff", "a JPEG image"), (b"#?RADIANCE", "a Radiance HDR image"),
-                    (b"#?RGBE", "a Radiance HDR image"), (b"II*\x00", "a TIFF image"),
-                    (b"MM\x00*", "a TIFF image"), (b"\x93NUMPY", "a NumPy .npy array"),
-                    (b"PK\x03\x04", "a zip archive (e.g. a NumPy .npz)"))
-
 _SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
                    "Mitsuba XML scene file")
 
@@ -183,9 +177,12 @@ def _check_scene_arg(scene: str) -> None:
         raise InputError(f"cannot read SCENE {scene!r}: {e.strerror or e}.") from None
     if not head:
         raise InputError(f"SCENE {scene!r} is an empty file; {_SCENE_EXPECTED}.")
-    for magic, kind in _NOT_SCENE_MAGIC:
-        if head.startswith(magic):
-            raise InputError(f"SCENE {scene!r} is {kind}, not a scene file; {_SCENE_EXPECTED}.")
+    from .exr import format_of
+    kind = format_of(head)
+    if kind:
+        article = "an" if kind[0] in "AEIOU" else "a"
+        raise InputError(f"SCENE {scene!r} is {article} {kind} file, not a scene file; "
+                         f"{_SCENE_EXPECTED}.")
 
 
 def _check_out_dir(path: str, inputs=()) -> None:

@@ -82,6 +82,14 @@ _OTHER_FORMATS = ((b"\x89PNG\r\n\x1a\n", "PNG"), (b"\xff\xd8\xff", "JPEG"),
                   (b"PK\x03\x04", "ZIP (e.g. .npz)"))
 
 
+def format_of(head: bytes):
+    """The name of the file format whose magic number ``head`` (a file's first bytes)
+    starts with: ``"OpenEXR"``, ``"PNG"``, ``"JPEG"``, ... or None when none is known."""
+    if head.startswith(_EXR_MAGIC):
+        return "OpenEXR"
+    return next((name for sig, name in _OTHER_FORMATS if head.startswith(sig)), None)
+
+
 def _check_magic(p: str) -> None:
     """Refuse an empty file or one without OpenEXR's magic number, naming what it is."""
     try:
@@ -92,8 +100,8 @@ def _check_magic(p: str) -> None:
     if not head:
         raise FileFormatError(f"{p!r} is not a readable OpenEXR file: it is empty (0 bytes).")
     if not head.startswith(_EXR_MAGIC):
-        what = next((f"a {name} file" for sig, name in _OTHER_FORMATS if head.startswith(sig)),
-                    "another format")
+        kind = format_of(head)
+        what = f"a {kind} file" if kind else "another format"
         raise FileFormatError(f"{p!r} is not a readable OpenEXR file: it is {what} (it does not "
                               "start with OpenEXR's magic number 76 2f 31 01).")
 

@@ -219,7 +219,7 @@ def test_scene_that_is_an_image_or_a_directory_is_refused_in_cli_terms(tmp_path,
     empty = tmp_path / "empty.xml"
     empty.write_bytes(b"")
     out = tmp_path / ("o" if command == "render" else "o.exr")
-    for scene, what in ((image, "is an OpenEXR image, not a scene file"),
+    for scene, what in ((image, "is an OpenEXR file, not a scene file"),
                         (bad, "is a directory"), (empty, "is an empty file")):
         code, _, err = run_cli(command, scene, "--spp", 4, "--out", out, "-q")
         _assert_one_line_error(code, err, f"SCENE {str(scene)!r} {what}; {_SCENE_EXPECTED}")
