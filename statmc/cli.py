@@ -196,8 +196,10 @@ def _check_out_dir(path: str, inputs=()) -> None:
         raise InputError(f"--out {path!r} exists and is not a directory; render writes a "
                          f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...).")
     ext = os.path.splitext(os.path.normpath(path))[1]
-    if not os.path.lexists(path) and ext.lower() in _FILE_EXTENSIONS:
-        # `render --out cb16.exr` would make a directory cb16.exr/ holding render.exr
+    said_directory = path.endswith(os.sep) or (os.altsep and path.endswith(os.altsep))
+    if not os.path.lexists(path) and ext.lower() in _FILE_EXTENSIONS and not said_directory:
+        # `render --out cb16.exr` would make a directory cb16.exr/ holding render.exr;
+        # `--out cb16.exr/` says it is a directory
         raise InputError(f"--out {path!r} ends in {ext!r} like a file, but render writes a "
                          f"directory of files ({', '.join(RENDER_OUTPUTS[:3])}, ...); name a "
                          f"directory, e.g. {os.path.splitext(os.path.normpath(path))[0]!r}.")

@@ -1476,6 +1476,11 @@ def test_render_out_named_like_a_file_is_refused(tmp_path, name):
     code, _, err = run_cli("render", "toy:mixed", "--spp", "2", "--size", "8x8", "--out", out, "-q")
     assert code == 0, err
     assert (out / "render.exr").is_file()
+    slash = tmp_path / "new" / name   # a trailing separator names a directory: made and used
+    code, _, err = run_cli("render", "toy:mixed", "--spp", "2", "--size", "8x8", "--out",
+                           str(slash) + os.sep, "-q")
+    assert code == 0, err
+    assert (slash / "render.exr").is_file()
 
 
 @pytest.mark.parametrize("command, option", [
