@@ -86,12 +86,12 @@ def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     directory = os.path.dirname(os.path.abspath(path))
     mode = _final_mode(path)
     suffix = suffix if suffix is not None else os.path.splitext(path)[1]
-    made = _missing_directories(directory)
+    made = missing_directories(directory)
     try:
         os.makedirs(directory, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".statmc-", suffix=suffix, dir=directory)
     except OSError as e:
-        _remove_made(made)
+        remove_made_directories(made)
         # name the target and the directory, not the hidden temporary file or a bare errno
         raise _cannot_write(path, directory, e) from None
     os.close(fd)
@@ -104,11 +104,11 @@ def atomic_path(path, *, protect=(), overwrite: bool = True, suffix=None):
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(tmp)
-        _remove_made(made)
+        remove_made_directories(made)
         raise
 
 
-def _missing_directories(directory: str) -> list:
+def missing_directories(directory: str) -> list:
     """The components of ``directory`` that do not exist yet, deepest first (what
     ``os.makedirs`` will create)."""
     made = []
@@ -122,7 +122,7 @@ def _missing_directories(directory: str) -> list:
     return made
 
 
-def _remove_made(made) -> None:
+def remove_made_directories(made) -> None:
     """Remove the directories a failed write created (deepest first), if still empty.
 
     Every one is tried: a deeper one that is missing (``os.makedirs`` failed before making

@@ -155,7 +155,7 @@ _FILE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".
                     ".json", ".txt", ".pfm")
 
 
-#: The first bytes of files that a SCENE argument can name by mistake (an image, an array).
+#: What a SCENE argument must name, for the messages that refuse another one.
 _SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
                    "Mitsuba XML scene file")
 
@@ -345,18 +345,13 @@ def _staged_outputs(directory, inputs=()):
     outputs stay as they were, never a mix of old and new files."""
     import re
 
-    from ._atomic import check_not_input
-    made, d = [], os.path.abspath(directory)
-    while not os.path.lexists(d):
-        made.append(d)
-        d = os.path.dirname(d)
+    from ._atomic import check_not_input, missing_directories, remove_made_directories
+    made = missing_directories(os.path.abspath(directory))
     try:
         os.makedirs(directory, exist_ok=True)
         tmpdir = tempfile.mkdtemp(prefix=".statmc-", dir=directory)
     except OSError:          # e.g. a name too long after makedirs made its parents
-        for m in made:
-            with contextlib.suppress(OSError):
-                os.rmdir(m)
+        remove_made_directories(made)
         raise
     staged = {}
 
@@ -387,9 +382,7 @@ def _staged_outputs(directory, inputs=()):
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
         if not done:
-            for m in made:                    # innermost first; only if still empty
-                with contextlib.suppress(OSError):
-                    os.rmdir(m)
+            remove_made_directories(made)     # innermost first; only if still empty
 
 
 def _placement(path, layer=None, part=0) -> dict:
