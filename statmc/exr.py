@@ -45,6 +45,8 @@ import numpy as np
 from .errors import FileFormatError, InputError, as_float_array, check_finite, real_or_nan
 from .stats import PixelStats
 
+_INT64_MAX = int(np.iinfo(np.int64).max)
+
 __all__ = ["read_exr", "read_image", "read_channels", "exr_info", "exr_windows", "write_exr",
            "write_png_preview", "to_display", "SAMPLE_COUNT", "spatial_covariance_channels",
            "read_spatial_covariance", "SPATIAL_COVARIANCE", "bin_channels", "read_bins", "BIN",
@@ -863,7 +865,7 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
                                  "spp= to use the file's counts.")
         n, source = np.full(mean.shape[:2], float(header_spp)), "header"
     else:
-        n, source = _spp_map(spp, mean.shape[:2]).astype(np.float64), "spp"
+        n, source = _spp_map(spp, mean.shape[:2]), "spp"
     if var is None:
         var = np.zeros_like(mean)
     stats = PixelStats.from_mean_var(mean, var, n, sample_cov=cov, albedo=albedo, normal=normal,
@@ -902,25 +904,36 @@ def _check_counts(p, count):
                               f"(e.g. {count[frac].flat[0]:.6g}); sample counts are whole numbers.")
 
 
-def _spp_map(spp, hw):
-    if (isinstance(spp, numbers.Integral) and not isinstance(spp, bool)
-            and not -2 ** 63 <= spp < 2 ** 63):       # NumPy would hold it as an object
-        raise InputError(f"`spp` must be a whole number of samples per pixel from 0 to "
-                         f"2**63 - 1; got {spp}.")
+def _spp_map(spp, hw, name="spp"):
+    """``spp`` (a count, or an ``(H, W)`` map of counts) as an ``(H, W)`` int64 count map.
+
+    Integers are taken exactly (not through float64, which rounds counts above 2**53: 2**63 - 1
+    became 2**63 and was refused), whole-valued floats converted; the accepted range is that
+    of :class:`~statmc.stats.PixelStats`' int64 counts, 0 to 2**63 - 1."""
+    def refuse(what):
+        return InputError(f"`{name}` must be a whole number of samples per pixel from 0 to "
+                          f"2**63 - 1, or a {tuple(hw)} map of them; got {what}.")
+    if isinstance(spp, numbers.Integral) and not isinstance(spp, (bool, np.bool_)):
+        if not 0 <= int(spp) <= _INT64_MAX:          # NumPy would hold a larger one as an object
+            raise refuse(spp)
+        spp = int(spp)
     a = np.asarray(spp)
-    if a.dtype == bool or not np.issubdtype(a.dtype, np.number):
-        raise InputError(f"`spp` must be a whole number of samples per pixel; got {spp!r}.")
+    if a.dtype.kind not in "iuf":                    # bool, complex, timedelta, str, object
+        raise refuse(f"{spp!r}" if a.ndim == 0 else f"an array of dtype {a.dtype}")
     if a.ndim not in (0, 2) or (a.ndim == 2 and a.shape != tuple(hw)):
-        raise InputError(f"`spp` must be a number or an {tuple(hw)} count map; got shape {a.shape}.")
-    af = a.astype(np.float64)
-    if np.any(np.isfinite(af) & (af >= 2.0 ** 63)):      # beyond the int64 counts
-        raise InputError(f"`spp` must be a whole number of samples per pixel from 0 to "
-                         f"2**63 - 1; got {spp}." if a.ndim == 0 else "`spp` must hold whole "
-                         f"numbers from 0 to 2**63 - 1; the map's largest is {af.max():.4g}.")
-    if not np.all(np.isfinite(af)) or np.any(af < 0) or np.any(af != np.round(af)):
-        raise InputError(f"`spp` must hold whole numbers >= 0; got {spp!r}." if a.ndim == 0 else
-                         "`spp` must hold whole numbers >= 0; the map has other values.")
-    return np.broadcast_to(af, tuple(hw))
+        raise refuse(f"shape {a.shape}")
+    if a.dtype.kind == "u":
+        bad = a > _INT64_MAX
+    elif a.dtype.kind == "i":
+        bad = a < 0
+    else:
+        af = a.astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(af) | (af < 0) | (af != np.round(af)) | (af >= 2.0 ** 63)
+    if np.any(bad):
+        raise refuse(f"{spp!r}" if a.ndim == 0 else
+                     f"a map with {int(np.sum(bad))} other values (e.g. {a[bad].flat[0]})")
+    return np.broadcast_to(a.astype(np.int64), tuple(hw))
 
 
 def read_image(path, *, layer=None, part=0, nonfinite: str = "error",
@@ -1405,10 +1418,7 @@ def read_spatial_covariance(path, n=None, *, part=0):
                                   f"pass the samples per pixel.")
         nn = arrays[SAMPLE_COUNT].astype(np.float64)
     else:
-        try:
-            nn = _spp_map(n, (H, W))
-        except InputError as e:
-            raise InputError(str(e).replace("`spp`", "`n`")) from None
+        nn = _spp_map(n, (H, W), "n")
     m = 2 * R + 1
     out = np.empty((H, W, m, m, 3))
     for dy in range(-R, R + 1):

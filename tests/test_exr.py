@@ -189,7 +189,7 @@ def test_spp_conflicting_with_file_counts(tmp_path):
     write_exr(p, _stats(np.random.default_rng(5), features=False))
     with pytest.raises(InputError, match="disagrees with the SampleCount"):
         read_exr(p, spp=1)
-    with pytest.raises(InputError, match="whole numbers"):
+    with pytest.raises(InputError, match="a whole number of samples per pixel"):
         read_exr(p, spp=2.5)
 
 
@@ -1011,7 +1011,44 @@ def test_an_spp_beyond_int64_is_named_as_too_large(tmp_path, spp):
     del ch["SampleCount"]
     _write_with(p, ch)
     with pytest.raises(InputError, match=rf"`spp` must be a whole number of samples per pixel "
-                       rf"from 0 to 2\*\*63 - 1; got {spp}\."):
+                       rf"from 0 to 2\*\*63 - 1, or a \(3, 4\) map of them; got {spp}\."):
+        read_exr(p, spp=spp)
+
+
+@pytest.mark.parametrize("spp", [2 ** 63 - 1, 2 ** 53 + 1, np.int64(2 ** 63 - 1),
+                                 np.uint64(2 ** 63 - 1), "map"])
+def test_every_spp_the_message_allows_is_read_exactly(tmp_path, spp):
+    # before: 2**63 - 1 was refused as "must be ... from 0 to 2**63 - 1; got
+    # 9223372036854775807" (spp was held as float64, where it rounds up to 2**63), and
+    # 2**53 + 1 was silently read as 2**53
+    p = tmp_path / "nocount.exr"
+    ch = _stats_channels_for(3, 4, np.random.default_rng(0))
+    del ch["SampleCount"]
+    _write_with(p, ch)
+    want = np.arange(12, dtype=np.int64).reshape(3, 4) + (2 ** 63 - 12) if spp == "map" else spp
+    s = read_exr(p, spp=want)
+    assert s.n.dtype == np.int64 and s.meta["sample_count_source"] == "spp"
+    assert np.all(s.n == np.broadcast_to(np.asarray(want, dtype=np.int64), (3, 4)))
+    assert read_exr(p, spp=np.float64(2 ** 62)).n[0, 0] == 2 ** 62     # a whole float, exact
+
+
+@pytest.mark.parametrize("spp, got", [
+    (-1, "got -1"), (2.5, "got 2.5"), (np.nan, "got nan"), (1 + 2j, r"got \(1\+2j\)"),
+    (True, "got True"), ("8", "got '8'"), (np.full((3, 4), -2), r"got a map with 12 other "
+                                                               r"values \(e.g. -2\)"),
+    (np.full((3, 4), 2.0 ** 63), "got a map with 12 other values"),
+    (np.zeros((4, 3)), r"got shape \(4, 3\)"), (np.ones((3, 4), complex), "got an array of dtype complex128"),
+    (np.full((3, 4), np.timedelta64(4, "s")), "got an array of dtype timedelta64"),
+])
+def test_a_bad_spp_is_refused_in_one_wording(tmp_path, spp, got):
+    # before: two wordings ("must hold whole numbers >= 0", "must be a whole number of samples
+    # per pixel from 0 to 2**63 - 1", "must be a number or an (3, 4) count map") for one rule
+    p = tmp_path / "nocount.exr"
+    ch = _stats_channels_for(3, 4, np.random.default_rng(0))
+    del ch["SampleCount"]
+    _write_with(p, ch)
+    with pytest.raises(InputError, match=r"^`spp` must be a whole number of samples per pixel "
+                       r"from 0 to 2\*\*63 - 1, or a \(3, 4\) map of them; " + got):
         read_exr(p, spp=spp)
 
 
