@@ -155,34 +155,29 @@ _FILE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".
                     ".json", ".txt", ".pfm")
 
 
-#: What a SCENE argument must name, for the messages that refuse another one.
-_SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
-                   "Mitsuba XML scene file")
-
-
 def _check_scene_arg(scene: str) -> None:
-    """Refuse, in the command line's terms, a SCENE that is a directory or a file that is
-    not a scene (Mitsuba reported an EXR image as an XML parse error, a directory as
-    `scene`). Names of no file are left to ``make_renderer``, which lists the scenes."""
-    from .renderers import TOY_PREFIX
-    from .scenes import BUILTIN_SCENES
-    if scene.startswith(TOY_PREFIX) or scene in BUILTIN_SCENES or not os.path.exists(scene):
+    """Refuse, in the command line's terms (SCENE, not the library's `scene`), a SCENE that
+    is neither a built-in scene nor an existing file, a directory, or a file that is not a
+    scene (Mitsuba reported an EXR image as an XML parse error, a directory as `scene`)."""
+    from .renderers import check_scene, scene_expected
+    check_scene(scene, "SCENE")
+    if not os.path.exists(scene):                     # a built-in name
         return
     if os.path.isdir(scene):
-        raise InputError(f"SCENE {scene!r} is a directory; {_SCENE_EXPECTED}.")
+        raise InputError(f"SCENE {scene!r} is a directory; expected {scene_expected()}.")
     try:
         with open(scene, "rb") as f:
             head = f.read(16)
     except OSError as e:
         raise InputError(f"cannot read SCENE {scene!r}: {e.strerror or e}.") from None
     if not head:
-        raise InputError(f"SCENE {scene!r} is an empty file; {_SCENE_EXPECTED}.")
+        raise InputError(f"SCENE {scene!r} is an empty file; expected {scene_expected()}.")
     from .exr import format_of
     kind = format_of(head)
     if kind:
         article = "an" if kind[0] in "AEIOU" else "a"
         raise InputError(f"SCENE {scene!r} is {article} {kind} file, not a scene file; "
-                         f"{_SCENE_EXPECTED}.")
+                         f"expected {scene_expected()}.")
 
 
 def _check_out_dir(path: str, inputs=()) -> None:

@@ -124,8 +124,8 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     bins = as_int("bins", bins, lo=2)
     seed = as_int("seed", seed, lo=0)
     if spp % bins:
-        raise InputError(f"--spp {spp} must be a multiple of --bins {bins} (every bin gets "
-                         f"the same number of samples).")
+        raise InputError(f"`spp` must be a multiple of `bins` (every bin gets the same number "
+                         f"of samples); got spp={spp}, bins={bins}.")
     counts = np.full((renderer.height, renderer.width), spp // bins, np.int64)
     slices = _takes_first_sample(renderer)
     out = []
@@ -222,7 +222,9 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
             counts = np.full((renderer.height, renderer.width), as_int("spp", spp), np.int64)
         return renderer.render(counts, seed=seed, progress=progress)
     if counts is not None:
-        raise InputError(f"a sample map fixes the counts; it cannot be combined with --sampler {sampler}.")
+        raise InputError(f"`counts` fixes the sample counts, which an adaptive `sampler` "
+                         f"chooses; got counts with sampler={sampler!r}: pass counts=None or "
+                         "sampler='uniform'.")
     from .adaptive import adaptive_render
     opts = {"gamma": gamma} if sampler == "gem" else {}
     if sampler == "denoising-aware":

@@ -15,7 +15,7 @@ import os
 
 from .errors import InputError
 
-__all__ = ["make_renderer", "list_scenes"]
+__all__ = ["make_renderer", "list_scenes", "check_scene"]
 
 TOY_PREFIX = "toy:"
 
@@ -32,29 +32,54 @@ def list_scenes() -> dict[str, str]:
     return out
 
 
-def make_renderer(scene: str, *, width: int | None = None, height: int | None = None, **options):
+def scene_expected() -> str:
+    """What a scene argument must be, listing the built-in names: the end of the messages
+    that refuse another (``make_renderer``'s, and the command line's SCENE)."""
+    known = ", ".join(sorted(list_scenes()))
+    return f"a built-in scene name ({known}) or the path of an existing Mitsuba XML file"
+
+
+def check_scene(scene, name: str = "`scene`") -> str:
+    """``scene`` as a string when it names a built-in scene (``toy:NAME`` or a Mitsuba one)
+    or an existing path; else an :class:`InputError` naming it as ``name`` (the command line
+    passes ``"SCENE"``), what was expected and what was given.  Whether an existing file is
+    a scene Mitsuba can load is left to the loader."""
+    if isinstance(scene, os.PathLike):
+        scene = os.fspath(scene)
+    if not isinstance(scene, str) or not scene:
+        why = "an empty name" if scene == "" else f"of type {type(scene).__name__}"
+        raise InputError(f"{name} must be {scene_expected()}; got {scene!r}, {why}.")
+    if scene.startswith(TOY_PREFIX):
+        from .toy import ToyRenderer
+        if scene[len(TOY_PREFIX):] not in ToyRenderer.scenes():
+            raise InputError(f"{name} must be {scene_expected()}; got {scene!r}, which is not "
+                             "one of the toy scenes.")
+        return scene
+    from . import scenes
+    if scene not in scenes.BUILTIN_SCENES and not os.path.exists(scene):
+        raise InputError(f"{name} must be {scene_expected()}; got {scene!r}, which is neither "
+                         "a built-in scene nor an existing file.")
+    return scene
+
+
+def make_renderer(scene, *, width: int | None = None, height: int | None = None, **options):
     """The renderer for ``scene`` (see module docstring), at ``width`` × ``height`` if given.
 
-    ``options`` go to the renderer's constructor: for a Mitsuba scene, e.g. ``sensor=``
+    ``scene`` is a built-in scene name (:func:`list_scenes`: ``toy:NAME`` or a Mitsuba
+    scene) or the path (a ``str`` or ``os.PathLike``) of a Mitsuba XML file; anything else
+    raises :class:`InputError` listing the built-in names.  ``options`` go to the
+    renderer's constructor: for a Mitsuba scene, e.g. ``sensor=``
     and, for an XML file, ``params=`` (values of its ``$name`` parameters); see
     :class:`statmc.mitsuba_backend.MitsubaRenderer`."""
-    if not isinstance(scene, str) or not scene:
-        raise InputError(f"`scene` must be a scene name or a Mitsuba XML path; got {scene!r}.")
+    scene = check_scene(scene)
     if scene.startswith(TOY_PREFIX):
         from .toy import ToyRenderer
         name = scene[len(TOY_PREFIX):]
-        if name not in ToyRenderer.scenes():
-            known = ", ".join(TOY_PREFIX + k for k in ToyRenderer.scenes())
-            raise InputError(f"unknown toy scene {scene!r}; expected one of {known}.")
         mitsuba_only = sorted(set(options) & {"sensor", "params", "variant", "chunk_samples"})
         if mitsuba_only:
             raise InputError(f"`{mitsuba_only[0]}` is an option of Mitsuba scenes; {scene!r} is "
                              "an analytic toy scene: leave it out.")
         kw = {k: v for k, v in (("width", width), ("height", height)) if v is not None}
         return ToyRenderer(name, **kw, **options)
-    from . import scenes
-    if scene not in scenes.BUILTIN_SCENES and not os.path.exists(scene):
-        known = ", ".join(sorted(list_scenes()))
-        raise InputError(f"scene {scene!r} is neither a file nor a built-in scene ({known}).")
     from .mitsuba_backend import MitsubaRenderer
     return MitsubaRenderer(scene, width=width, height=height, **options)

@@ -1065,3 +1065,46 @@ def test_neighbour_products_of_slab_views_reuse_the_compiled_kernel():
         sk.add_neighbour_products_sum(got, a, b, R, use)
         np.testing.assert_array_equal(got, ref)
         assert len(kernel.signatures) == n_sigs, kernel.signatures[n_sigs:]
+
+
+@pytest.mark.parametrize("scene, why", [
+    ("nonexistent.xml", "which is neither a built-in scene nor an existing file"),
+    ("toy:nope", "which is not one of the toy scenes"), ("", "an empty name"),
+    (3, "of type int")])
+def test_make_renderer_names_its_scene_parameter_and_lists_the_scenes(scene, why):
+    # before: "scene 'nonexistent.xml' is neither a file nor a built-in scene (...)", "unknown
+    # toy scene 'toy:nope'; expected one of ...": no parameter named, and the first did not
+    # say a file was expected
+    from statmc.renderers import list_scenes, make_renderer
+    known = ", ".join(sorted(list_scenes()))
+    with pytest.raises(InputError) as e:
+        make_renderer(scene, width=8, height=8)
+    assert str(e.value) == (f"`scene` must be a built-in scene name ({known}) or the path of an "
+                            f"existing Mitsuba XML file; got {scene!r}, {why}.")
+
+
+def test_make_renderer_takes_a_path_object(tmp_path):
+    # before: "`scene` must be a scene name or a Mitsuba XML path; got PosixPath(...)" for a
+    # pathlib.Path, which MitsubaRenderer itself takes
+    import pathlib
+    from statmc.renderers import make_renderer
+    with pytest.raises(InputError, match=r"got 'nope.xml', which is neither"):
+        make_renderer(pathlib.Path("nope.xml"))
+
+
+def test_pipeline_messages_name_the_library_parameters_not_cli_flags():
+    # before: render_bins(r, 6, 4) said "--spp 6 must be a multiple of --bins 4 (...)" and
+    # render_with_sampler(counts=..., sampler="gem") "... cannot be combined with --sampler
+    # gem": flags of the command line, which a library caller never typed
+    from statmc.pipeline import render_bins, render_with_sampler
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("edges", width=16, height=12)
+    with pytest.raises(InputError) as e:
+        render_bins(r, 6, 4)
+    assert str(e.value) == ("`spp` must be a multiple of `bins` (every bin gets the same number "
+                            "of samples); got spp=6, bins=4.")
+    with pytest.raises(InputError) as e:
+        render_with_sampler(r, 8, sampler="gem", counts=np.full((12, 16), 8))
+    assert str(e.value).startswith("`counts` fixes the sample counts, which an adaptive "
+                                   "`sampler` chooses; got counts with sampler='gem'")
+    assert "--" not in str(e.value)

@@ -203,8 +203,9 @@ def test_render_never_overwrites_its_reference(tmp_path, toy_ref):
     assert ref_copy.read_bytes() == before
 
 
-_SCENE_EXPECTED = ("expected a built-in scene name (see `statmc scenes`), toy:NAME, or a "
-                   "Mitsuba XML scene file.")
+_SCENE_EXPECTED = ("expected a built-in scene name (cornell-box, glass-caustic, glossy-spheres, "
+                   "textured-dof, toy:constant, toy:edges, toy:fireflies, toy:gradient, "
+                   "toy:mixed, toy:texture) or the path of an existing Mitsuba XML file.")
 
 
 @pytest.mark.parametrize("command", ["render", "reference"])
@@ -223,8 +224,24 @@ def test_scene_that_is_an_image_or_a_directory_is_refused_in_cli_terms(tmp_path,
                         (bad, "is a directory"), (empty, "is an empty file")):
         code, _, err = run_cli(command, scene, "--spp", 4, "--out", out, "-q")
         _assert_one_line_error(code, err, f"SCENE {str(scene)!r} {what}; {_SCENE_EXPECTED}")
-        assert "`scene`" not in err and "XML file" not in err
+        assert "`scene`" not in err and "Parsing of XML" not in err
         assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["render", "reference"])
+@pytest.mark.parametrize("scene, why", [
+    ("nonexistent.xml", "which is neither a built-in scene nor an existing file"),
+    ("toy:nope", "which is not one of the toy scenes"), ("", "an empty name")])
+def test_a_scene_that_does_not_exist_is_named_as_SCENE(tmp_path, command, scene, why):
+    # before: "scene 'nonexistent.xml' is neither a file nor a built-in scene (...)", "unknown
+    # toy scene 'toy:nope'; ..." and "`scene` must be a scene name or a Mitsuba XML path;
+    # got ''" (the library's lowercase parameter, not the argument the user typed)
+    out = tmp_path / ("o" if command == "render" else "o.exr")
+    code, _, err = run_cli(command, scene, "--spp", 4, "--out", out, "-q")
+    _assert_one_line_error(code, err, f"error: SCENE must be {_SCENE_EXPECTED[9:-1]}; got "
+                                      f"{scene!r}, {why}.")
+    assert "`scene`" not in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("name", ["counts.exr", "render.exr"])
@@ -1792,8 +1809,10 @@ def test_demo_reports_bad_input_in_one_line(tmp_path, capsys, monkeypatch):
     r = make_renderer("toy:constant", width=128, height=128)
     bad = tmp_path / "cache" / f"{r.name.replace(':', '_')}-128x128-8spp.exr"
     bad.write_bytes(b"not an EXR file")
-    for args, needle in ((["--scene", "nosuchscene"], "scene 'nosuchscene' is neither a file"),
-                         (["--scene", "toy:nope"], "unknown toy scene 'toy:nope'"),
+    for args, needle in ((["--scene", "nosuchscene"], "got 'nosuchscene', which is neither a "
+                                                      "built-in scene nor an existing file"),
+                         (["--scene", "toy:nope"], "got 'toy:nope', which is not one of the toy "
+                                                   "scenes"),
                          (["--scene", "toy:constant", "--out", str(tmp_path / "afile")],
                           "is not a directory"),
                          (["--scene", "toy:constant", "--ref-spp", "8"],
@@ -1825,7 +1844,8 @@ def test_python_dash_m_statmc_demo_exits_2_on_bad_input(tmp_path):
     p = subprocess.run([sys.executable, "-m", "statmc.demo", "--scene", "nosuchscene",
                         "--out", str(tmp_path / "d")], capture_output=True, text=True,
                        timeout=120)
-    assert p.returncode == 2 and p.stderr.startswith("python -m statmc.demo: error: scene "), p.stderr
+    assert p.returncode == 2 and p.stderr.startswith("python -m statmc.demo: error: "), p.stderr
+    assert "must be a built-in scene name (cornell-box, " in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1 and not (tmp_path / "d").exists()
 
 
