@@ -241,23 +241,73 @@ def _part_label(q) -> str:
 
 
 class _Channels(dict):
-    """``{name: (H, W) array}`` of the part read (``read_part``, its index), with ``parts``:
-    ``{"part", "name", "channels"}`` of every part of the file (:func:`_parts_summary`)."""
+    """``{name: (H, W) array}`` of the part read (``read_part``, its index) and of the parts
+    read with it (``merged``, :func:`_companions`), with ``parts``: ``{"part", "name",
+    "channels"}`` of every part of the file (:func:`_parts_summary`), and ``left``:
+    ``{index: why}`` of the other parts, whose channels were not read."""
     parts: list = []
     read_part: int = 0
+    merged: tuple = ()
+    left: dict = {}
     layer: str | None = None      # the layer these channels were selected from (names inside it)
 
     @property
     def note(self) -> str:
         """``" (only part 0 ('beauty') of this 2-part file is read; part 1 ('variance'):
-        [...]) — pass part=INDEX or part='NAME' to read another"``, appended to the channel
-        list of a missing-channel error, or ""."""
-        if len(self.parts) < 2:
+        [...], not read with it (data window [1, 1, 3, 2], not [0, 0, 2, 1])) — pass
+        part=INDEX or part='NAME' to read another"``, appended to the channel list of a
+        missing-channel error; "" when no part was left unread."""
+        if len(self.parts) < 2 or not self.left:
             return ""
-        rest = "; ".join(f"{_part_label(q)}: {q['channels']}" for q in self.parts
-                         if q["part"] != self.read_part)
-        return (f" (only {_part_label(self.parts[self.read_part])} of this {len(self.parts)}-part "
-                f"file is read; {rest}) — {_PART_HINT}")
+        label = {q["part"]: q for q in self.parts}
+        read = _part_label(label[self.read_part])
+        if self.merged:
+            read += ", with " + ", ".join(_part_label(label[i]) for i in self.merged) + ","
+        rest = "; ".join(f"{_part_label(label[i])}: {label[i]['channels']}, not read with "
+                         f"it ({why})" for i, why in sorted(self.left.items()))
+        return (f" (only {read} of this {len(self.parts)}-part file is read; {rest}) — "
+                f"{_PART_HINT}")
+
+
+def _companions(headers: list, index: int) -> tuple[dict, dict]:
+    """The channels other parts add to part ``index`` of a file (``headers``: each part's
+    header, with its ``channels`` list), and why the others add none.
+
+    A part is read with part ``index`` when the two are one image split into parts (as
+    Nuke writes a layer per part, and OpenEXR suggests for reading a subset of channels
+    quickly): it is flat, has the same data window and the same ``view`` (or none), and none
+    of its channel names is held by part ``index`` or another such part.  A part that
+    repeats names (a second render with its own ``R, G, B``, a stereo file's other view) is
+    another image and adds nothing.  Returns ``({name: part}, {part: why not read})``."""
+    def names(h):
+        return [str(c.name) for c in h.get("channels", ())]
+    base = headers[index]
+    window = _windows(base)[0]
+    same, left = [], {}
+    for j, h in enumerate(headers):
+        if j == index:
+            continue
+        if "deep" in str(h.get("type", "")):
+            left[j] = "a deep part"
+        elif _windows(h)[0] != window:
+            left[j] = f"data window {_windows(h)[0]}, not {window}"
+        elif h.get("view") != base.get("view"):
+            left[j] = f"view {h.get('view')!r}, not {base.get('view')!r}"
+        elif any(c.xSampling != 1 or c.ySampling != 1 for c in h.get("channels", ())):
+            left[j] = "subsampled channels"
+        else:
+            same.append(j)
+    held: dict[str, int] = {}
+    for j in [index, *same]:
+        for n in names(headers[j]):
+            held[n] = held.get(n, 0) + 1
+    take = {}
+    for j in same:
+        if all(held[n] == 1 for n in names(headers[j])):
+            take.update(dict.fromkeys(names(headers[j]), j))
+        else:
+            left[j] = "channel names also in another part: another image"
+    return take, left
 
 
 def _check_part(part):
@@ -293,7 +343,8 @@ def _parts_summary(f) -> list:
             name = None
             with contextlib.suppress(Exception):
                 name = q.name() or None
-            out.append({"part": i, "name": name, "channels": sorted(q.channels)})
+            out.append({"part": i, "name": name,
+                        "channels": sorted(str(c.name) for c in q.header.get("channels", ()))})
     return out
 
 
@@ -433,6 +484,7 @@ def _open(path, *, header_only: bool = False, part=0):
     header, arrays, types = files[p][part]
     same = _Channels(arrays)
     same.parts, same.read_part = arrays.parts, arrays.read_part
+    same.merged, same.left = arrays.merged, arrays.left
     return dict(header), same, dict(types)
 
 
@@ -455,7 +507,12 @@ def _decode(p: str, header_only: bool, part=0):
             parts = _parts_summary(f)
             index = _part_index(parts, part) if part else 0
             header = f.header(index or 0)
-            chans = {} if header_only or index is None else f.channels(index)
+            take, left = ({}, {}) if index is None else \
+                _companions([q.header for q in f.parts], index)
+            chans = {} if header_only or index is None else dict(f.channels(index))
+            if not header_only:
+                for name, j in take.items():
+                    chans[name] = f.parts[j].channels[name]
         except Exception as e:  # OpenEXR raises RuntimeError / ValueError for bad files
             err = e
     # OpenEXR reports a corrupt chunk on stdout and stderr (three lines) and then drops the
@@ -477,6 +534,7 @@ def _decode(p: str, header_only: bool, part=0):
     hw = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
     arrays, types = _Channels(), {}
     arrays.parts, arrays.read_part = parts, index
+    arrays.merged, arrays.left = tuple(sorted(set(take.values()))), left
     for name, ch in chans.items():
         px = np.asarray(ch.pixels)
         if ch.xSampling != 1 or ch.ySampling != 1 or px.shape != hw:
@@ -489,6 +547,11 @@ def _decode(p: str, header_only: bool, part=0):
         types[name] = str(ch.type()).rsplit(".", 1)[-1].lower()
     header = dict(header)
     header["_parts"], header["_part"] = n_parts, index
+    header["_merged"] = arrays.merged
+    if take:                                          # the channels of the image, all parts
+        header["channels"] = list(header.get("channels", ())) + [
+            c for j in arrays.merged for c in f.parts[j].header.get("channels", ())
+            if take.get(str(c.name)) == j]
     return header, arrays, types
 
 
@@ -610,6 +673,7 @@ def _select_layer(p, arrays, types, layer):
     prefix = layer + "."
     out, kinds = _Channels(), {}
     out.parts, out.read_part, out.layer = arrays.parts, arrays.read_part, layer
+    out.merged, out.left = arrays.merged, arrays.left
     for name, a in arrays.items():
         if name.startswith(prefix) and len(name) > len(prefix):
             out[name[len(prefix):]] = a
@@ -715,7 +779,9 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
         ``SampleCount``, ...); channels outside the layer are left out.
     part : int or str, default 0
         The part of a multi-part file to read: its index (from 0) or its name (Nuke writes
-        one part per layer).  A part the file does not have raises
+        one part per layer).  The parts that are the same image split up are read with it:
+        flat parts of the same data window and ``view`` whose channel names no other such
+        part repeats (``meta["merged_parts"]``).  A part the file does not have raises
         :class:`FileFormatError` naming the parts it has.
     albedo, normal : str, None or False, optional
         Where the albedo and normal features (OIDN's auxiliary images) come from.  A string
@@ -761,7 +827,8 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
         ``data_window`` and ``display_window`` (``[x0, y0, x1, y1]``: where the pixels lie
         in the frame, :func:`exr_windows`), ``depth_channel``,
         ``chromaticities`` (the header's 8 primaries and white point x, y, or None),
-        ``layer``, ``part`` (the index of the part read), ``albedo_layer`` and
+        ``layer``, ``part`` (the index of the part read), ``merged_parts`` (the indices of
+        the parts read with it as one image, see ``part``), ``albedo_layer`` and
         ``normal_layer`` (the layer the feature came from, e.g. ``"Albedo"`` or
         ``"ViewLayer.Denoising Albedo"``, or None),
         ``sample_count_source`` (``"file"``: the channel, ``"header"``: the
@@ -886,6 +953,7 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
         "has_covariance": has_cov,
         "data_window": data_window, "display_window": display_window,
         "chromaticities": _chromaticities(header), "layer": layer, "part": header["_part"],
+        "merged_parts": list(header["_merged"]),
         "albedo_layer": albedo_layer, "normal_layer": normal_layer,
         "depth_channel": depth_name, "sample_count_source": source,
         "nonfinite_replaced": int(sum(v["nan"] + v["inf"] for v in by_group.values())),
@@ -1062,8 +1130,10 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
     ``compression``, ``lossy_compression`` (PXR24, B44, B44A, DWAA or DWAB), ``parts`` (their
     number), ``part`` (``part`` and ``name`` of the part described: ``part``, an index or a
     name, part 0 unless given), ``other_parts`` (``part``, ``name`` and ``channels`` of each
-    other part), ``samples_per_pixel`` (pbrt-v4's ``samplesPerPixel`` header
-    attribute or None), ``chromaticities`` (or None), ``channels`` (name → pixel type), ``groups`` (group →
+    other part), ``merged_parts`` (the parts read with it as one image, as by
+    :func:`read_exr`; the channels below include theirs), ``samples_per_pixel``
+    (pbrt-v4's ``samplesPerPixel`` header attribute or None), ``chromaticities`` (or None),
+    ``channels`` (name → pixel type), ``groups`` (group →
     channel names), ``layout`` (which statmc/pbrt-v4 channel groups are present),
     ``features`` (``albedo`` and ``normal``: the layers :func:`read_exr` recognises as
     such, statmc's own ``Albedo`` / ``N`` first, then other tools' layers such as Blender's
@@ -1110,6 +1180,7 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
                  "name": next((q["name"] for q in arrays.parts if q["part"] == arrays.read_part),
                               None)},
         "other_parts": [q for q in arrays.parts if q["part"] != arrays.read_part],
+        "merged_parts": list(arrays.merged),
         "channels": {n: types[n] for n in sorted(arrays)},
         "groups": groups,
         "layout": {

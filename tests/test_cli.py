@@ -2449,14 +2449,17 @@ def test_per_file_layers_are_refused_for_a_bins_file(tmp_path):
 
 
 def _two_part_file(path, rng, alpha=True):
-    """Part 0 'depth' (Z only), part 1 'beauty' with statistics (and alpha)."""
+    """Part 0 'depth' (Z only, a data window one column narrower: not read with part 1),
+    part 1 'beauty' with statistics (and alpha)."""
     import OpenEXR
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     ch = _crop_stats(rng)
     if alpha:
         ch["A"] = rng.random((8, 10))
     ch = {k: np.ascontiguousarray(v, np.float32) for k, v in ch.items()}
-    OpenEXR.File([OpenEXR.Part(dict(hdr), {"Z": ch["R"].copy()}, name="depth"),
+    narrow = dict(hdr, dataWindow=(np.array([0, 0], np.int32), np.array([8, 7], np.int32)),
+                  displayWindow=(np.array([0, 0], np.int32), np.array([9, 7], np.int32)))
+    OpenEXR.File([OpenEXR.Part(narrow, {"Z": ch["R"][:, :9].copy()}, name="depth"),
                   OpenEXR.Part(dict(hdr), {k: v.copy() for k, v in ch.items()},
                                name="beauty")]).write(str(path))
     return ch
@@ -2498,6 +2501,34 @@ def test_part_option_reads_another_part(tmp_path, args):
     assert code == 2 and err.count("\n") == 1, err
     assert (f"'{a}' has no part 7; it has 2 parts: part 0 ('depth'), part 1 ('beauty') (--part "
             "takes an index from 0 or a part's name)") in err
+
+
+def test_a_file_split_into_parts_of_one_window_is_read_as_one(tmp_path):
+    # before: R, G, B and A in part 0, Variance.* and SampleCount in part 1 of the same data
+    # window (Nuke's one part per layer) was refused by every command ("only part 0 ('rgba')
+    # ... is read; part 1 ('stats'): [...] — give --part INDEX|NAME to read another"), and
+    # no --part could read it
+    import OpenEXR
+
+    from statmc.exr import read_channels, read_image
+    rng = np.random.default_rng(38)
+    ch = {k: np.ascontiguousarray(v, np.float32) for k, v in _crop_stats(rng).items()}
+    ch["A"] = rng.random((8, 10)).astype(np.float32)
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    split, flat = tmp_path / "split.exr", tmp_path / "flat.exr"
+    OpenEXR.File([OpenEXR.Part(dict(hdr), {c: ch[c].copy() for c in "RGBA"}, name="rgba"),
+                  OpenEXR.Part(dict(hdr), {k: v.copy() for k, v in ch.items() if k not in "RGBA"},
+                               name="stats")]).write(str(split))
+    _write_channels(flat, ch)
+    for i, src in enumerate((split, flat)):
+        code, _, err = run_cli("reconstruct", src, "--out", tmp_path / f"o{i}.exr", "-q")
+        assert code == 0, err
+    assert np.array_equal(read_image(tmp_path / "o0.exr"), read_image(tmp_path / "o1.exr"))
+    np.testing.assert_array_equal(read_channels(tmp_path / "o0.exr", ["A"])["A"], ch["A"])
+    code, out, err = run_cli("info", split)
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["merged_parts"] == [1] and info["layout"]["variance"] and info["parts"] == 2
 
 
 def test_metrics_combine_and_info_take_a_part_per_file(tmp_path):

@@ -1068,39 +1068,102 @@ def test_write_exr_refuses_bad_windows_before_writing(tmp_path, kw, needle):
     assert not p.exists() and os.listdir(tmp_path) == []
 
 
+def _part_header(window=None, view=None):
+    """A Part's header (a Part keeps, and names, its header): ``window`` ``[x0, y0, x1, y1]``
+    in a 10x10 display window (the parts of a file share one), ``view`` its view."""
+    h = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if window is not None:
+        h["dataWindow"] = (np.array(window[:2], np.int32), np.array(window[2:], np.int32))
+        h["displayWindow"] = (np.array([0, 0], np.int32), np.array([9, 9], np.int32))
+    if view is not None:
+        h["view"] = view
+    return h
+
+
+def test_channels_split_across_parts_of_one_window_are_read_together(tmp_path):
+    # before: a file with R, G, B in part 0 and Variance.* (and SampleCount) in parts 1, 2 of
+    # the same data window, as Nuke writes one part per layer, was refused: "has no
+    # Variance.R, ... (only part 0 ('beauty') of this 3-part file is read; part 1
+    # ('variance'): [...]) — pass part=INDEX or part='NAME' to read another", and no part
+    # held both colour and variance, so no part= could read it
+    rng = np.random.default_rng(4)
+    ch = _stats_channels_for(4, 3, rng)
+    flat = tmp_path / "flat.exr"
+    _write_with(flat, ch)
+    p = tmp_path / "parts.exr"
+    OpenEXR.File([OpenEXR.Part(_part_header(), {c: ch[c] for c in "RGB"}, name="beauty"),
+                  OpenEXR.Part(_part_header(), {f"Variance.{c}": ch[f"Variance.{c}"]
+                                                for c in "RGB"}, name="variance"),
+                  OpenEXR.Part(_part_header(), {"SampleCount": ch["SampleCount"]},
+                               name="count")]).write(str(p))
+    for part, index, merged in ((0, 0, [1, 2]), ("variance", 1, [0, 2]), (2, 2, [0, 1])):
+        s = read_exr(p, part=part)
+        _assert_same(read_exr(flat), s)
+        assert s.meta["part"] == index and s.meta["merged_parts"] == merged
+        assert s.meta["extra_channels"] == []
+    assert read_exr(flat).meta["merged_parts"] == []
+    info = exr_info(p, families=True)
+    assert info["parts"] == 3 and info["merged_parts"] == [1, 2]
+    assert info["layout"]["variance"] and info["layout"]["sample_count"]
+    assert info["channels"] == exr_info(flat)["channels"]
+    assert sorted(exr._header_summary(p)["channels"]) == sorted(ch)      # header only, too
+    np.testing.assert_array_equal(read_channels(p, ["Variance.G"])["Variance.G"],
+                                  ch["Variance.G"])
+
+
+@pytest.mark.parametrize("second, why", [
+    ({"window": [1, 1, 3, 4]}, r"data window \[1, 1, 3, 4\], not \[0, 0, 2, 3\]"),
+    ({"view": "right"}, r"view 'right', not 'left'"),
+    ({"also_rgb": True}, r"channel names also in another part: another image"),
+])
+def test_parts_that_are_not_one_image_are_not_read_together(tmp_path, second, why):
+    # another data window, another view of a stereo file, or a second R, G, B (another
+    # image): the variance of part 1 is not paired with part 0's colour, and the error says why
+    rng = np.random.default_rng(5)
+    ch = _stats_channels_for(4, 3, rng)
+    var = {f"Variance.{c}": ch[f"Variance.{c}"] for c in "RGB"}
+    if second.get("also_rgb"):
+        var.update({c: ch[c] for c in "RGB"})
+    view = "left" if "view" in second else None
+    p = tmp_path / "parts.exr"
+    OpenEXR.File([OpenEXR.Part(_part_header([0, 0, 2, 3], view), {c: ch[c] for c in "RGB"},
+                               name="beauty"),
+                  OpenEXR.Part(_part_header(second.get("window", [0, 0, 2, 3]),
+                                            second.get("view")), var,
+                               name="variance")]).write(str(p))
+    with pytest.raises(FileFormatError, match=r"has no Variance.R, Variance.G, Variance.B "
+                       r"channels.*\(only part 0 \('beauty'\) of this 2-part file is read; part 1 "
+                       r"\('variance'\): \[.*'Variance.R'\], not read with it \(" + why + r"\)\) — "
+                       r"pass part=INDEX or part='NAME' to read another"):
+        read_exr(p, spp=4)
+    np.testing.assert_array_equal(read_image(p)[..., 1], ch["G"])     # part 0's colour
+    assert exr_info(p)["merged_parts"] == [] and exr_info(p)["parts"] == 2
+
+
 def test_multipart_file_errors_name_what_the_other_parts_hold(tmp_path):
     # before: "has no Variance.R, ... Channels present: ['B', 'G', 'R']" although part 1 of
     # the file held them; the error did not say that only part 0 is read
     rng = np.random.default_rng(4)
     ch = _stats_channels_for(4, 3, rng)
-    def hdr():                                        # a Part keeps (and names) its header
-        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-
-    p = tmp_path / "parts.exr"
-    OpenEXR.File([OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty"),
-                  OpenEXR.Part(hdr(), {f"Variance.{c}": ch[f"Variance.{c}"] for c in "RGB"},
-                               name="variance")]).write(str(p))
-    with pytest.raises(FileFormatError, match=r"only part 0 \('beauty'\) of this 2-part file is "
-                       r"read; part 1 \('variance'\): \['Variance.B', 'Variance.G', 'Variance.R'\]"):
-        read_exr(p, spp=4)
-    np.testing.assert_array_equal(read_image(p)[..., 1], ch["G"])     # part 0's colour
-    assert exr_info(p)["parts"] == 2
-    assert exr_info(p, families=True)["other_parts"] == [
-        {"part": 1, "name": "variance", "channels": ["Variance.B", "Variance.G", "Variance.R"]}]
+    hdr = _part_header
     q = tmp_path / "second.exr"
-    OpenEXR.File([OpenEXR.Part(hdr(), {"Z": ch["R"]}, name="depth"),
-                  OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty")]).write(str(q))
+    OpenEXR.File([OpenEXR.Part(hdr([0, 0, 2, 3]), {"Z": ch["R"]}, name="depth"),
+                  OpenEXR.Part(hdr([1, 0, 3, 3]), {c: ch[c] for c in "RGB"},
+                               name="beauty")]).write(str(q))
     with pytest.raises(FileFormatError, match=r"no colour channels.*\['Z'\] \(only part 0 "
                        r"\('depth'\).*part 1 \('beauty'\): \['B', 'G', 'R'\]"):
         read_image(q)
     with pytest.raises(FileFormatError, match=r"lacks channel\(s\) \['B'\].*part 1 \('beauty'\)"):
         read_channels(q, ["B"])
+    assert exr_info(q, families=True)["other_parts"] == [
+        {"part": 1, "name": "beauty", "channels": ["B", "G", "R"]}]
     r = tmp_path / "three.exr"                        # every other part is listed
-    OpenEXR.File([OpenEXR.Part(hdr(), {"Z": ch["R"]}, name="depth"),
-                  OpenEXR.Part(hdr(), {c: ch[c] for c in "RGB"}, name="beauty"),
-                  OpenEXR.Part(hdr(), {"A": ch["G"]}, name="alpha")]).write(str(r))
-    with pytest.raises(FileFormatError, match=r"only part 0 \('depth'\) of this 3-part file is "
-                       r"read; part 1 \('beauty'\): \['B', 'G', 'R'\]; part 2 \('alpha'\): \['A'\]\)"):
+    OpenEXR.File([OpenEXR.Part(hdr([0, 0, 2, 3]), {"Z": ch["R"]}, name="depth"),
+                  OpenEXR.Part(hdr([1, 0, 3, 3]), {c: ch[c] for c in "RGB"}, name="beauty"),
+                  OpenEXR.Part(hdr([0, 0, 2, 3]), {"R": ch["G"]}, name="red")]).write(str(r))
+    with pytest.raises(FileFormatError, match=r"only part 0 \('depth'\), with part 2 \('red'\), "
+                       r"of this 3-part file is read; part 1 \('beauty'\): \['B', 'G', 'R'\], "
+                       r"not read with it \(data window \[1, 0, 3, 3\], not \[0, 0, 2, 3\]\)\)"):
         read_image(r)
 
 
@@ -1368,18 +1431,26 @@ def test_a_samples_per_pixel_attribute_of_another_type(tmp_path, value, n):
 
 def test_a_layer_in_another_part_is_named(tmp_path):
     # Nuke writes one part per layer ('diffuse' with diffuse.R, ...): before, layer='diffuse'
-    # said only "its layers: []" of part 0, not that part 1 holds them
-    def hdr():
-        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    # said only "its layers: []" of part 0, not that part 1 holds them.  A part of the same
+    # data window is now read with part 0 (session 15); one of another window is named
+    def hdr(window):
+        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                "dataWindow": (np.array(window[:2], np.int32), np.array(window[2:], np.int32)),
+                "displayWindow": (np.array([0, 0], np.int32), np.array([9, 9], np.int32))}
     ones = np.ones((2, 3), np.float32)
     p = tmp_path / "parts.exr"
-    OpenEXR.File([OpenEXR.Part(hdr(), {c: ones.copy() for c in "RGB"}, name="rgba"),
-                  OpenEXR.Part(hdr(), {f"diffuse.{c}": ones.copy() for c in "RGB"},
+    OpenEXR.File([OpenEXR.Part(hdr([0, 0, 2, 1]), {c: ones.copy() for c in "RGB"}, name="rgba"),
+                  OpenEXR.Part(hdr([1, 0, 3, 1]), {f"diffuse.{c}": ones.copy() for c in "RGB"},
                                name="diffuse")]).write(str(p))
     with pytest.raises(FileFormatError, match=r"no channels in layer 'diffuse'.*only part 0 "
                        r"\('rgba'\) of this 2-part file is read; part 1 \('diffuse'\): "
-                       r"\['diffuse.B', 'diffuse.G', 'diffuse.R'\]"):
+                       r"\['diffuse.B', 'diffuse.G', 'diffuse.R'\], not read with it \(data "
+                       r"window \[1, 0, 3, 1\], not \[0, 0, 2, 1\]\)"):
         read_image(p, layer="diffuse")
+    OpenEXR.File([OpenEXR.Part(hdr([0, 0, 2, 1]), {c: ones.copy() for c in "RGB"}, name="rgba"),
+                  OpenEXR.Part(hdr([0, 0, 2, 1]), {f"diffuse.{c}": 2 * ones for c in "RGB"},
+                               name="diffuse")]).write(str(p))
+    assert (read_image(p, layer="diffuse") == 2).all() and (read_image(p) == 1).all()
 
 
 def test_layer_reads_keep_the_pixel_types_for_the_overflow_hint(tmp_path):
@@ -1493,7 +1564,8 @@ def test_part_reads_another_part_by_index_or_name(tmp_path):
         read_image(p)
     # a missing channel in part 1 lists part 0's
     with pytest.raises(FileFormatError, match=r"lacks channel\(s\) \['Z'\].*only part 1 "
-                       r"\('beauty'\) of this 2-part file is read; part 0 \('depth'\): \['Z'\]\)"):
+                       r"\('beauty'\) of this 2-part file is read; part 0 \('depth'\): \['Z'\], not read with "
+                       r"it \(data window \[0, 0, 2, 3\], not \[2, 1, 4, 4\]\)\)"):
         read_channels(p, ["Z"], part="beauty")
 
 
@@ -1528,7 +1600,10 @@ def test_statistics_and_stencil_of_another_part_from_one_read(tmp_path, monkeypa
     chans = read_channels(single)
     p = tmp_path / "parts.exr"
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    OpenEXR.File([OpenEXR.Part(dict(hdr), {"Z": chans["R"].copy()}, name="depth"),
+    h, w = chans["R"].shape                  # a depth of another window: not read with "crn"
+    small = dict(hdr, dataWindow=(np.array([0, 0], np.int32), np.array([w - 2, h - 1], np.int32)),
+                 displayWindow=(np.array([0, 0], np.int32), np.array([w - 1, h - 1], np.int32)))
+    OpenEXR.File([OpenEXR.Part(small, {"Z": chans["R"][:, 1:].copy()}, name="depth"),
                   OpenEXR.Part(dict(hdr), {k: v.copy() for k, v in chans.items()},
                                name="crn")]).write(str(p))
     real, reads = OpenEXR.File, []
