@@ -1282,7 +1282,7 @@ def test_render_bins_and_reconstruct_bins_check_their_input():
     from statmc.pipeline import bin_seed, reconstruct_bins, render_bins
     r = ToyRenderer("edges", width=16, height=12)
     assert len({bin_seed(s, b) for s in range(4) for b in range(4)}) == 16
-    with pytest.raises(InputError, match="multiple of --bins"):
+    with pytest.raises(InputError, match="multiple of `bins`"):
         render_bins(r, 6, 4)
     bins = render_bins(r, 8, 4, seed=1)
     assert [int(b.n.max()) for b in bins] == [2] * 4
