@@ -31,7 +31,7 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError, as_float_array, check_finite
+from .errors import InputError, as_float_array, check_finite, real_or_nan
 
 __all__ = ["relmse", "mse", "rmse", "smape", "logloss", "one_minus_ssim", "ssim_map", "flip",
            "all_metrics", "METRICS"]
@@ -78,15 +78,30 @@ def _pair(x, ref):
 
 
 def _eps(eps, name="eps"):
-    e = float(eps)
+    e = real_or_nan(eps)                  # a string or None is refused below, not parsed
     if not np.isfinite(e) or e < 0:
         raise InputError(f"`{name}` must be a finite number >= 0; got {eps!r}.")
     return e
 
 
+def _positive(name, value, what="a positive number") -> float:
+    """``value`` as a float > 0, else an :class:`InputError` naming ``name`` (a string,
+    None or NaN was a TypeError of ``np.isfinite`` or passed on to the arithmetic)."""
+    v = real_or_nan(value)
+    if not np.isfinite(v) or v <= 0:
+        raise InputError(f"`{name}` must be {what}; got {value!r}.")
+    return v
+
+
+def _check_per_pixel(per_pixel) -> bool:
+    if not isinstance(per_pixel, (bool, np.bool_)):
+        raise InputError(f"`per_pixel` must be True or False; got {per_pixel!r}.")
+    return bool(per_pixel)
+
+
 def _reduce(err, per_pixel):
     """Mean over channels per pixel (map) or over everything (float)."""
-    return err.mean(axis=2) if per_pixel else float(err.mean())
+    return err.mean(axis=2) if _check_per_pixel(per_pixel) else float(err.mean())
 
 
 def relmse(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
@@ -278,8 +293,7 @@ def logloss(x, ref, eps: float = 0.01, *, sigma: float = 1.0, per_pixel: bool = 
     """
     xa, ra = _pair(x, ref)
     e = _eps(eps)
-    if not np.isfinite(sigma) or sigma <= 0:
-        raise InputError(f"`sigma` must be a positive number of pixels; got {sigma!r}.")
+    sigma = _positive("sigma", sigma, "a positive number of pixels")
     if xa.min() <= -1:
         raise InputError(f"`x` must be > -1 for log(1 + x); got min {xa.min():.4g}.")
     if ra.min() < 0:
@@ -306,10 +320,10 @@ def ssim_map(x, ref, *, data_range: float = 1.0, sigma: float = 1.5, k1: float =
     up to rounding, :func:`_folded_taps`); σ past :data:`_MAX_FOLD_RADIUS` taps is refused.
     """
     xa, ra = _pair(x, ref)
-    if not np.isfinite(data_range) or data_range <= 0:
-        raise InputError(f"`data_range` must be a positive number; got {data_range!r}.")
-    if not np.isfinite(sigma) or sigma <= 0:
-        raise InputError(f"`sigma` must be a positive number of pixels; got {sigma!r}.")
+    data_range = _positive("data_range", data_range)
+    sigma = _positive("sigma", sigma, "a positive number of pixels")
+    k1 = _positive("k1", k1, "a positive constant (0.01 in Wang et al. 2004)")
+    k2 = _positive("k2", k2, "a positive constant (0.03 in Wang et al. 2004)")
     # SSIM is unchanged when x, ref and L are scaled together: work in units of L, so that
     # HDR values and ranges beyond ~1e154 do not overflow the squares (exact for L = 1)
     if data_range != 1.0:
@@ -423,6 +437,7 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
     flip_evaluator = _flip_module()
 
     xa, ra = _pair(x, ref)
+    per_pixel = _check_per_pixel(per_pixel)
     if xa.shape[2] == 1:
         xa, ra = np.repeat(xa, 3, axis=2), np.repeat(ra, 3, axis=2)
     if xa.shape[2] != 3:
@@ -439,9 +454,7 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
         raise InputError(f"`tonemapper` must be one of {sorted(_FLIP_TONEMAP)}; got {tonemapper!r}.")
     params = {"tonemapper": tonemapper}
     if ppd is not None:
-        if not np.isfinite(ppd) or ppd <= 0:
-            raise InputError(f"`ppd` must be a positive number of pixels per degree; got {ppd!r}.")
-        params["ppd"] = float(ppd)
+        params["ppd"] = _positive("ppd", ppd, "a positive number of pixels per degree")
     exposures = _flip_exposures(ra, xa, tonemapper)
     if isinstance(exposures, str):                       # both images black: no difference
         return np.zeros(xa.shape[:2]) if per_pixel else 0.0
@@ -495,8 +508,10 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
     names = list(METRICS) if include is None else list(include)
     unknown = [n for n in names if n not in METRICS]
     if unknown:
-        raise InputError(f"unknown metric(s) {unknown}; expected names from {list(METRICS)}.")
+        raise InputError(f"`include` must name metrics from {list(METRICS)}; got unknown "
+                         f"{unknown}.")
     xa, ra = _pair(x, ref)             # validate once with a clear message
+    _check_per_pixel(per_pixel)
     out = {}
     for n in METRICS:
         if n not in names:

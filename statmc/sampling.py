@@ -48,12 +48,13 @@ def counts_from_density(density, budget: int, *, min_count: int = 0, rng=None) -
     min_count = as_whole("min_count", min_count, what="number of samples")
     if d.size == 0:
         if budget:
-            raise InputError(f"`density` has no pixels (shape {d.shape}); cannot place "
-                             f"`budget`={budget} samples.")
+            raise InputError(f"`density` must have pixels to place `budget`={budget} samples "
+                             f"in; got shape {d.shape}.")
         return np.zeros(d.shape, np.int64)
     base_total = min_count * d.size
     if base_total > budget:
-        raise InputError(f"`min_count`={min_count} over {d.size} pixels needs {base_total} samples; budget is {budget}.")
+        raise InputError(f"`budget` must be at least `min_count` × pixels = {min_count} × "
+                         f"{d.size} = {base_total} samples; got {budget}.")
     with np.errstate(over="ignore"):
         total = d.sum()
     if not np.isfinite(total):      # values near float64's maximum: only the sum overflows

@@ -339,12 +339,15 @@ class PixelStats:
         ``a < b`` ``(H, W, C(C-1)/2)`` (RG, RB, GB); then ``m2_cross = sample_cov (n − 1)``.
         """
         mean = as_float_array("mean", mean, ndim=3, dtype=np.float64)
+        check_finite("mean", mean)      # before M2, whose overflow check would blame sample_var
         var = as_float_array("sample_var", sample_var, ndim=3, dtype=np.float64)
         check_same_shape("sample_var", var, "mean", mean.shape)
         check_finite("sample_var", var)
         check_nonnegative("sample_var", var)
         n_a = as_float_array("n", n, ndim=2, dtype=np.float64)
         check_same_shape("n", n_a, "mean[..., 0]", mean.shape[:2])
+        check_finite("n", n_a)
+        check_nonnegative("n", n_a)
         with np.errstate(over="ignore"):                       # refused below by name
             m2 = var * np.maximum(n_a - 1, 0)[..., None]
         try:

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from _memory import traced_peak
-from statmc import analytic, combine, denoisers, filters, gem, progressive, sampling, sure
+from statmc import (analytic, combine, denoisers, filters, gem, metrics, progressive, sampling,
+                    sure)
 from statmc.errors import InputError
 from statmc.stats import PixelStats
 
@@ -226,7 +227,7 @@ def test_empty_images_through_plain_filters(shape):
     d = np.ones(shape[:2]) if shape[2] else np.ones((0, 3))
     if d.size == 0:
         assert sampling.counts_from_density(d, 0).shape == d.shape
-        with pytest.raises(InputError, match="`density` has no pixels"):
+        with pytest.raises(InputError, match=r"`density` must have pixels to place `budget`=5 samples in; got shape"):
             sampling.counts_from_density(d, 5)
 
 
@@ -1108,3 +1109,49 @@ def test_pipeline_messages_name_the_library_parameters_not_cli_flags():
     assert str(e.value).startswith("`counts` fixes the sample counts, which an adaptive "
                                    "`sampler` chooses; got counts with sampler='gem'")
     assert "--" not in str(e.value)
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda x: metrics.relmse(x, x, "a"),
+     r"`eps` must be a finite number >= 0; got 'a'"),
+    (lambda x: metrics.smape(x, x, None),
+     r"`eps` must be a finite number >= 0; got None"),
+    (lambda x: metrics.logloss(x, x, sigma="a"),
+     r"`sigma` must be a positive number of pixels; got 'a'"),
+    (lambda x: metrics.one_minus_ssim(x, x, sigma=None),
+     r"`sigma` must be a positive number of pixels; got None"),
+    (lambda x: metrics.ssim_map(x, x, k1=np.nan),
+     r"`k1` must be a positive constant \(0.01 in Wang et al. 2004\); got nan"),
+    (lambda x: metrics.ssim_map(x, x, k2="0.03"),
+     r"`k2` must be a positive constant .*; got '0.03'"),
+    (lambda x: metrics.flip(x, x, ppd="67"),
+     r"`ppd` must be a positive number of pixels per degree; got '67'"),
+    (lambda x: metrics.mse(x, x, per_pixel="yes"),
+     r"`per_pixel` must be True or False; got 'yes'"),
+    (lambda x: metrics.flip(x, x, per_pixel=1),
+     r"`per_pixel` must be True or False; got 1"),
+    (lambda x: metrics.all_metrics(x, x, include=["psnr"]),
+     r"`include` must name metrics from \['relmse', .*\]; got unknown \['psnr'\]"),
+])
+def test_metric_options_of_the_wrong_type_are_named(call, needle):
+    # before: eps='a' was float()'s "ValueError: could not convert string to float", sigma='a'
+    # numpy's "TypeError: ufunc 'isfinite' not supported", k1=nan "`x` and `ref` are too
+    # large for SSIM ... whose square overflows" (about the images), per_pixel='yes' taken as
+    # True, and an unknown metric named no parameter
+    x, _, _, _ = _inputs(14)
+    with pytest.raises(InputError, match=needle):
+        call(x)
+
+
+@pytest.mark.parametrize("where, needle", [
+    ("mean", r"`mean` holds 1 NaN and 0 Inf values"),
+    ("n", r"`n` holds 1 NaN and 0 Inf values"),
+])
+def test_from_mean_var_names_a_nan_where_it_is(where, needle):
+    # before: a NaN in `mean` (or `n`) was reported as "`sample_var` must give statistics
+    # within float64; got 1 pixels where M2 = sample_var · (n − 1) ... overflows"
+    x, v, n, _ = _inputs(15)
+    args = {"mean": x.copy(), "sample_var": v, "n": n.astype(float)}
+    args[where][(1, 2) if where == "n" else (1, 2, 0)] = np.nan
+    with pytest.raises(InputError, match=needle):
+        PixelStats.from_mean_var(**args)

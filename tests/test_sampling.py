@@ -44,7 +44,8 @@ def test_rounding_is_unbiased():
 def test_min_count_and_uniform_for_zero_map():
     c = counts_from_density(np.zeros((4, 4)), 37, min_count=1, rng=0)
     assert c.sum() == 37 and c.min() >= 1
-    with pytest.raises(InputError, match="min_count"):
+    with pytest.raises(InputError, match=r"`budget` must be at least `min_count` × pixels = 1 × "
+                       r"16 = 16 samples; got 10\."):
         counts_from_density(np.ones((4, 4)), 10, min_count=1)
 
 
