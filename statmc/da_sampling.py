@@ -198,7 +198,9 @@ def mix_variance(alpha, var_x, var_y, *, cov_xy=None) -> np.ndarray:
         ``(1 − α)² Var[x] + α² Var[y] + 2α(1 − α) Cov[x, y]`` — with ``ρ = α`` and a single
         denoised image, the formula ``ρ²(…) + (1 − ρ)² Var[x]`` of the notes plus the
         covariance it omits.  ``α`` is treated as fixed (its own randomness is ignored, as
-        in [1]_).
+        in [1]_).  With an estimated ``cov_xy`` (the MC-SURE divergence is noisy) the result
+        is negative where ``|Cov| > √(Var[x] Var[y])``; it is returned as computed, not
+        clipped (:func:`denoising_aware_density` clamps its map at 0, as the notes do).
     """
     named = {"alpha": alpha, "var_x": var_x, "var_y": var_y}
     if cov_xy is not None:
@@ -344,6 +346,9 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
         raise InputError(f"`eps` must be a finite number > 0; got {eps!r}.")
     if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
         raise InputError(f"`k` must be a positive integer; got {k!r}.")
+    for flag, value in (("covariance", covariance), ("extra_output", extra_output)):
+        if not isinstance(value, (bool, np.bool_)):      # None or "no" were taken as False / True
+            raise InputError(f"`{flag}` must be True or False; got {value!r}.")
     if progressive_options is not None and not isinstance(progressive_options, dict):
         raise InputError(f"`progressive_options` must be a dict or None; got "
                          f"{type(progressive_options).__name__}.")

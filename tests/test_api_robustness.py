@@ -1155,3 +1155,14 @@ def test_from_mean_var_names_a_nan_where_it_is(where, needle):
     args[where][(1, 2) if where == "n" else (1, 2, 0)] = np.nan
     with pytest.raises(InputError, match=needle):
         PixelStats.from_mean_var(**args)
+
+
+@pytest.mark.parametrize("flag, value", [("covariance", None), ("covariance", "no"),
+                                         ("extra_output", 1)])
+def test_denoising_aware_density_flags_must_be_booleans(flag, value):
+    # before: covariance=None ran as False and covariance="no" as True, silently
+    from statmc.da_sampling import denoising_aware_density
+    x, v, n, _ = _inputs(16)
+    stats = PixelStats.from_mean_var(x, v * n[..., None], n)
+    with pytest.raises(InputError, match=rf"`{flag}` must be True or False; got {value!r}"):
+        denoising_aware_density(stats, denoisers.gaussian(1.0), **{flag: value})
