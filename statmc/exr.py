@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+from collections.abc import Iterable, Mapping
 import numbers
 import os
 import re
@@ -42,7 +43,8 @@ import threading
 
 import numpy as np
 
-from .errors import FileFormatError, InputError, as_float_array, check_finite, real_or_nan
+from .errors import (FileFormatError, InputError, as_float_array, as_int, check_finite,
+                     real_or_nan)
 from .stats import PixelStats
 
 _INT64_MAX = int(np.iinfo(np.int64).max)
@@ -74,7 +76,20 @@ _BIN_CHANNEL = re.compile(rf"^{BIN}(\d+)\.(Denoised\.)?([RGB])$")
 
 # ---------------------------------------------------------------------------- reading
 def _name(path) -> str:
-    return os.fspath(path) if not isinstance(path, (bytes, bytearray)) else path.decode()
+    if isinstance(path, (bytes, bytearray)):
+        return path.decode()
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"`path` must be a file path (a str or os.PathLike); got "
+                         f"{type(path).__name__} {path!r}.")
+    return os.fspath(path)
+
+
+def _check_flag(name: str, value) -> bool:
+    """``value`` of a True/False option, else an :class:`InputError` (``"no"`` was taken as
+    True, None as False)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"`{name}` must be True or False; got {value!r}.")
+    return bool(value)
 
 
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -160,7 +175,9 @@ def using_io_threads(threads=None):
     decoding from 2.8 to 1.2 s.  Pixels and bytes written are the same (ZIP compresses
     each block of 16 scanlines on its own, and the blocks are written in order)."""
     global _io_threads
-    before, _io_threads = _io_threads, _cpu_count() if threads is None else int(threads)
+    if threads is not None:
+        threads = as_int("threads", threads, lo=0)
+    before, _io_threads = _io_threads, _cpu_count() if threads is None else threads
     try:
         yield
     finally:
@@ -636,7 +653,7 @@ def _count_nonfinite(a) -> tuple[int, int]:
 def _check_policy(nonfinite, replace_value):
     if nonfinite not in ("error", "replace"):
         raise InputError(f"`nonfinite` must be 'error' or 'replace'; got {nonfinite!r}.")
-    if not np.isfinite(replace_value):
+    if not np.isfinite(real_or_nan(replace_value)):
         raise InputError(f"`replace_value` must be a finite number; got {replace_value!r}.")
 
 
@@ -861,8 +878,9 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
     """
     p = _name(path)
     _check_policy(nonfinite, replace_value)
-    if not isinstance(covariance, (bool, np.bool_)):
-        raise InputError(f"`covariance` must be True or False; got {covariance!r}.")
+    for flag, value in (("covariance", covariance), ("require_variance", require_variance),
+                        ("spp_if_missing", spp_if_missing)):
+        _check_flag(flag, value)
     header, arrays, types = _open(p, part=part)
     whole, whole_types = arrays, types
     arrays, types = _select_layer(p, arrays, types, layer)
@@ -1034,7 +1052,10 @@ def read_channels(path, names=None, *, part=0) -> dict:
     _, arrays, _ = _open(p, part=part)
     if names is None:
         return arrays
-    names = [names] if isinstance(names, str) else list(names)
+    names = [names] if isinstance(names, str) else names
+    if not isinstance(names, Iterable) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"`names` must be a channel name or a list of them; got {names!r}.")
+    names = list(names)
     missing = [n for n in names if n not in arrays]
     if missing:
         raise FileFormatError(f"{p!r} lacks channel(s) {missing}; channels present: {_present(arrays)}.")
@@ -1151,6 +1172,7 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
     (``"stencil MxM"`` or None), ``bins`` (their number or None) and ``bins_denoised``.
     """
     p = _name(path)
+    _check_flag("families", families)
     header, arrays, types = _open(p, part=part)
     data_window, display_window = _windows(header)
     x0, y0, x1, y1 = data_window
@@ -1205,6 +1227,7 @@ def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
     """Call ``write(tmp)`` on a temporary path beside ``path``, then rename it onto ``path``."""
     from ._atomic import atomic_path
 
+    _check_flag("overwrite", overwrite)               # "no" overwrote the file
     with atomic_path(_name(path), protect=protect, overwrite=overwrite) as tmp:
         write(tmp)
 
@@ -1274,15 +1297,18 @@ def _f32(name, a):
     return out
 
 
-def _image_channels(image) -> dict:
-    img = as_float_array("image", image, ndim=(2, 3))
+def _image_channels(image, name="data") -> dict:
+    """The ``Y`` or ``R, G, B`` channels of a plain image given as ``name`` (write_exr's
+    ``data``, which it names: the messages said `image`, a parameter it does not have)."""
+    img = as_float_array(name, image, ndim=(2, 3))
     if img.ndim == 2:
         img = img[..., None]
     c = img.shape[2]
     if c not in (1, 3):
-        raise InputError(f"`image` must have 1 or 3 channels (Y or R, G, B); got shape {img.shape}.")
+        raise InputError(f"`{name}` must be a PixelStats or an image with 1 or 3 channels (Y "
+                         f"or R, G, B); got shape {img.shape}.")
     names = ("Y",) if c == 1 else _RGB
-    return {n: _f32("image", img[..., k]) for k, n in enumerate(names)}
+    return {n: _f32(name, img[..., k]) for k, n in enumerate(names)}
 
 
 def _stats_channels(stats: PixelStats) -> dict:
@@ -1385,6 +1411,11 @@ def write_exr(path, data, *, extra=None, data_window=None, display_window=None,
     else:
         channels = _image_channels(data)
     hw = next(iter(channels.values())).shape
+    if 0 in hw:             # OpenEXR said "Invalid display window in image header"
+        raise InputError(f"`data` must have pixels; got an image of (H, W) = {hw}.")
+    if extra is not None and not isinstance(extra, Mapping):
+        raise InputError(f"`extra` must be a dict of channel name to (H, W) array; got "
+                         f"{type(extra).__name__}.")
     for name, a in (extra or {}).items():
         if not isinstance(name, str) or not name or name in channels:
             raise InputError(f"`extra` channel names must be new non-empty strings; got {name!r} "
@@ -1664,6 +1695,8 @@ def write_png_preview(path, image, *, exposure: float = 0.0, tonemap: str = "srg
 
     _check_extension(path, "png", "write_exr writes the linear image as OpenEXR", protect)
     disp = to_display(image, exposure=exposure, tonemap=tonemap)
+    if disp.size == 0:
+        raise InputError(f"`image` must have pixels for a PNG preview; got shape {disp.shape}.")
     if disp.ndim == 3 and disp.shape[2] == 1:
         disp = disp[..., 0]
     if disp.ndim == 3 and disp.shape[2] != 3:

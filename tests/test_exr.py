@@ -420,7 +420,7 @@ def test_invalid_data_raises_before_touching_file(tmp_path):
     p = tmp_path / "out.exr"
     write_exr(p, np.ones((2, 2, 3)))
     before = p.read_bytes()
-    with pytest.raises(InputError, match="`image` holds 1 NaN"):
+    with pytest.raises(InputError, match="`data` holds 1 NaN"):
         bad = np.ones((2, 2, 3))
         bad[0, 0, 0] = np.nan
         write_exr(p, bad)
@@ -1830,3 +1830,53 @@ def test_reads_do_not_share_memory(tmp_path):
         s = read_exr(tmp_path / "a.exr", spp=1, require_variance=False)
         s.mean[:] = 3.0
         assert float(read_image(tmp_path / "a.exr").max()) == 1.0
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda p, q: read_exr(None), r"`path` must be a file path \(a str or os.PathLike\); got "
+                                  r"NoneType None"),
+    (lambda p, q: write_exr(3, np.ones((2, 2, 3))), r"`path` must be a file path .*; got int 3"),
+    (lambda p, q: read_exr(p, nonfinite="replace", replace_value="a"),
+     r"`replace_value` must be a finite number; got 'a'"),
+    (lambda p, q: read_exr(p, require_variance="no"), r"`require_variance` must be True or False"),
+    (lambda p, q: read_exr(p, spp=4, spp_if_missing="yes"),
+     r"`spp_if_missing` must be True or False; got 'yes'"),
+    (lambda p, q: exr_info(p, families="yes"), r"`families` must be True or False; got 'yes'"),
+    (lambda p, q: read_channels(p, 3), r"`names` must be a channel name or a list of them; got 3"),
+    (lambda p, q: write_exr(q, np.ones((2, 2, 3)), extra=[1]),
+     r"`extra` must be a dict of channel name to \(H, W\) array; got list"),
+    (lambda p, q: write_exr(q, np.ones((0, 2, 3))), r"`data` must have pixels; got an image of "
+                                                    r"\(H, W\) = \(0, 2\)"),
+    (lambda p, q: write_exr(q, PixelStats.empty(2, 0)), r"`data` must have pixels"),
+    (lambda p, q: write_exr(q, np.ones((2, 2, 4))), r"`data` must be a PixelStats or an image "
+                                                    r"with 1 or 3 channels"),
+    (lambda p, q: write_png_preview(str(q)[:-4] + ".png", np.ones((0, 2, 3))),
+     r"`image` must have pixels for a PNG preview; got shape \(0, 2, 3\)"),
+    (lambda p, q: exr.using_io_threads(-1).__enter__(), r"`threads` must be a non-negative "
+                                                        r"integer; got -1"),
+])
+def test_io_arguments_of_the_wrong_type_are_named(tmp_path, call, needle):
+    # before: read_exr(None) and write_exr(3, ...) were os.fspath's TypeError, replace_value
+    # 'a' numpy's "ufunc 'isfinite' not supported", flags such as require_variance='no' were
+    # taken as True, read_channels(p, 3) "'int' object is not iterable", extra=[1] an
+    # AttributeError, an empty image OpenEXR's "Invalid display window in image header",
+    # write_exr's messages named `image` (its parameter is `data`), an empty PNG Pillow's
+    # ValueError, and using_io_threads(-1) sized OpenEXR's pool -1
+    p, q = tmp_path / "a.exr", tmp_path / "b.exr"
+    write_exr(p, PixelStats.from_mean_var(np.ones((2, 2, 3)), np.ones((2, 2, 3)),
+                                          np.full((2, 2), 4)))
+    with pytest.raises(InputError, match=needle):
+        call(p, q)
+    assert not q.exists()
+
+
+def test_overwrite_must_be_a_boolean(tmp_path):
+    # before: write_exr(p, x, overwrite="no") replaced p (a non-empty string is true)
+    p = tmp_path / "a.exr"
+    write_exr(p, np.ones((2, 2, 3)))
+    before = p.read_bytes()
+    with pytest.raises(InputError, match=r"`overwrite` must be True or False; got 'no'"):
+        write_exr(p, np.zeros((2, 2, 3)), overwrite="no")
+    with pytest.raises(InputError, match=r"`overwrite` must be True or False; got None"):
+        write_png_preview(tmp_path / "a.png", np.zeros((2, 2, 3)), overwrite=None)
+    assert p.read_bytes() == before and sorted(os.listdir(tmp_path)) == ["a.exr"]
