@@ -217,6 +217,13 @@ def _check_int(name: str, value, *, minimum: int) -> int:
     return int(value)
 
 
+def _check_flags(**flags) -> None:
+    """Refuse a True/False option given as anything else (``progress="no"`` showed the bar)."""
+    for name, value in flags.items():
+        if not isinstance(value, (bool, np.bool_)):
+            raise InputError(f"`{name}` must be True or False; got {value!r}.")
+
+
 def _chunk_seed(seed: int, salt: int, chunk: int) -> int:
     """A 32-bit sampler seed for one chunk, distinct streams for distinct (seed, salt, chunk)."""
     return int(np.random.SeedSequence([seed, salt, chunk]).generate_state(1, np.uint32)[0])
@@ -731,6 +738,7 @@ class MitsubaRenderer:
         _warn_if_words_wrap(first, counts)
         seed = _check_int("seed", seed, minimum=0)
         feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
+        _check_flags(progress=progress, features=features, cross=cross)
         if self._mi.variant() != self.variant:
             self._mi.set_variant(self.variant)
         render = self._render_jit if self._jit else self._render_scalar
@@ -810,6 +818,7 @@ class MitsubaRenderer:
         spp = _check_int("spp", spp, minimum=1)
         seed = _check_int("seed", seed, minimum=0)
         feature_spp = _check_int("feature_spp", feature_spp, minimum=1)
+        _check_flags(progress=progress, features=features)
         m = _check_int("stencil", stencil, minimum=1)
         if m % 2 == 0:
             raise InputError(f"`stencil` must be an odd width; got {stencil}.")
@@ -906,10 +915,16 @@ class MitsubaRenderer:
 
     def _check_first(self, first_sample, counts) -> np.ndarray:
         if first_sample is None:
+            # the bound first_sample + counts had; without first_sample, 2**40 samples per
+            # pixel were not refused and the render ran for hours
+            if counts.size and int(counts.max()) >= 2 ** 31:
+                raise InputError(f"`counts` must stay below 2**31 samples per pixel; got max "
+                                 f"{int(counts.max())}.")
             return np.zeros_like(counts)
         a = self._whole_map("first_sample", first_sample, "whole sample indices")
         if np.any(a + counts >= 2 ** 31):
-            raise InputError("`first_sample + counts` must stay below 2**31 samples per pixel.")
+            raise InputError(f"`first_sample + counts` must stay below 2**31 samples per pixel; "
+                             f"got max {int((a + counts).max())}.")
         return a.astype(np.int64)
 
     def _reduce_mode(self, arrays: int):

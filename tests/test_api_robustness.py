@@ -1166,3 +1166,24 @@ def test_denoising_aware_density_flags_must_be_booleans(flag, value):
     stats = PixelStats.from_mean_var(x, v * n[..., None], n)
     with pytest.raises(InputError, match=rf"`{flag}` must be True or False; got {value!r}"):
         denoising_aware_density(stats, denoisers.gaussian(1.0), **{flag: value})
+
+
+def test_mitsuba_render_refuses_2_to_the_31_samples_and_non_boolean_flags():
+    # before: render(counts) with 2**40 samples per pixel (and no first_sample, whose sum
+    # with counts had the 2**31 bound) was not refused and ran for hours; progress="no"
+    # showed the progress bar and features="no" rendered the features
+    pytest.importorskip("mitsuba")
+    from statmc.mitsuba_backend import MitsubaRenderer
+    r = MitsubaRenderer("cornell-box", width=4, height=3)
+    for spp in (2 ** 31, 2 ** 40):
+        with pytest.raises(InputError, match=rf"`counts` must stay below 2\*\*31 samples per "
+                                             rf"pixel; got max {spp}\."):
+            r.render(np.full((3, 4), spp))
+    with pytest.raises(InputError, match=r"`first_sample \+ counts` must stay below 2\*\*31 "
+                                         r"samples per pixel; got max 2147483648\."):
+        r.render(np.full((3, 4), 2), first_sample=np.full((3, 4), 2 ** 31 - 2))
+    for flag in ("progress", "features", "cross"):
+        with pytest.raises(InputError, match=rf"`{flag}` must be True or False; got 'no'"):
+            r.render(np.full((3, 4), 1), **{flag: "no"})
+    with pytest.raises(InputError, match=r"`features` must be True or False; got None"):
+        r.render_crn(2, features=None)
