@@ -8,6 +8,14 @@ Layout: an ``(H, W, C)`` image is seen as ``(H, W*C)`` rows, so both passes of a
 separable filter run over contiguous memory and vectorise; the channel count ``C`` is the
 stride of the horizontal pass.  Inner loops index views from 0 so that LLVM can prove
 indices non-negative (numba's negative-index wraparound otherwise blocks vectorisation).
+
+Parallelism: most kernels are a public Python function that hands a serial compiled
+``_*_rows(t0, t1, ...)`` function to :func:`statmc._task_threads.run_tasks`, which runs
+contiguous ranges of rows (tasks) on a few threads.  As numba parallel loops (``prange``)
+each cost about 1 s more CPU to compile on a cold cache, and the filter passes about 4 s
+more per dtype: numba's parallel lowering links the loop body, with everything it calls,
+into a function of its own and that into the kernel, optimising it again at each level.
+The count scan, the spread of samples and the greedy rounds are still parallel loops.
 """
 
 from __future__ import annotations
@@ -16,6 +24,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._kernel_inputs import writable
+from ._task_threads import run_tasks
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -26,7 +35,7 @@ _ROW_BLOCK = 32
 _STRIP = 256
 
 
-@njit(fastmath=True, nogil=True, cache=True)
+@njit(fastmath=True, nogil=True, cache=True, inline="always")
 def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
     """trow[j0:j1] = Σ_{k=k0..k1} w[k+r] src[y+k, j0:j1].
 
@@ -90,7 +99,7 @@ def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
         k += 1
 
 
-@njit(fastmath=True, nogil=True, cache=True)
+@njit(fastmath=True, nogil=True, cache=True, inline="always")
 def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
     """acc[:n] = Σ_k w[k] trow[j0 + k*C : j1 + k*C] (``trow`` padded by r*C zeros).
 
@@ -201,8 +210,7 @@ def _padded_rows(n, L, pad, dtype):  # pragma: no cover - compiled
     return T
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover - compiled
+def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):
     """Binary stopping map of one scale pair (Eq. 1 of Rousselle et al. 2011).
 
     f0, f1 : (H, W*C) fine and coarse filtered values; v0, v1 : (H, W*Cv) their
@@ -211,8 +219,13 @@ def stop_pair(f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover - com
     out : (H, W) float32, 1 where ``S = weight·fk·Σ_c (c − f)² + Σ_c (Var c − Var f) > 0``
     (stop at the fine scale), else 0.
     """
-    H = f0.shape[0]
-    for y in prange(H):
+    run_tasks(_stop_pair_rows, f0.shape[0], f0, f1, v0, v1, C, Cv, fk, weight, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _stop_pair_rows(t0, t1, f0, f1, v0, v1, C, Cv, fk, weight, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`stop_pair`, run by :func:`run_tasks`."""
+    for y in range(t0, t1):
         _stop_pair_row(f0[y], f1[y], v0[y], v1[y], weight[y], C, Cv, fk, out[y])
 
 
@@ -251,8 +264,7 @@ def _stop_pair_row(a, b, va, vb, g, C, Cv, fk, o):  # pragma: no cover - compile
         o[i] = 1.0 if s[i] > 0.0 else 0.0
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover - compiled
+def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):
     """Noise-corrected squared difference of one scale pair, summed over channels.
 
     ``out = Σ_c (f1 − f0)² − max(Σ_c (v0 + v1) − 2 cov, 0)``: the squared difference of
@@ -263,8 +275,13 @@ def pooled_bias_input(f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover - co
     the channel-summed variance; out : (H, W).  Accumulates in float64.
     NumPy reference: ``statmc.gem.pooled_selector``.
     """
-    H = f0.shape[0]
-    for y in prange(H):
+    run_tasks(_pooled_bias_input_rows, f0.shape[0], f0, f1, v0, v1, cov, C, Cv, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _pooled_bias_input_rows(t0, t1, f0, f1, v0, v1, cov, C, Cv, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`pooled_bias_input`, run by :func:`run_tasks`."""
+    for y in range(t0, t1):
         _pooled_bias_row(f0[y], f1[y], v0[y], v1[y], cov[y], C, Cv, out[y])
 
 
@@ -291,8 +308,7 @@ def _pooled_bias_row(a, b, va, vb, cv, C, Cv, o):  # pragma: no cover - compiled
         o[i] = d2 - max(vs - 2.0 * np.float64(cv[i]), 0.0)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def stop_pooled(pooled, v0, v1, Cv, fk, weight, out):  # pragma: no cover - compiled
+def stop_pooled(pooled, v0, v1, Cv, fk, weight, out):
     """Binary stopping map from a pooled bias estimate (``bias="pooled"``).
 
     ``S = weight · fk · max(pooled, 0) + Σ_c (v1 − v0)``, 1 where ``S > 0`` (stop at the
@@ -301,8 +317,13 @@ def stop_pooled(pooled, v0, v1, Cv, fk, weight, out):  # pragma: no cover - comp
     pooling).  pooled : (H, W); v0, v1 : (H, W*Cv); out : (H, W) float32.
     NumPy reference: ``statmc.gem.pooled_selector``.
     """
-    H = pooled.shape[0]
-    for y in prange(H):
+    run_tasks(_stop_pooled_rows, pooled.shape[0], pooled, v0, v1, Cv, fk, weight, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _stop_pooled_rows(t0, t1, pooled, v0, v1, Cv, fk, weight, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`stop_pooled`, run by :func:`run_tasks`."""
+    for y in range(t0, t1):
         _stop_pooled_row(pooled[y], v0[y], v1[y], Cv, fk, weight, out[y])
 
 
@@ -323,8 +344,7 @@ def _stop_pooled_row(p, va, vb, Cv, fk, weight, o):  # pragma: no cover - compil
         o[i] = 1.0 if s > 0.0 else 0.0
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def finish_stop_map(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cover
+def finish_stop_map(filt, raw, wc, sy, sx, coarser_only, out):
     """Centre-excluded filtered stopping map, rounded (§4.4 and §6 of Rousselle et al. 2011).
 
     filt : (H, W) the 0/1 map ``raw`` filtered with a border-renormalised Gaussian (centre
@@ -333,8 +353,13 @@ def finish_stop_map(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cov
     gives ``m = (filt − w0·raw)/(1 − w0)``; the result is 1 where ``m >= 1/2`` (ties keep
     the finer scale).  With ``coarser_only`` a 0 stays 0 (final reconstruction, §6).
     """
-    H = filt.shape[0]
-    for y in prange(H):
+    run_tasks(_finish_stop_map_rows, filt.shape[0], filt, raw, wc, sy, sx, coarser_only, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _finish_stop_map_rows(t0, t1, filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`finish_stop_map`, run by :func:`run_tasks`."""
+    for y in range(t0, t1):
         _finish_stop_row(filt[y], raw[y], wc, sy[y], sx, coarser_only, out[y])
 
 
@@ -355,11 +380,16 @@ def _finish_stop_row(fr, rr, wc, sy, sx, coarser_only, o):  # pragma: no cover -
         o[i] = m
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def first_stop(maps, out):  # pragma: no cover - compiled
+def first_stop(maps, out):
     """Selected scale = finest scale whose stopping map is 1, the coarsest if none (§4.4)."""
+    run_tasks(_first_stop_rows, maps.shape[1], maps, out)
+
+
+@njit(cache=True, nogil=True)
+def _first_stop_rows(t0, t1, maps, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`first_stop`, run by :func:`run_tasks`."""
     Km1, H, W = maps.shape
-    for y in prange(H):
+    for y in range(t0, t1):
         o = out[y]
         for i in range(W):
             o[i] = Km1
@@ -370,16 +400,22 @@ def first_stop(maps, out):  # pragma: no cover - compiled
                     o[i] = k
 
 
-@njit(parallel=True, cache=True, nogil=True)  # no fastmath: it would assume away NaN
-def scan_inputs(x, v, C, vsum):  # pragma: no cover - compiled
+def scan_inputs(x, v, C, vsum):
     """One pass over the inputs: count non-finite ``x``, non-finite ``v``, negative ``v``,
     and write ``vsum`` (H, W), the channel sum of ``v`` (H, W*C)."""
-    H, L = x.shape
+    H = x.shape[0]
+    counts = np.empty((H, 3), np.int64)          # every row writes its counts
+    run_tasks(_scan_inputs_rows, H, x, v, C, vsum, counts)
+    tx, tv, tg = (int(t) for t in counts.sum(axis=0))
+    return tx, tv, tg
+
+
+@njit(cache=True, nogil=True)  # no fastmath: it would assume away NaN
+def _scan_inputs_rows(t0, t1, x, v, C, vsum, counts):  # pragma: no cover - compiled
+    """Rows ``t0 .. t1 − 1`` of :func:`scan_inputs`; ``counts[y]`` gets row y's counts."""
+    L = x.shape[1]
     W = L // C
-    bad_x = np.empty(H, np.int64)       # every row writes its counts; not np.zeros and
-    bad_v = np.empty(H, np.int64)       # .sum(): in a parallel kernel each is a parallel
-    neg_v = np.empty(H, np.int64)       # loop of its own, compiled for nothing
-    for y in prange(H):
+    for y in range(t0, t1):
         xr = x[y]
         vr = v[y]
         o = vsum[y]
@@ -397,23 +433,22 @@ def scan_inputs(x, v, C, vsum):  # pragma: no cover - compiled
             for c in range(1, C):
                 acc += vr[i * C + c]
             o[i] = acc
-        bad_x[y] = nx
-        bad_v[y] = nv
-        neg_v[y] = ng
-    tx = tv = tg = 0
-    for y in range(H):
-        tx += bad_x[y]
-        tv += bad_v[y]
-        tg += neg_v[y]
-    return tx, tv, tg
+        counts[y, 0] = nx
+        counts[y, 1] = nv
+        counts[y, 2] = ng
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def gather(vals, C, scales, out):  # pragma: no cover - compiled
+def gather(vals, C, scales, out):
     """``out[y, x, c] = vals[scales[y, x], y, x, c]`` on (K, H, W*C) rows."""
+    run_tasks(_gather_rows, vals.shape[1], vals, C, scales, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _gather_rows(t0, t1, vals, C, scales, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`gather`, run by :func:`run_tasks`."""
     K, H, Lx = vals.shape
     W = Lx // C
-    for y in prange(H):
+    for y in range(t0, t1):
         s_row = scales[y]
         o = out[y]
         for i in range(W):
@@ -423,17 +458,22 @@ def gather(vals, C, scales, out):  # pragma: no cover - compiled
                 o[i * C + c] = src[i * C + c]
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def estimate_mse(vals, vars_, C, frac, scales, out):  # pragma: no cover - compiled
+def estimate_mse(vals, vars_, C, frac, scales, out):
     """Estimated MSE of the selected scale per channel (§5 of Rousselle et al. 2011).
 
     ``Var[s] + Σ_{k<s} frac_k (v_{k+1} − v_k)²``: the variance of the finest scale plus the
     accumulated unweighted ΔMSE estimates of Eq. 1 up to the selected scale ``s`` (the
     variance terms telescope, so only the bias terms accumulate).
     """
+    run_tasks(_estimate_mse_rows, vals.shape[1], vals, vars_, C, frac, scales, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _estimate_mse_rows(t0, t1, vals, vars_, C, frac, scales, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`estimate_mse`, run by :func:`run_tasks`."""
     K, H, Lx = vals.shape
     W = Lx // C
-    for y in prange(H):
+    for y in range(t0, t1):
         s_row = scales[y]
         o = out[y]
         for i in range(W):
@@ -447,15 +487,20 @@ def estimate_mse(vals, vars_, C, frac, scales, out):  # pragma: no cover - compi
                 o[j] = acc
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def relative_gain(image, est, C, eps, n, batch, rel, gain):  # pragma: no cover - compiled
+def relative_gain(image, est, C, eps, n, batch, rel, gain):
     """Relative MSE and the gain of ``batch`` more samples (§5 of Rousselle et al. 2011).
 
     ``rel = mean_c est_c / (image_c² + eps)``, ``gain = rel · batch / (n + batch)``.
     """
+    run_tasks(_relative_gain_rows, image.shape[0], image, est, C, eps, n, batch, rel, gain)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _relative_gain_rows(t0, t1, image, est, C, eps, n, batch, rel, gain):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`relative_gain`, run by :func:`run_tasks`."""
     H, L = image.shape
     W = L // C
-    for y in prange(H):
+    for y in range(t0, t1):
         im = image[y]
         es = est[y]
         nr = n[y]
@@ -471,8 +516,7 @@ def relative_gain(image, est, C, eps, n, batch, rel, gain):  # pragma: no cover 
             gr[i] = acc * batch / (nr[i] + batch)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # pragma: no cover
+def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):
     """Estimated MSE of the selected scale with noise-corrected bias terms.
 
     ``Var[s] + max(0, Σ_{k<s} frac_k ((v_{k+1} − v_k)² − Var(v_{k+1} − v_k)))``: each
@@ -487,6 +531,14 @@ def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # 
     Works on whole rows, pair by pair, adding each pair's term where ``k < s`` (a
     branch-free select that vectorises), in float64.
     """
+    run_tasks(_estimate_mse_debiased_rows, vals.shape[1], vals, vars_, cov, C, frac, scales,
+              fy0, fx0, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _estimate_mse_debiased_rows(t0, t1, vals, vars_, cov, C, frac, scales, fy0, fx0,
+                                out):  # pragma: no cover - compiled
+    """Rows ``t0 .. t1 − 1`` of :func:`estimate_mse_debiased`, run by :func:`run_tasks`."""
     K, H, Lx = vals.shape
     W = Lx // C
     off = 1 if fy0.shape[0] > 0 else 0
@@ -495,7 +547,7 @@ def estimate_mse_debiased(vals, vars_, cov, C, frac, scales, fy0, fx0, out):  # 
         for i in range(W):
             for c in range(C):
                 fxl[i * C + c] = fx0[i]
-    for y in prange(H):
+    for y in range(t0, t1):
         s_row = scales[y]
         sl = np.empty(Lx, np.int64)
         for i in range(W):
@@ -565,11 +617,16 @@ def _scan_counts(n, out):  # pragma: no cover - compiled
     return bad, frac, low
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def weight_map(n, z, out):  # pragma: no cover - compiled
+def weight_map(n, z, out):
     """``out = z·(1 − 1/n)``: the selector weight ``ρ·z(γ)`` of §4.3 of Rousselle 2011."""
+    run_tasks(_weight_map_rows, n.shape[0], n, z, out)
+
+
+@njit(cache=True, nogil=True)
+def _weight_map_rows(t0, t1, n, z, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`weight_map`, run by :func:`run_tasks`."""
     H, W = n.shape
-    for y in prange(H):
+    for y in range(t0, t1):
         nr = n[y]
         o = out[y]
         for i in range(W):
@@ -581,12 +638,18 @@ def weight_map(n, z, out):  # pragma: no cover - compiled
 # reference bit for bit (greedy allocation, integer rounding, variance prior).
 # ---------------------------------------------------------------------------------------
 
-@njit(parallel=True, cache=True, nogil=True)
-def prior_scale(v, nb, C, s2):  # pragma: no cover - compiled
+def prior_scale(v, nb, C, s2):
     """``s2 = v · n`` (sample variance from the variance of the mean) on (H, W*C) rows."""
+    run_tasks(_prior_scale_rows, v.shape[0], v, nb, C, s2)
+    return s2
+
+
+@njit(cache=True, nogil=True)
+def _prior_scale_rows(t0, t1, v, nb, C, s2):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`prior_scale`, run by :func:`run_tasks`."""
     H, L = v.shape
     W = L // C
-    for y in prange(H):
+    for y in range(t0, t1):
         vr = v[y]
         nr = nb[y]
         o = s2[y]
@@ -594,19 +657,23 @@ def prior_scale(v, nb, C, s2):  # pragma: no cover - compiled
             a = nr[i]
             for c in range(C):
                 o[i * C + c] = vr[i * C + c] * a
-    return s2
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def prior_shrink(s2, pooled, nb, C, k, one, out):  # pragma: no cover - compiled
+def prior_shrink(s2, pooled, nb, C, k, one, out):
     """``out = ((n − 1) s2 + k pooled) / ((n − 1 + k) n)`` on (H, W*C) rows.
 
     The posterior-mean sample variance under a pooled scaled-inverse-χ² prior, divided by
     ``n`` (see ``gem._variance_prior``); ``k`` and ``one`` carry the array dtype.
     """
+    run_tasks(_prior_shrink_rows, s2.shape[0], s2, pooled, nb, C, k, one, out)
+
+
+@njit(cache=True, nogil=True)
+def _prior_shrink_rows(t0, t1, s2, pooled, nb, C, k, one, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`prior_shrink`, run by :func:`run_tasks`."""
     H, L = s2.shape
     W = L // C
-    for y in prange(H):
+    for y in range(t0, t1):
         sr = s2[y]
         pr = pooled[y]
         nr = nb[y]
@@ -620,12 +687,17 @@ def prior_shrink(s2, pooled, nb, C, k, one, out):  # pragma: no cover - compiled
                 o[j] = (nm1 * sr[j] + k * pr[j]) / den
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def scale_rows(v, C, fy, fx, out):  # pragma: no cover - compiled
+def scale_rows(v, C, fy, fx, out):
     """``out[y, x, c] = v[y, x, c] · fy[y] · fx[x]`` on (H, W*C) rows."""
+    run_tasks(_scale_rows_rows, v.shape[0], v, C, fy, fx, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _scale_rows_rows(t0, t1, v, C, fy, fx, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`scale_rows`, run by :func:`run_tasks`."""
     H, L = v.shape
     W = L // C
-    for y in prange(H):
+    for y in range(t0, t1):
         vr = v[y]
         o = out[y]
         a = fy[y]
@@ -635,11 +707,16 @@ def scale_rows(v, C, fy, fx, out):  # pragma: no cover - compiled
                 o[i * C + c] = (vr[i * C + c] * a) * b
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def difference_variance(vars_, cov, out):  # pragma: no cover - compiled
+def difference_variance(vars_, cov, out):
     """``out[k] = max(vars_[k] + vars_[k+1] − 2 cov[k], 0)`` on (K, H, L) stacks."""
+    run_tasks(_difference_variance_rows, cov.shape[1], vars_, cov, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _difference_variance_rows(t0, t1, vars_, cov, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`difference_variance`, run by :func:`run_tasks`."""
     Km1, H, L = cov.shape
-    for y in prange(H):
+    for y in range(t0, t1):
         for k in range(Km1):
             a = vars_[k, y]
             b = vars_[k + 1, y]
@@ -913,9 +990,10 @@ def place_points(cum, r, u, counts):  # pragma: no cover - compiled
 
 
 # ---------------------------------------------------------------------------------------
-# Fused forms: several calls of one kernel in one parallel region.  numba's thread pool
-# waits passively (statmc._threads), so every parallel region pays for waking its
-# workers, ~0.1-0.2 ms on the 2-core machine this was measured on; a gem.reconstruct that
+# Fused forms: several calls of one kernel in one parallel region (one run_tasks call).
+# The worker threads wait passively (statmc._threads, statmc._task_threads), so every
+# parallel region pays for waking them, ~0.1-0.2 ms on the 2-core machine this was
+# measured on (with numba's pool); a gem.reconstruct that
 # calls the per-scale kernels above scale by scale runs 73 regions.  Each job of a fused
 # kernel does exactly what the single kernel does on that job's arrays (the same compiled
 # helpers, or the same expressions), so the results are bit for bit the single kernels'.
@@ -934,32 +1012,39 @@ def sep_filter_many(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v):
     _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, False)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, add):  # pragma: no cover
+def _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, add):
     """:func:`sep_filter_many`; with ``add`` the results are added to ``out_x`` (and
     ``out_v``) instead of written (:func:`sep_filter_add`).  ``add`` is a run-time flag,
-    not a literal, so the filter passes are compiled once per dtype, into this kernel
-    only."""
+    not a literal, so the filter passes are compiled once per dtype, into
+    :func:`_filter_tasks` only.
+
+    The tasks (row blocks of every job) run on :func:`run_tasks`' threads, not in a numba
+    parallel loop: numba compiles a parallel loop's body as a function of its own and
+    links it, with everything it calls, into the kernel, optimising the filter passes
+    once per level (about 10 s CPU per dtype on a cold cache, against 5 s for the same
+    passes in one serial function).
+    """
+    K = src.shape[0]
+    H = x.shape[1]
+    sxx = np.repeat(sx, C, axis=1)          # per value of a row: x's factor, x² for v
+    sxv = np.repeat(sx * sx, Cv, axis=1) if v.shape[2] > 0 else np.empty((K, 0), x.dtype)
+    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
+    run_tasks(_filter_tasks, K * nblk, x, C, v, Cv, src, taps, ntaps, sy, sxx, sxv, out_x,
+              out_v, add)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _filter_tasks(t0, t1, x, C, v, Cv, src, taps, ntaps, sy, sxx, sxv, out_x, out_v,
+                  add):  # pragma: no cover - compiled
+    """Tasks ``t0 .. t1 − 1`` of :func:`_sep_filter_jobs`: task ``t`` filters row block
+    ``t // K`` of job ``t % K`` (jobs round-robin, so that a contiguous range of tasks
+    holds each job's share: the coarse scales' long taps cost far more than the fine
+    ones').  ``sxx``, ``sxv``: ``sx`` (and ``sx²``) repeated per value of a row."""
     K = src.shape[0]
     H = x.shape[1]
     Lx = x.shape[2]
     Lv = v.shape[2]
-    do_var = Lv > 0
-    W = Lx // C
-    sxx = np.empty((K, Lx), x.dtype)
-    sxv = np.empty((K, Lv), x.dtype)
-    for k in range(K):
-        for i in range(W):
-            for c in range(C):
-                sxx[k, i * C + c] = sx[k, i]
-        if do_var:
-            for i in range(W):
-                for c in range(Cv):
-                    sxv[k, i * Cv + c] = sx[k, i] * sx[k, i]
-    nblk = (H + _ROW_BLOCK - 1) // _ROW_BLOCK
-    for t in prange(K * nblk):
-        # jobs round-robin: numba splits the range into one equal chunk per thread, and
-        # the coarse scales' long taps cost far more than the fine ones'
+    for t in range(t0, t1):
         b = t // K
         k = t - b * K
         w = taps[k, :ntaps[k]].copy()
@@ -970,54 +1055,68 @@ def _sep_filter_jobs(x, C, v, Cv, src, taps, ntaps, sy, sx, out_x, out_v, add): 
         acc = np.empty(_STRIP, x.dtype)
         T = _padded_rows(y1 - y0, Lx, r * C, x.dtype)
         _block(x[src[k]], C, w, syk, sxx[k], y0, y1, out_x[k], T, acc, add)
-        if do_var:
+        if Lv > 0:
             w2 = w * w
             sy2 = syk * syk
             Tv = _padded_rows(y1 - y0, Lv, r * Cv, x.dtype)
             _block(v[src[k]], Cv, w2, sy2, sxv[k], y0, y1, out_v[k], Tv, acc, add)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def pooled_bias_input_many(f, v, cov, C, Cv, out):  # pragma: no cover - compiled
+def pooled_bias_input_many(f, v, cov, C, Cv, out):
     """:func:`pooled_bias_input` of every consecutive pair in one region: job k reads
     ``f[k], f[k+1], v[k], v[k+1], cov[k]`` and writes ``out[k]``.
 
     f : (K, H, W*C); v : (K, H, W*Cv); cov, out : (K−1, H, W).
     """
-    Km1 = out.shape[0]
+    run_tasks(_pooled_bias_input_many_rows, out.shape[0] * out.shape[1], f, v, cov, C, Cv, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _pooled_bias_input_many_rows(t0, t1, f, v, cov, C, Cv, out):  # pragma: no cover
+    """Tasks ``t0 .. t1 − 1`` of :func:`pooled_bias_input_many`, run by :func:`run_tasks`."""
     H = out.shape[1]
-    for t in prange(Km1 * H):
+    for t in range(t0, t1):
         k = t // H
         y = t - k * H
         _pooled_bias_row(f[k, y], f[k + 1, y], v[k, y], v[k + 1, y], cov[k, y], C, Cv,
                          out[k, y])
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def stop_pooled_many(pooled, v, Cv, fk, weight, out):  # pragma: no cover - compiled
+def stop_pooled_many(pooled, v, Cv, fk, weight, out):
     """:func:`stop_pooled` of every consecutive pair in one region: job k reads
     ``pooled[k], v[k], v[k+1]`` with factor ``fk[k]`` and writes ``out[k]``.
 
     pooled : (K−1, H, W); v : (K, H, W*Cv); fk : (K−1,) float64; out : (K−1, H, W).
     """
-    Km1 = out.shape[0]
+    run_tasks(_stop_pooled_many_rows, out.shape[0] * out.shape[1], pooled, v, Cv, fk, weight, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _stop_pooled_many_rows(t0, t1, pooled, v, Cv, fk, weight, out):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`stop_pooled_many`, run by :func:`run_tasks`."""
     H = out.shape[1]
-    for t in prange(Km1 * H):
+    for t in range(t0, t1):
         k = t // H
         y = t - k * H
         _stop_pooled_row(pooled[k, y], v[k, y], v[k + 1, y], Cv, fk[k], weight, out[k, y])
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def finish_stop_map_many(filt, raw, wc, sy, sx, coarser_only, out):  # pragma: no cover
+def finish_stop_map_many(filt, raw, wc, sy, sx, coarser_only, out):
     """:func:`finish_stop_map` of K maps in one region: job k uses ``filt[k], raw[k]``,
     centre tap ``wc[k]`` and factors ``sy[k]``, ``sx[k]``, and writes ``out[k]``.
 
     filt, raw, out : (K, H, W); wc : (K,); sy : (K, H); sx : (K, W).
     """
-    K = out.shape[0]
+    run_tasks(_finish_stop_map_many_rows, out.shape[0] * out.shape[1], filt, raw, wc, sy, sx,
+              coarser_only, out)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _finish_stop_map_many_rows(t0, t1, filt, raw, wc, sy, sx, coarser_only,
+                               out):  # pragma: no cover - compiled
+    """Rows ``t0 .. t1 − 1`` of :func:`finish_stop_map_many`, run by :func:`run_tasks`."""
     H = out.shape[1]
-    for t in prange(K * H):
+    for t in range(t0, t1):
         k = t // H
         y = t - k * H
         _finish_stop_row(filt[k, y], raw[k, y], wc[k], sy[k, y], sx[k], coarser_only,

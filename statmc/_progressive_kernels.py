@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._kernel_inputs import readonly
+from ._task_threads import run_tasks
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -123,19 +124,18 @@ def _tstat(num, var, eps):  # pragma: no cover - compiled
     return math.inf if num > 0.0 else -math.inf
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _gate_bands(u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
+@njit(cache=True, nogil=True)
+def _gate_bands(b0, b1, u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
                 finish, alpha, shared, a, cc, eps, logistic, fast, t_out,
                 a_out):  # pragma: no cover
-    """Bands of output rows in parallel, each by :func:`_gate_band`: the loop body stays
-    a call, so numba's parallel passes handle a small function.  ``np.int64(b)``: the
-    loop index is typed int64, then uint64 in the parallel lowering, which compiled
-    ``_gate_band`` twice."""
-    h = u.shape[0]
-    nb = (h + band - 1) // band
-    for b in prange(nb):
-        _gate_band(np.int64(b), u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
-                   finish, alpha, shared, a, cc, eps, logistic, fast, t_out, a_out)  # one type
+    """Bands ``b0 .. b1 − 1`` of output rows, each by :func:`_gate_band`; run on several
+    threads by :func:`statmc._task_threads.run_tasks`.  As a numba parallel loop
+    (``prange``) the gate compiled in 9-11 s CPU on a cold cache: the parallel lowering
+    links the band function into the loop body's function and that into the kernel,
+    optimising it again at each level."""
+    for b in range(b0, b1):
+        _gate_band(b, u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
+                   finish, alpha, shared, a, cc, eps, logistic, fast, t_out, a_out)
 
 
 @njit(cache=True, nogil=True, fastmath=_FLAGS)
@@ -223,8 +223,10 @@ def _gate_band(b, u, v, g, g2, r, c, norm, norm2, band, keep, num, var,
 
 
 def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
-    """``u`` and ``v`` set the working precision (``v`` is cast to ``u``'s dtype); ``alpha``
-    keeps its own dtype, which is that of the gated output.
+    """``u`` and ``v`` set the working precision (``v`` is cast to ``u``'s dtype); the gated
+    output has ``alpha``'s dtype (float32 or float64; other dtypes give float64), but the
+    kernel always gets ``alpha`` as float64 (see below), so one gate is compiled per
+    working precision.
 
     Inputs reach the kernel read-only, C-contiguous and native (:func:`readonly`), so a
     read-only caller's array does not compile the kernel anew; without ``alpha`` the
@@ -247,19 +249,22 @@ def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
         args = (False, readonly(no_alpha), False, 0.0, 0.0, 0.0, False, False, empty, no_alpha)
     else:
         a2 = np.asarray(alpha)
-        if a2.dtype not in (np.float32, np.float64):
-            a2 = a2.astype(np.float64)
-        a2 = readonly(a2).reshape(h, w * c)
+        out_dt = np.float32 if a2.dtype == np.float32 else np.float64
+        # float32 α as float64 (exact): the kernel forms scale·α in float64 either way and
+        # rounds it to the output's dtype on the store, so a float32 output rounded from
+        # the float64 one is the same to the bit, and one gate is compiled, not two
+        a2 = readonly(a2, np.float64).reshape(h, w * c)
         t = np.empty_like(u2) if keep else empty
-        out = np.empty(a2.shape, a2.dtype)
+        out = np.empty(a2.shape, np.float64)
         fast = bool(finish.get("fast_cdf", dt == np.float32))
         args = (True, a2, bool(finish["shared"]), float(finish["a"]), float(finish["c"]),
                 float(finish["eps"]), bool(finish["logistic"]), fast, t, out)
-    _gate_bands(u2, v2, gd, g2d, r, c, dt.type(norm), dt.type(norm * norm), _BAND, keep,
-                num, var, *args)
+    run_tasks(_gate_bands, (h + _BAND - 1) // _BAND, u2, v2, gd, g2d, r, c, dt.type(norm),
+              dt.type(norm * norm), _BAND, keep, num, var, *args)
     shp = (h, w, c)
     if alpha is None:
         return num.reshape(shp), var.reshape(shp)
+    out = out.astype(out_dt, copy=False)
     if not keep:
         return None, None, None, out.reshape(shp)
     return num.reshape(shp), var.reshape(shp), t.reshape(shp), out.reshape(shp)

@@ -163,14 +163,26 @@ def as_mix_inputs(x, y, mean_var, sure_y, divergence):
     ...
     statmc.errors.InputError: `y` must have the shape of `x` (2, 2, 3); got (1, 2, 3).
     """
+    return _mix_inputs(x, y, mean_var, sure_y, divergence)[:5]
+
+
+def _mix_inputs(x, y, mean_var, sure_y, divergence):
+    """:func:`as_mix_inputs` and, last, a covariance ``mean_var`` as float64 (else None),
+    converted once: a float32 (H, W, C, C) covariance was converted to float64 for its
+    diagonal, again to check it whole and a third time by :func:`mixing_weights` (150 MB
+    each at 1080p)."""
     xx = _image("x", x)
     shape = xx.shape
     yy = _like("y", y, shape)
-    s2 = _variance(mean_var, shape)
-    if np.ndim(mean_var) == 4:      # off the diagonal too: mixing_weights uses it whole
-        check_finite("mean_var", as_float_array("mean_var", mean_var, dtype=np.float64))
+    cov = None
+    if np.ndim(mean_var) == 4:
+        cov = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=np.float64)
+        s2 = _variance(cov, shape)
+        check_finite("mean_var", cov)       # off the diagonal too: mixing_weights uses it whole
+    else:
+        s2 = _variance(mean_var, shape)
     return (xx, yy, s2, _like("sure_y", sure_y, shape),
-            _like("divergence", divergence, shape))
+            _like("divergence", divergence, shape), cov)
 
 
 def _smooth(a, sigma):
@@ -337,11 +349,8 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
     >>> bool(np.allclose(a, 1.0))   # σ² = (y − x)²: all of y
     True
     """
-    xx, yy, s2, sy, d = as_mix_inputs(x, y, mean_var, sure_y, divergence)
+    xx, yy, s2, sy, d, cov = _mix_inputs(x, y, mean_var, sure_y, divergence)
     shape = xx.shape
-    cov = None
-    if np.ndim(mean_var) == 4:      # checked whole (finite) by as_mix_inputs
-        cov = as_float_array("mean_var", mean_var, dtype=np.float64)
     if channel_noise not in ("correlated", "independent"):
         raise InputError(f"`channel_noise` must be 'correlated' or 'independent'; got "
                          f"{channel_noise!r}.")

@@ -1205,3 +1205,42 @@ def test_count_maps_that_are_not_numbers_are_refused(dtype):
                  lambda: gem.sampling_map(m, v, n, 100)):
         with pytest.raises(InputError, match=r"`n` must hold sample counts"):
             call()
+
+
+_PARALLEL_KERNELS = r"""
+import numpy as np
+from numba.core.registry import CPUDispatcher
+from statmc import _filter_kernels as K, gem
+
+def parallel():
+    return sorted(n for n, d in vars(K).items() if isinstance(d, CPUDispatcher)
+                  and d.signatures and d.targetoptions.get("parallel"))
+
+rng = np.random.default_rng(0)
+m = rng.uniform(0.1, 1.0, (40, 36, 3))
+v = np.full_like(m, 0.01)
+gem.reconstruct(m, v)
+gem.reconstruct(m, v, final=False, n=np.full((40, 36), 8))
+print(parallel())
+gem.sampling_map(m, v, np.full((40, 36), 8), 5000, rng=0)
+print(parallel())
+"""
+
+
+def test_gem_runs_few_numba_parallel_kernels():
+    """numba's parallel lowering compiles a ``prange`` loop's body as a function of its
+    own and links it, with what it calls, into the kernel: each parallel kernel cost
+    about 1 s CPU on a cold cache beyond its body (the filter passes about 4 s per
+    dtype).  ``reconstruct`` now runs serial row-range kernels on
+    ``statmc._task_threads.run_tasks``, but for the count scan of ``n``; ``sampling_map``
+    adds two more parallel kernels (the spread and the greedy rounds).  In a fresh process, so
+    that the signatures are those of these calls."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", _PARALLEL_KERNELS], capture_output=True,
+                       text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    after_reconstruct, after_sampling = p.stdout.strip().splitlines()
+    assert after_reconstruct == "['_scan_counts']"
+    assert after_sampling == "['_scan_counts', 'allocate_rounds', 'spread_parts']"

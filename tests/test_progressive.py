@@ -1228,3 +1228,58 @@ def test_as_mix_inputs_is_the_check_of_mixing_weights_and_of_the_alpha_dict():
         with pytest.raises(InputError) as e2:
             pg.mixing_weights(**args)
         assert str(e1.value) == str(e2.value)
+
+
+def test_float32_and_float64_alpha_share_one_compiled_gate():
+    """The gate kernel forms ``scale·α`` in float64 and rounds it to the output's dtype,
+    so a float32 ``α`` (a float32 image's: ``α`` takes ``x``'s dtype) reaches it as
+    float64 and the float32 output is rounded from the float64 one, the same to the bit:
+    a float32 image compiled a second gate (~8 s CPU on a cold cache)."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0.2, 1.0, (13, 17, 3))
+    y = x + rng.normal(0, 0.05, x.shape)
+    v = np.full_like(x, 1e-3)
+    al = rng.random(x.shape)
+    for dt in (np.float64, np.float32):
+        for precision in ("single", "double"):
+            out = pg.confidence_gate(x.astype(dt), y.astype(dt), v.astype(dt), al.astype(dt),
+                                     precision=precision)
+            assert out.dtype == dt
+    import inspect
+
+    k = list(inspect.signature(pk._gate_bands.py_func).parameters).index("alpha")
+    alphas = {str(sig[k]) for sig in pk._gate_bands.signatures}
+    assert alphas and all("float64" in a for a in alphas), alphas
+    # float32 output: the float64 gate's output rounded (same u, v and working precision)
+    u, vw, _, _ = pk.prepare(x.astype(np.float32), y.astype(np.float32),
+                             v.astype(np.float32), al.astype(np.float32), np.float32)
+    kw = dict(shared=False, a=2.0, c=4.2, eps=1e-6, logistic=False)
+    a32 = pk.gate(u, vw, al.astype(np.float32), 5, 10.0, **kw)[3]
+    a64 = pk.gate(u, vw, al.astype(np.float32).astype(np.float64), 5, 10.0, **kw)[3]
+    assert a32.dtype == np.float32
+    np.testing.assert_array_equal(a32, a64.astype(np.float32))
+
+
+def test_mixing_weights_converts_a_float32_covariance_once(monkeypatch):
+    """A float32 (H, W, C, C) ``mean_var`` was converted to float64 three times (for its
+    diagonal, to check it whole, and for the standard error): 150 MB each at 1080p.  Now
+    once, with the same result."""
+    rng = np.random.default_rng(6)
+    x = rng.uniform(0.2, 1.0, (9, 8, 3))
+    y = x + rng.normal(0, 0.05, x.shape)
+    v = np.full_like(x, 1e-3)
+    cov = (v[..., :, None] * (0.5 + 0.5 * np.eye(3))).astype(np.float32)
+    expected = pg.mixing_weights(x, y, cov.astype(np.float64), v, 0.3 * v)
+    copies = []
+    convert = pg.as_float_array
+
+    def spy(name, a, **kw):
+        out = convert(name, a, **kw)
+        if np.ndim(a) == 4 and out is not a:
+            copies.append(name)
+        return out
+
+    monkeypatch.setattr(pg, "as_float_array", spy)
+    got = pg.mixing_weights(x, y, cov, v, 0.3 * v)
+    assert copies == ["mean_var"]
+    np.testing.assert_array_equal(got, expected)

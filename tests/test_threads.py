@@ -192,7 +192,11 @@ def test_fused_kernels_equal_the_single_kernels_job_by_job(dt, C, Cv):
     """The ``*_many`` kernels of ``statmc._filter_kernels`` run several calls of one
     kernel in one parallel region (each region wakes the passively waiting pool); their
     reference is the single kernel called job by job, which they must equal bit for bit
-    (rows not a multiple of the row block, taps of 1 to 27 values, padded tap rows)."""
+    (rows not a multiple of the row block, taps of 1 to 27 values, padded tap rows).
+
+    ``sep_filter`` is itself one job of ``sep_filter_many`` (one compiled filter), so here
+    the jobs run together on all threads (``run_tasks`` splits their row blocks) and one
+    by one on a single thread; ``test_filters`` compares both with a NumPy reference."""
     from statmc import _filter_kernels as K
 
     rng = np.random.default_rng(7 + C + Cv)
@@ -207,17 +211,24 @@ def test_fused_kernels_equal_the_single_kernels_job_by_job(dt, C, Cv):
     sy, sx = (rng.random((nk, H)) + 0.5).astype(dt), (rng.random((nk, W)) + 0.5).astype(dt)
     out_x, out_v = np.empty((nk, H, W * C), dt), np.empty((nk, H, W * Cv), dt)
     K.sep_filter_many(x, C, v, Cv, src, taps, np.array(lens, np.int64), sy, sx, out_x, out_v)
-    for k in range(nk):
-        ex, ev = np.empty_like(out_x[k]), np.empty_like(out_v[k])
-        K.sep_filter(x[src[k]], C, v[src[k]], Cv, taps[k, :lens[k]].copy(), sy[k].copy(),
-                     sx[k].copy(), ex, ev)
-        np.testing.assert_array_equal(out_x[k], ex)
-        np.testing.assert_array_equal(out_v[k], ev)
-    none = np.empty((nk, H, 0), dt)
-    K.sep_filter_many(x, C, np.empty((2, H, 0), dt), 1, src, taps, np.array(lens, np.int64),
-                      sy, sx, out_x, none)                         # values only
-    K.sep_filter(x[0], C, none[0], 1, taps[1].copy(), sy[1].copy(), sx[1].copy(), ex, none[0])
-    np.testing.assert_array_equal(out_x[1], ex)
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        for k in range(nk):
+            ex, ev = np.empty_like(out_x[k]), np.empty_like(out_v[k])
+            K.sep_filter(x[src[k]], C, v[src[k]], Cv, taps[k, :lens[k]].copy(), sy[k].copy(),
+                         sx[k].copy(), ex, ev)
+            np.testing.assert_array_equal(out_x[k], ex)
+            np.testing.assert_array_equal(out_v[k], ev)
+        none = np.empty((nk, H, 0), dt)
+        numba.set_num_threads(before)
+        K.sep_filter_many(x, C, np.empty((2, H, 0), dt), 1, src, taps, np.array(lens, np.int64),
+                          sy, sx, out_x, none)                     # values only
+        numba.set_num_threads(1)
+        K.sep_filter(x[0], C, none[0], 1, taps[1].copy(), sy[1].copy(), sx[1].copy(), ex, none[0])
+        np.testing.assert_array_equal(out_x[1], ex)
+    finally:
+        numba.set_num_threads(before)
 
     f = rng.standard_normal((nk, H, W * C)).astype(dt)
     fv = rng.random((nk, H, W * Cv)).astype(dt)
