@@ -625,7 +625,10 @@ def cmd_render(args) -> int:
     else:
         stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
                                     seed=args.seed, progress=not args.quiet, gamma=args.gamma,
-                                    denoiser=args.denoiser, gem_bias=args.gem_bias,
+                                    # --denoiser may be the reconstruction's alone
+                                    denoiser=args.denoiser if args.sampler in (
+                                        "denoising-aware", "expected-error") else None,
+                                    gem_bias=args.gem_bias,
                                     initial_spp=INITIAL_SPP, iterations=ITERATIONS)
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()

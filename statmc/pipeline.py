@@ -8,7 +8,7 @@ import sys
 import numpy as np
 
 from .errors import InputError, as_int
-from .stats import PixelStats
+from .stats import PixelStats, check_stats
 
 __all__ = ["RECONSTRUCTIONS", "BIN_RECONSTRUCTIONS", "reconstruct_stats", "render_with_sampler",
            "render_bins", "merge_bins", "reconstruct_bins", "bin_seed"]
@@ -22,6 +22,24 @@ BIN_RECONSTRUCTIONS = ("gem+bins", "oidn+bins")
 #: seed ``s`` do not reuse the numbers of ``render(seed=s)`` (a hashed seed may still equal
 #: some other plain seed, with probability ~2⁻³¹ per pair).
 _SALT_BINS = 0xB1B5
+
+
+def _check_renderer(renderer) -> None:
+    """Refuse what is not a renderer (``height``, ``width``, ``render``) by name: None was
+    "'NoneType' object has no attribute 'height'"."""
+    if not all(hasattr(renderer, a) for a in ("height", "width", "render")):
+        raise InputError(f"`renderer` must be a renderer (statmc.renderers.make_renderer: with "
+                         f"height, width and render(counts, seed=...)); got "
+                         f"{type(renderer).__name__}.")
+
+
+def _check_gem_bias(gem_bias) -> None:
+    """``gem_bias`` by its own name (gem's message said `bias`, which this module's
+    callers never typed)."""
+    from .gem import BIAS_MODES
+    if gem_bias is not None and gem_bias not in BIAS_MODES:
+        raise InputError(f"`gem_bias` must be one of {BIAS_MODES} or None (pooled); got "
+                         f"{gem_bias!r}.")
 
 
 def _denoiser_options(name, gamma, sigma, gem_bias=None) -> dict:
@@ -50,6 +68,11 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
     combiner: ``"mix"``, the total weight Σλ given to the combined images, 0 = the
     denoiser's output).
     """
+    check_stats(stats)
+    if method not in RECONSTRUCTIONS:
+        raise InputError(f"`method` must be one of {RECONSTRUCTIONS}; got {method!r}, an unknown "
+                         "reconstruction.")
+    _check_gem_bias(gem_bias)
     if method == "none":
         return stats.mean.astype(np.float32), {}
     if method == "gem":
@@ -89,7 +112,7 @@ def reconstruct_stats(stats: PixelStats, method: str = "gem", *, gamma: float = 
         img, info = combine_denoised(stats.mean, stats.mean_var, f, rng=seed, extra_output=True)
         lam = np.asarray(info["mix"], np.float32)
         return img.astype(np.float32), {"mix": lam.sum(axis=-1)}
-    raise InputError(f"unknown reconstruction {method!r}; expected one of {RECONSTRUCTIONS}.")
+    raise AssertionError(method)       # every name of RECONSTRUCTIONS is handled above
 
 
 def _gem_kernel(stats, gamma, gem_bias):
@@ -120,6 +143,7 @@ def render_bins(renderer, spp: int, bins: int = 4, *, seed: int = 0,
     :func:`bin_seed` ``(seed, b)``.
     """
     from .adaptive import _takes_first_sample
+    _check_renderer(renderer)
     spp = as_int("spp", spp, lo=1)
     bins = as_int("bins", bins, lo=2)
     seed = as_int("seed", seed, lo=0)
@@ -144,9 +168,15 @@ def merge_bins(bins) -> PixelStats:
     """The full render of sample bins: their exact merge (``PixelStats.merge``), after
     checking that they are ``B >= 2`` :class:`PixelStats` with equal counts (equal-count
     subsets of every pixel's samples, Back 2020 §4.4)."""
-    bins = list(bins)
+    try:
+        bins = list(bins)
+    except TypeError:
+        raise InputError(f"`bins` must be a list of at least 2 PixelStats; got "
+                         f"{type(bins).__name__}.") from None
     if len(bins) < 2 or not all(isinstance(b, PixelStats) for b in bins):
-        raise InputError("`bins` must be a list of at least 2 PixelStats.")
+        got = ", ".join(type(b).__name__ for b in bins[:3]) + (", ..." if len(bins) > 3 else "")
+        raise InputError(f"`bins` must be a list of at least 2 PixelStats; got {len(bins)} "
+                         f"item(s): {got or 'none'}.")
     for i, b in enumerate(bins[1:], 1):
         if b.shape != bins[0].shape or not np.array_equal(b.n, bins[0].n):
             raise InputError(f"bin {i} has other sample counts or shape than bin 0; the bins "
@@ -176,8 +206,9 @@ def reconstruct_bins(bins, method: str = "gem+bins", *, gamma: float = 0.2, seed
     from .combine import (DEFAULT_MIX_SIGMA, DEFAULT_MOMENT_SMOOTH, DEFAULT_PROBES,
                           DEFAULT_SIZE, DEFAULT_STENCIL, _combine_bins)
     if method not in BIN_RECONSTRUCTIONS:
-        raise InputError(f"unknown bin reconstruction {method!r}; expected one of "
-                         f"{BIN_RECONSTRUCTIONS}.")
+        raise InputError(f"`method` must be one of {BIN_RECONSTRUCTIONS}; got {method!r}, an "
+                         "unknown bin reconstruction.")
+    _check_gem_bias(gem_bias)
     bins = list(bins)
     full = merge_bins(bins)
     full.require_variance("bins", why="merged, for the variance of the mean that the weights "
@@ -217,14 +248,24 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
     ``gamma`` and ``gem_bias`` (``None``/``"pooled"`` or ``"paper"``, as in
     :func:`reconstruct_stats`), its Gaussian ``sigma``.
     """
+    from .adaptive import SAMPLERS
+    _check_renderer(renderer)
+    if not isinstance(sampler, str) or sampler not in SAMPLERS:
+        raise InputError(f"`sampler` must be one of {sorted(SAMPLERS)}; got {sampler!r}, an "
+                         "unknown sampler.")
+    _check_gem_bias(gem_bias)
+    if denoiser is not None and sampler not in ("denoising-aware", "expected-error"):
+        raise InputError(f"`denoiser` is the denoiser of the 'denoising-aware' and "
+                         f"'expected-error' samplers; sampler={sampler!r} does not use it: "
+                         "leave it None.")
     if sampler == "uniform":
         if counts is None:  # 2.5 used to become 2 spp without a word
             counts = np.full((renderer.height, renderer.width), as_int("spp", spp), np.int64)
         return renderer.render(counts, seed=seed, progress=progress)
     if counts is not None:
-        raise InputError(f"`counts` fixes the sample counts, which an adaptive `sampler` "
-                         f"chooses; got counts with sampler={sampler!r}: pass counts=None or "
-                         "sampler='uniform'.")
+        raise InputError(f"`counts` (a sample map) fixes the sample counts, which an adaptive "
+                         f"`sampler` chooses; got counts with sampler={sampler!r}: pass "
+                         "counts=None or sampler='uniform'.")
     from .adaptive import adaptive_render
     opts = {"gamma": gamma} if sampler == "gem" else {}
     if sampler == "denoising-aware":
@@ -237,8 +278,8 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
             opts = {"denoiser": name}
     elif sampler == "expected-error":
         if denoiser not in (None, "gem", "gaussian"):
-            raise InputError(f"the expected-error sampler needs a kernel denoiser, 'gem' or "
-                             f"'gaussian'; got {denoiser!r}.")
+            raise InputError(f"`denoiser` must be a kernel denoiser, 'gem' or 'gaussian' (or "
+                             f"None: 'gem'), for the expected-error sampler; got {denoiser!r}.")
         opts = {"kernels": "gem", "gem_options": {"gamma": gamma}} if denoiser in (None, "gem") else {}
     res = adaptive_render(renderer, spp, sampler=sampler, initial_spp=initial_spp,
                           iterations=iterations, seed=seed, progress=progress, **opts)

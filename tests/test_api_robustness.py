@@ -1106,8 +1106,8 @@ def test_pipeline_messages_name_the_library_parameters_not_cli_flags():
                             "of samples); got spp=6, bins=4.")
     with pytest.raises(InputError) as e:
         render_with_sampler(r, 8, sampler="gem", counts=np.full((12, 16), 8))
-    assert str(e.value).startswith("`counts` fixes the sample counts, which an adaptive "
-                                   "`sampler` chooses; got counts with sampler='gem'")
+    assert str(e.value).startswith("`counts` (a sample map) fixes the sample counts, which an "
+                                   "adaptive `sampler` chooses; got counts with sampler='gem'")
     assert "--" not in str(e.value)
 
 
@@ -1187,3 +1187,52 @@ def test_mitsuba_render_refuses_2_to_the_31_samples_and_non_boolean_flags():
             r.render(np.full((3, 4), 1), **{flag: "no"})
     with pytest.raises(InputError, match=r"`features` must be True or False; got None"):
         r.render_crn(2, features=None)
+
+
+def _pipeline_case(name):
+    from statmc import pipeline as pl
+    from statmc.toy import ToyRenderer
+    r = ToyRenderer("edges", width=8, height=6)
+    s = r.render(np.full((6, 8), 4), seed=1)
+    return {
+        "stats-array": (lambda: pl.reconstruct_stats(s.mean),
+                        r"`stats` must be a statmc.PixelStats; got ndarray"),
+        "method": (lambda: pl.reconstruct_stats(s, "nope"), r"`method` must be one of \('none', "
+                   r"'gem', .*\); got 'nope', an unknown reconstruction"),
+        "gem_bias": (lambda: pl.reconstruct_stats(s, "gem", gem_bias="nope"),
+                     r"`gem_bias` must be one of \('paper', 'pooled'\) or None \(pooled\); got "
+                     r"'nope'"),
+        "bin-method": (lambda: pl.reconstruct_bins([s, s], "nope"), r"`method` must be one of "
+                       r"\('gem\+bins', 'oidn\+bins'\); got 'nope', an unknown bin"),
+        "renderer": (lambda: pl.render_with_sampler(None, 8),
+                     r"`renderer` must be a renderer .*; got NoneType"),
+        "bins-renderer": (lambda: pl.render_bins(None, 8, 2),
+                          r"`renderer` must be a renderer .*; got NoneType"),
+        "sampler": (lambda: pl.render_with_sampler(r, 8, sampler="nope"), r"`sampler` must be one "
+                    r"of \['denoising-aware', .*\]; got 'nope', an unknown sampler"),
+        "unused-denoiser": (lambda: pl.render_with_sampler(r, 8, denoiser="oidn"),
+                            r"`denoiser` is the denoiser of the 'denoising-aware' and "
+                            r"'expected-error' samplers; sampler='uniform' does not use it"),
+        "ee-denoiser": (lambda: pl.render_with_sampler(r, 8, sampler="expected-error",
+                                                       denoiser="oidn"),
+                        r"`denoiser` must be a kernel denoiser, 'gem' or 'gaussian' .*; got "
+                        r"'oidn'"),
+        "bins-None": (lambda: pl.merge_bins(None),
+                      r"`bins` must be a list of at least 2 PixelStats; got NoneType"),
+        "bins-items": (lambda: pl.merge_bins([s.mean, s]), r"`bins` must be a list of at least 2 "
+                       r"PixelStats; got 2 item\(s\): ndarray, PixelStats"),
+    }[name]
+
+
+@pytest.mark.parametrize("case", ["stats-array", "method", "gem_bias", "bin-method", "renderer",
+                                  "bins-renderer", "sampler", "unused-denoiser", "ee-denoiser",
+                                  "bins-None", "bins-items"])
+def test_pipeline_refuses_bad_input_by_parameter_name(case):
+    # before: reconstruct_stats(ndarray) was "AttributeError: 'builtin_function_or_method'
+    # object has no attribute 'astype'", a None renderer "'NoneType' object has no attribute
+    # 'height'", merge_bins(None) "'NoneType' object is not iterable", gem_bias='nope' was
+    # named `bias`, a denoiser given with sampler='uniform' was silently ignored, and unknown
+    # names said "unknown reconstruction 'nope'; expected one of ..." (no parameter)
+    call, needle = _pipeline_case(case)
+    with pytest.raises(InputError, match=needle):
+        call()
