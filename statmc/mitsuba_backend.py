@@ -645,8 +645,9 @@ class MitsubaRenderer:
                 path = Path(key)
                 if not path.is_file():
                     raise InputError(
-                        f"`scene` {key!r} is neither a built-in scene "
-                        f"({', '.join(sorted(BUILTIN_SCENES))}) nor an existing Mitsuba XML file.")
+                        f"`scene` must be a built-in Mitsuba scene name "
+                        f"({', '.join(sorted(BUILTIN_SCENES))}) or the path of an existing "
+                        f"Mitsuba XML file; got {key!r}, which is neither.")
                 self._scene = _load_xml(mi, path, width, height, False, params, sensor)
                 sensors = self._scene.sensors()
                 if (not self._jit and sensor < len(sensors)

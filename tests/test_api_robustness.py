@@ -1236,3 +1236,14 @@ def test_pipeline_refuses_bad_input_by_parameter_name(case):
     call, needle = _pipeline_case(case)
     with pytest.raises(InputError, match=needle):
         call()
+
+
+def test_mitsuba_renderer_words_a_missing_scene_as_make_renderer_does():
+    # before: "`scene` 'nope.xml' is neither a built-in scene (...) nor an existing Mitsuba
+    # XML file" — the one scene message not in the "must be ...; got ..." form
+    pytest.importorskip("mitsuba")
+    from statmc.mitsuba_backend import MitsubaRenderer
+    with pytest.raises(InputError, match=r"^`scene` must be a built-in Mitsuba scene name "
+                       r"\(cornell-box, glass-caustic, glossy-spheres, textured-dof\) or the path "
+                       r"of an existing Mitsuba XML file; got 'nope.xml', which is neither\.$"):
+        MitsubaRenderer("nope.xml")
