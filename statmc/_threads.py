@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import inspect
 import os
 import sys
 import threading
@@ -150,15 +151,21 @@ SERIAL_VALUES = 300_000
 
 
 def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
-    """Decorator: run the function on one numba thread when its first argument holds fewer
-    than ``threshold`` values (:func:`serial_below`) and numba's pool waits passively (the
-    user set no wait policy, see :func:`passive_omp`).  ``threshold_of(kwargs)``, if
-    given, picks the threshold from the call's keyword arguments (a call that runs fewer
-    parallel regions pays fewer wake-ups, so it is parallel from a smaller size)."""
+    """Decorator: run the function on one numba thread when its first argument (given by
+    position or by name) holds fewer than ``threshold`` values (:func:`serial_below`) and
+    numba's pool waits passively (the user set no wait policy, see :func:`passive_omp`).
+    ``threshold_of(kwargs)``, if given, picks the threshold from the call's keyword
+    arguments (a call that runs fewer parallel regions pays fewer wake-ups, so it is
+    parallel from a smaller size)."""
     def wrap(fn):
+        first_name = next(iter(inspect.signature(fn).parameters))
+
         @functools.wraps(fn)
-        def run(first, *args, **kwargs):
+        def run(*args, **kwargs):
             limit = threshold if threshold_of is None else threshold_of(kwargs)
+            # The first argument, passed by position or by name (`mean=x`); a call that
+            # gives none is left to the function to refuse.
+            first = args[0] if args else kwargs.get(first_name)
             try:
                 work = int(np.size(first))
             except Exception:                  # ragged input: the function will say why
@@ -166,6 +173,6 @@ def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
             if _user_chose_policy():
                 work = limit                   # spinning workers wake at once: stay parallel
             with serial_below(work, limit):
-                return fn(first, *args, **kwargs)
+                return fn(*args, **kwargs)
         return run
     return wrap

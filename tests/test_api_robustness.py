@@ -1247,3 +1247,47 @@ def test_mitsuba_renderer_words_a_missing_scene_as_make_renderer_does():
                        r"\(cornell-box, glass-caustic, glossy-spheres, textured-dof\) or the path "
                        r"of an existing Mitsuba XML file; got 'nope.xml', which is neither\.$"):
         MitsubaRenderer("nope.xml")
+
+
+# Every public function wrapped by _threads.serial_when_small, called with all of its
+# array arguments by name (the wrapper once took its first argument by position only:
+# "missing 1 required positional argument: 'first'").
+def _by_name_calls():
+    rng = np.random.default_rng(5)
+    x = rng.random((12, 10, 3))
+    v = np.full_like(x, 0.01)
+    n = np.full(x.shape[:2], 4)
+    return [
+        ("gem.reconstruct", gem.reconstruct, (x, v), dict(mean=x, mean_var=v)),
+        ("gem.select", gem.select, (x, v), dict(mean=x, mean_var=v)),
+        ("gem.selected_filter", gem.selected_filter, (x, v), dict(mean=x, mean_var=v)),
+        ("gem.sampling_map", gem.sampling_map, (x, v, n, 600),
+         dict(mean=x, mean_var=v, n=n, budget=600)),
+        ("filters.gaussian_filter", filters.gaussian_filter, (x, 1.5), dict(image=x, sigma=1.5)),
+        ("filters.gaussian_spread", filters.gaussian_spread, (v, 1.5), dict(amount=v, sigma=1.5)),
+        ("filters.filter_bank", filters.filter_bank, (x, v), dict(mean=x, mean_var=v)),
+    ]
+
+
+def _arrays_of(result):
+    """The arrays of a result: itself, the items of a tuple, the values of a dict or of
+    an object's attributes, in a fixed order."""
+    if isinstance(result, np.ndarray):
+        return [result]
+    if isinstance(result, tuple):
+        return [a for r in result for a in _arrays_of(r)]
+    if isinstance(result, dict):
+        return [a for k in sorted(result) for a in _arrays_of(result[k])]
+    if hasattr(result, "__dict__"):
+        return _arrays_of(vars(result))
+    return [np.asarray(result)]
+
+
+@pytest.mark.parametrize("name, func, args, kwargs", _by_name_calls(),
+                         ids=[c[0] for c in _by_name_calls()])
+def test_array_arguments_can_be_passed_by_name(name, func, args, kwargs):
+    by_position = _arrays_of(func(*args))
+    by_name = _arrays_of(func(**kwargs))
+    assert len(by_name) == len(by_position) > 0
+    for a, b in zip(by_position, by_name):
+        np.testing.assert_array_equal(a, b)
