@@ -56,6 +56,8 @@ CONST, GAUSSIAN, UNIFORM, GAMMA, FIREFLY = range(len(FAMILIES))
 
 #: Samples drawn per chunk by :meth:`ToyRenderer.render` (peak memory about 0.2 GB).
 DEFAULT_CHUNK = 1 << 21
+#: Samples per pixel a render takes, at most (exclusive), as the Mitsuba backend.
+MAX_COUNT = 2 ** 31
 
 _SCENES = {
     "mixed": "four quadrants: sharp-edged shapes (exponential noise), a smooth shaded "
@@ -501,6 +503,12 @@ class ToyRenderer:
         if frac.any():
             raise InputError(f"`counts` must hold whole sample numbers; got {int(frac.sum())} "
                              "fractional values (round them, e.g. `statmc.sampling.counts_from_density`).")
+        if a.size and a.max() >= MAX_COUNT:
+            # the Mitsuba backend's bound; it also keeps the running sample totals (int64)
+            # and the float64 counts exact.  2**40 samples per pixel were taken and drawn
+            # for hours.
+            raise InputError(f"`counts` must stay below 2**31 samples per pixel; got max "
+                             f"{int(a.max())}.")
         return a.astype(np.int64)
 
     def render(self, counts, *, seed=0, progress: bool = False, features: bool = True,

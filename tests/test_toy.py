@@ -390,11 +390,20 @@ def test_other_channel_counts(channels):
     (np.full((5, 4), np.nan), "NaN"),
     (np.full((5, 4), np.inf), "Inf"),
     (np.full((5, 4), "a"), "numeric"),
+    (np.full((5, 4), 2**31), r"below 2\*\*31 .*got max 2147483648"),
+    (np.full((5, 4), 2**40), r"below 2\*\*31"),
 ])
 def test_bad_counts(counts, match):
     r = ToyRenderer("mixed", width=4, height=5)
     with pytest.raises(InputError, match=match):
         r.render(counts)
+
+
+def test_counts_up_to_the_bound_are_taken():
+    # check only: a render of 2**31 - 1 samples per pixel would take hours
+    r = ToyRenderer("mixed", width=4, height=5)
+    n = r.check_counts(np.full((5, 4), 2**31 - 1))
+    assert n.dtype == np.int64 and (n == 2**31 - 1).all()
 
 
 @pytest.mark.parametrize("kwargs, match", [
