@@ -170,7 +170,8 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
 
     def demo():
-        run(a.out, scene=a.scene, ref_spp=a.ref_spp)
+        from .renderers import check_scene
+        run(a.out, scene=check_scene(a.scene, "--scene"), ref_spp=a.ref_spp)
 
     return run_command(demo, prog=p.prog, debug=a.debug,
                        memory_hint="use a smaller --ref-spp or another --scene.")

@@ -1823,6 +1823,9 @@ def test_demo_reports_bad_input_in_one_line(tmp_path, capsys, monkeypatch):
         lines = err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("python -m statmc.demo: error: "), err
         assert needle in lines[0] and "Traceback" not in err
+        if "--scene" in args and "toy:constant" not in args:   # the option, as typed
+            assert lines[0].startswith("python -m statmc.demo: error: --scene must be a "
+                                       "built-in scene name (cornell-box, "), err
         assert not (tmp_path / "d").exists()
     with pytest.raises(InputError, match="nosuchscene"):
         demo.main(["--scene", "nosuchscene", "--debug"])
@@ -1845,7 +1848,7 @@ def test_python_dash_m_statmc_demo_exits_2_on_bad_input(tmp_path):
                         "--out", str(tmp_path / "d")], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 2 and p.stderr.startswith("python -m statmc.demo: error: "), p.stderr
-    assert "must be a built-in scene name (cornell-box, " in p.stderr, p.stderr
+    assert "error: --scene must be a built-in scene name (cornell-box, " in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1 and not (tmp_path / "d").exists()
 
 
