@@ -58,3 +58,59 @@ def writable(a, dtype=None) -> np.ndarray:
     allocates (writable), so a read-only caller's array does not add a second type."""
     a = _native_c(a, dtype)
     return a if a.flags.writeable else a.copy()
+
+
+def run_in_chunks(kernel, start, stop, *args, chunks_per_thread=4):
+    """``kernel(*args, lo, hi)`` for chunks ``lo .. hi − 1`` covering ``start .. stop − 1``, on
+    ``numba.get_num_threads()`` threads (the calling one among them), each taking the next
+    chunk when it is done with one.
+
+    For a serial ``@njit(nogil=True)`` kernel whose chunks write disjoint parts of its
+    output: the same work as a ``prange`` loop over ``start .. stop − 1`` calling a separately
+    compiled row function, without the parallel loop to compile.  numba links the row
+    function's LLVM module into every function that calls it and optimises and compiles it
+    again there: into the parallel loop's gufunc and its wrapper, 7 s of CPU time for the
+    statistical weights' row function on a cold cache, more than compiling the row itself
+    (``docs/combine.md``, "First call").  A chunk's results do not depend on the
+    chunking or the thread that ran it, so they equal the one-thread ones to the bit.
+    Runs on the calling thread alone when numba is set to one thread
+    (:func:`statmc._threads.serial_below`, ``NUMBA_NUM_THREADS=1``) or there is one
+    index.  An
+    exception in a chunk is raised here once every thread has stopped.
+    """
+    import numba
+
+    start, stop = int(start), int(stop)
+    n = stop - start
+    threads = min(numba.get_num_threads(), n)
+    if threads <= 1:
+        if n > 0:
+            kernel(*args, start, stop)
+        return
+    import threading
+
+    nchunk = min(n, threads * chunks_per_thread)
+    bounds = [start + n * i // nchunk for i in range(nchunk + 1)]
+    todo = iter(range(nchunk))
+    lock = threading.Lock()
+    errors = []
+
+    def work():
+        while not errors:
+            with lock:
+                i = next(todo, None)
+            if i is None:
+                return
+            try:
+                kernel(*args, bounds[i], bounds[i + 1])
+            except BaseException as e:  # noqa: BLE001 - re-raised by the caller below
+                errors.append(e)
+
+    helpers = [threading.Thread(target=work, daemon=True) for _ in range(threads - 1)]
+    for t in helpers:
+        t.start()
+    work()
+    for t in helpers:
+        t.join()
+    if errors:
+        raise errors[0]

@@ -15,9 +15,9 @@ same order (no fused multiply-add), so they agree to the bit.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from ._kernel_inputs import readonly
+from ._kernel_inputs import readonly, run_in_chunks
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -38,16 +38,19 @@ def add_neighbour_products_sum(prod, a, b, R, use):
 
     ``a``, ``b`` and ``use`` reach the kernel read-only, C-contiguous and native
     (:func:`readonly`; a copy of a strided slab such as ``jv[:, s0:s1]`` is ``m²`` times
-    smaller than ``prod``), so a slab view does not compile the kernel once more.
+    smaller than ``prod``), so a slab view does not compile the kernel once more.  Chunks of
+    rows run on several threads (:func:`statmc._kernel_inputs.run_in_chunks`: a serial
+    kernel, no parallel loop to compile).
     """
-    _add_neighbour_products_sum(prod, readonly(a), readonly(b), int(R), readonly(use, np.bool_))
+    run_in_chunks(_add_neighbour_products_sum, 0, a.shape[1], prod, readonly(a), readonly(b),
+                  int(R), readonly(use, np.bool_))
 
 
-@njit(parallel=True, cache=True)
-def _add_neighbour_products_sum(prod, a, b, R, use):  # pragma: no cover - compiled
-    """The kernel of :func:`add_neighbour_products_sum`."""
+@njit(cache=True, nogil=True)
+def _add_neighbour_products_sum(prod, a, b, R, use, ya, yb):  # pragma: no cover - compiled
+    """Rows ``ya .. yb - 1`` of :func:`add_neighbour_products_sum`."""
     K, H, W, C = a.shape
-    for y in prange(H):
+    for y in range(ya, yb):
         for dy in range(-R, R + 1):
             yy = y + dy
             if yy < 0 or yy >= H:

@@ -645,6 +645,88 @@ def test_statistical_weights_numba_bands_match_one_band():
     np.testing.assert_array_equal(a, b)
 
 
+
+def test_combination_kernels_compile_no_parallel_loops():
+    """The combination's compiled kernels are serial functions run on several threads in
+    chunks of rows or tasks (``_kernel_inputs.run_in_chunks``), not ``prange`` loops.
+    numba links a function's callees into it and optimises and compiles them again there:
+    a parallel loop calling the weights' row function compiled it twice more (into the
+    loop's gufunc and the wrapper), 7 s of CPU time for ``_weights_band`` and 6 s for
+    ``_bias_planes`` on a cold cache (session 15), more than the row functions themselves.
+    Fails before: ``_weights_band``, ``_bias_planes``, ``_combine_group``,
+    ``_prepare_group``, ``running_rows`` and ``_add_neighbour_products_sum`` were parallel."""
+    from numba.core.registry import CPUDispatcher
+
+    from statmc import _stencil_kernels as sk
+    parallel = [f"{m.__name__}.{n}" for m in (ck, sk) for n, d in vars(m).items()
+                if isinstance(d, CPUDispatcher) and d.targetoptions.get("parallel")]
+    assert not parallel, parallel
+
+
+def test_threaded_chunks_equal_one_thread_and_honour_the_thread_count():
+    """``run_in_chunks`` gives the one-thread result to the bit (weights, Eq. 14, moment
+    stencils, the running box sums), runs on no more threads than
+    ``numba.get_num_threads()`` (the calling one among them; one with
+    ``set_num_threads(1)``, as ``serial_below`` sets for small calls), covers every index
+    once, and raises a chunk's exception."""
+    import threading
+
+    import numba
+
+    from statmc import _stencil_kernels as sk
+    from statmc._kernel_inputs import run_in_chunks
+
+    rng = np.random.default_rng(21)
+    B, H, W, C, k = 2, 23, ck.BIAS_TILE + 5, 3, 5
+    ys = rng.gamma(2.0, 0.5, (B, H, W, C))
+    zs = ys + rng.normal(0.0, 0.1, ys.shape)
+    vy = rng.gamma(2.0, 0.05, (B, H, W, C))
+    cz = rng.normal(0.0, 0.01, (H, W, 3, 3, C))
+    cz[:, :, 1, 1] = 0.05
+    w = rng.uniform(0.1, 1.0, (H, W, B, 7, 7)).astype(np.float32)
+    a = rng.normal(size=(3, H, W, C))
+    x = rng.normal(size=(9, 2 * ck.RUN_TILE + 3))
+    add, sub = rng.integers(0, 9, 12), rng.integers(0, 9, 12)
+
+    def run():
+        prod = np.zeros((H, W, 5, 5, C))
+        sk.add_neighbour_products_sum(prod, a, a[::-1], 2, np.ones(3, bool))
+        t, o = np.ones(x.shape[1]), np.empty((12, x.shape[1]))
+        ck.running_rows(x, add, sub, 5, t, o)
+        return [statistical_weights(ys, zs, vy, cz, k, z_bias=zb, leave_centre_out=True)
+                for zb in ("estimate", "pairs")] + [combine_multi(ys, zs, w), prod, o, t]
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = run()
+        numba.set_num_threads(before)
+        many = run()
+        seen, hits = set(), np.zeros(1000, int)
+
+        def kernel(lo, hi):
+            seen.add(threading.get_ident())
+            hits[lo:hi] += 1
+
+        for n in (1, 2):
+            numba.set_num_threads(n)
+            seen.clear()
+            hits[:] = 0
+            run_in_chunks(kernel, 3, 1000)
+            assert 1 <= len(seen) <= n and (hits[3:] == 1).all() and (hits[:3] == 0).all()
+    finally:
+        numba.set_num_threads(before)
+    for p, q in zip(one, many):
+        assert p.dtype == q.dtype
+        np.testing.assert_array_equal(p, q)
+
+    def fail(lo, hi):
+        if lo <= 500 < hi:
+            raise ZeroDivisionError("chunk")
+
+    with pytest.raises(ZeroDivisionError, match="chunk"):
+        run_in_chunks(fail, 0, 1000)
+
 @pytest.mark.parametrize("loo", [False, True])
 def test_statistical_weights_rows_match_all_rows(loo):
     """``rows=(r0, r1)`` (the banded combinations skip their margin rows) computes those
