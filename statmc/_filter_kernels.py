@@ -35,7 +35,7 @@ _ROW_BLOCK = 32
 _STRIP = 256
 
 
-@njit(fastmath=True, nogil=True, cache=True, inline="always")
+@njit(fastmath=True, nogil=True, cache=True)
 def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
     """trow[j0:j1] = Σ_{k=k0..k1} w[k+r] src[y+k, j0:j1].
 
@@ -99,7 +99,7 @@ def _vpass(src, trow, y, k0, k1, w, r, j0, j1):  # pragma: no cover - compiled
         k += 1
 
 
-@njit(fastmath=True, nogil=True, cache=True, inline="always")
+@njit(fastmath=True, nogil=True, cache=True)
 def _hpass(trow, acc, w, C, j0, j1):  # pragma: no cover - compiled
     """acc[:n] = Σ_k w[k] trow[j0 + k*C : j1 + k*C] (``trow`` padded by r*C zeros).
 
