@@ -36,7 +36,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._kernel_inputs import readonly, readonly_strided, run_in_chunks
+from ._kernel_inputs import readonly, readonly_strided
+from ._task_threads import run_rows
 from ._stencil_kernels import shift_slices as _shift_slices
 from ._threads import serial_below, wait_passively_in_numba
 from llvmlite import ir
@@ -271,9 +272,9 @@ def combine_numba(w, ys, zs, out):
     for c0 in range(0, C, GROUP):
         nc = min(GROUP, C - c0)
         with _threads_for(d.size * 8):      # a subtraction is cheap, threads are not
-            run_in_chunks(_prepare_group, 0, B * H, ys, zs, c0, nc, d)
+            run_rows(_prepare_group, 0, B * H, ys, zs, c0, nc, d)
         with _threads_for(d.size * w.shape[3] ** 2):
-            run_in_chunks(_combine_group, 0, H, w, d, zs, c0, nc, out, bad)
+            run_rows(_combine_group, 0, H, w, d, zs, c0, nc, out, bad)
     return bad
 
 
@@ -477,7 +478,7 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2, pa
     ``δ_b δ_b'`` over distinct bins; no ``Var δ``).
 
     One task per (tile of ``BIAS_TILE`` columns, tap), so a task's input rows stay in
-    cache; chunks of tasks run on several threads (:func:`statmc._kernel_inputs.run_in_chunks`).
+    cache; chunks of tasks run on several threads (:func:`statmc._task_threads.run_rows`).
     The inner loops run over contiguous ``(x, c)`` rows (1-D views indexed from 0, which
     LLVM vectorises); the stencil terms of the taps within the stencil are formed
     first, in the same order.  The box counts are products of the row and column counts
@@ -489,7 +490,7 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2, pa
     while the NumPy ``_box_mean`` sets non-finite box means to 0, so the two would differ.
     """
     nt = (ys.shape[2] + BIAS_TILE - 1) // BIAS_TILE
-    run_in_chunks(_bias_tasks, 0, nt * k * k, ys, zs, P, cov_z, cov_yz, bool(has_yz), int(k),
+    run_rows(_bias_tasks, 0, nt * k * k, ys, zs, P, cov_z, cov_yz, bool(has_yz), int(k),
                   int(patch), bool(loo), int(y0), int(y1), s2, bool(pairs))
 
 
@@ -777,7 +778,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
     :func:`statmc.combine.statistical_weights` enforces keep every moment finite, so
     there only a numerically singular solve could get here.
     """
-    run_in_chunks(_weights_rows, y0, y1, var_y, P, cov_z, cov_yz, bool(has_yz), zb,
+    run_rows(_weights_rows, y0, y1, var_y, P, cov_z, cov_yz, bool(has_yz), zb,
                   int(bias_mode), s2, int(method), int(k), int(B), int(y0), out)
 
 
@@ -844,7 +845,7 @@ def running_rows(x, add, sub, n, t, out):
     ``RUN_TILE`` columns run on several threads (:func:`_running_tiles`).
     """
     L = t.shape[0]
-    run_in_chunks(_running_tiles, 0, (L + RUN_TILE - 1) // RUN_TILE, x, add, sub, n, t, out)
+    run_rows(_running_tiles, 0, (L + RUN_TILE - 1) // RUN_TILE, x, add, sub, n, t, out)
 
 
 @njit(cache=True, fastmath=False, nogil=True)

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernel_inputs import readonly, run_in_chunks
+from ._kernel_inputs import readonly
+from ._task_threads import run_rows
 from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
@@ -39,10 +40,10 @@ def add_neighbour_products_sum(prod, a, b, R, use):
     ``a``, ``b`` and ``use`` reach the kernel read-only, C-contiguous and native
     (:func:`readonly`; a copy of a strided slab such as ``jv[:, s0:s1]`` is ``m²`` times
     smaller than ``prod``), so a slab view does not compile the kernel once more.  Chunks of
-    rows run on several threads (:func:`statmc._kernel_inputs.run_in_chunks`: a serial
+    rows run on several threads (:func:`statmc._task_threads.run_rows`: a serial
     kernel, no parallel loop to compile).
     """
-    run_in_chunks(_add_neighbour_products_sum, 0, a.shape[1], prod, readonly(a), readonly(b),
+    run_rows(_add_neighbour_products_sum, 0, a.shape[1], prod, readonly(a), readonly(b),
                   int(R), readonly(use, np.bool_))
 
 

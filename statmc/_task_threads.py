@@ -4,9 +4,11 @@ A numba parallel loop (``prange``) costs compile time beyond its body: numba's p
 lowering compiles the loop body as a function of its own and links it, with every
 function it calls, into the kernel, and LLVM optimises the linked code once more at each
 level.  For the filter passes that was about 10 s CPU per dtype on a cold cache against
-5 s for the same passes in one serial function.  :func:`run_tasks` instead calls a
-serial ``nogil`` kernel ``kernel(t0, t1, *args)`` on contiguous task ranges from a few
-Python threads; the kernel releases the GIL, so they run in parallel.
+5 s for the same passes in one serial function (the combination weights: 7 s).
+:func:`run_chunks` instead calls a serial ``nogil`` kernel on contiguous chunks of its
+range from a few Python threads; the kernel releases the GIL, so they run in parallel.
+:func:`run_tasks` and :func:`run_rows` are its two calling forms; every statmc kernel
+module uses this one pool.
 """
 
 from __future__ import annotations
@@ -40,25 +42,68 @@ def _task_pool():
         return _POOL
 
 
-def run_tasks(kernel, n, *args):
-    """``kernel(t0, t1, *args)`` over tasks ``0 .. n − 1`` split into one contiguous range
-    per thread, as numba's ``prange`` splits a loop: ``numba.get_num_threads()`` ranges
-    (1, on the calling thread, inside :func:`statmc._threads.serial_when_small`), the first
-    on the calling thread and the others on a pool of Python threads.  ``kernel`` is a
-    serial ``nogil`` numba function whose tasks write disjoint outputs, so the result does
-    not depend on the split.  The pool's threads wait passively (on a queue) and start
-    at first use; a forked child starts its own.
+#: Chunks per thread of a :func:`run_chunks` call: a thread that finishes early (its core
+#: was free, its rows were cheap) takes the next chunk instead of waiting for the others.
+CHUNKS_PER_THREAD = 4
+
+
+def run_chunks(call, start, stop):
+    """``call(lo, hi)`` for contiguous chunks ``lo .. hi − 1`` covering ``start .. stop − 1``.
+
+    On ``numba.get_num_threads()`` threads (1, on the calling thread alone, inside
+    :func:`statmc._threads.serial_when_small` / ``serial_below`` or with
+    ``NUMBA_NUM_THREADS=1``): the calling thread and the pool's, each taking the next of
+    about :data:`CHUNKS_PER_THREAD` chunks per thread when it is done with one.  ``call``
+    runs a serial ``nogil`` numba kernel whose chunks write disjoint outputs, so the result
+    does not depend on the chunking or on which thread ran a chunk: it equals the
+    one-thread result to the bit.  An exception in a chunk stops the chunks not yet started
+    and is raised here once every thread has stopped.  The pool's threads wait passively
+    (on a queue) and start at first use; a forked child starts its own.  Several callers
+    at once share the pool: each caller's own thread works through its chunks, so none
+    waits on another's.
     """
+    start, stop = int(start), int(stop)
+    n = stop - start
     p = min(numba.get_num_threads(), n)
     if p <= 1:
         if n > 0:
-            kernel(0, n, *args)
+            call(start, stop)
         return
-    bounds = [(i * n) // p for i in range(p + 1)]
+    nchunk = min(n, p * CHUNKS_PER_THREAD)
+    bounds = [start + (i * n) // nchunk for i in range(nchunk + 1)]
+    todo = iter(range(nchunk))
+    lock = threading.Lock()
+    errors = []
+
+    def work():
+        while not errors:
+            with lock:
+                i = next(todo, None)
+            if i is None:
+                return
+            try:
+                call(bounds[i], bounds[i + 1])
+            except BaseException as exc:        # noqa: BLE001 - raised below, in the caller
+                errors.append(exc)
+
     pool = _task_pool()
-    futures = [pool.submit(kernel, bounds[i], bounds[i + 1], *args) for i in range(1, p)]
+    futures = [pool.submit(work) for _ in range(p - 1)]
     try:
-        kernel(bounds[0], bounds[1], *args)
+        work()
     finally:
         for f in futures:
             f.result()
+    if errors:
+        raise errors[0]
+
+
+def run_tasks(kernel, n, *args):
+    """:func:`run_chunks` of ``kernel(t0, t1, *args)`` over tasks ``0 .. n − 1``: the form
+    of the filter, GEM, analytic and gate kernels (their task range first)."""
+    run_chunks(lambda t0, t1: kernel(t0, t1, *args), 0, n)
+
+
+def run_rows(kernel, start, stop, *args):
+    """:func:`run_chunks` of ``kernel(*args, lo, hi)`` over ``start .. stop − 1``: the form of
+    the combination kernels (their range last)."""
+    run_chunks(lambda lo, hi: kernel(*args, lo, hi), start, stop)

@@ -648,7 +648,7 @@ def test_statistical_weights_numba_bands_match_one_band():
 
 def test_combination_kernels_compile_no_parallel_loops():
     """The combination's compiled kernels are serial functions run on several threads in
-    chunks of rows or tasks (``_kernel_inputs.run_in_chunks``), not ``prange`` loops.
+    chunks of rows or tasks (``_task_threads.run_rows``), not ``prange`` loops.
     numba links a function's callees into it and optimises and compiles them again there:
     a parallel loop calling the weights' row function compiled it twice more (into the
     loop's gufunc and the wrapper), 7 s of CPU time for ``_weights_band`` and 6 s for
@@ -664,7 +664,7 @@ def test_combination_kernels_compile_no_parallel_loops():
 
 
 def test_threaded_chunks_equal_one_thread_and_honour_the_thread_count():
-    """``run_in_chunks`` gives the one-thread result to the bit (weights, Eq. 14, moment
+    """``run_rows`` gives the one-thread result to the bit (weights, Eq. 14, moment
     stencils, the running box sums), runs on no more threads than
     ``numba.get_num_threads()`` (the calling one among them; one with
     ``set_num_threads(1)``, as ``serial_below`` sets for small calls), covers every index
@@ -674,7 +674,7 @@ def test_threaded_chunks_equal_one_thread_and_honour_the_thread_count():
     import numba
 
     from statmc import _stencil_kernels as sk
-    from statmc._kernel_inputs import run_in_chunks
+    from statmc._task_threads import run_rows
 
     rng = np.random.default_rng(21)
     B, H, W, C, k = 2, 23, ck.BIAS_TILE + 5, 3, 5
@@ -712,7 +712,7 @@ def test_threaded_chunks_equal_one_thread_and_honour_the_thread_count():
             numba.set_num_threads(n)
             seen.clear()
             hits[:] = 0
-            run_in_chunks(kernel, 3, 1000)
+            run_rows(kernel, 3, 1000)
             assert 1 <= len(seen) <= n and (hits[3:] == 1).all() and (hits[:3] == 0).all()
     finally:
         numba.set_num_threads(before)
@@ -725,7 +725,7 @@ def test_threaded_chunks_equal_one_thread_and_honour_the_thread_count():
             raise ZeroDivisionError("chunk")
 
     with pytest.raises(ZeroDivisionError, match="chunk"):
-        run_in_chunks(fail, 0, 1000)
+        run_rows(fail, 0, 1000)
 
 @pytest.mark.parametrize("loo", [False, True])
 def test_statistical_weights_rows_match_all_rows(loo):
