@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
 
@@ -56,11 +56,14 @@ def run_chunks(call, start, stop):
     about :data:`CHUNKS_PER_THREAD` chunks per thread when it is done with one.  ``call``
     runs a serial ``nogil`` numba kernel whose chunks write disjoint outputs, so the result
     does not depend on the chunking or on which thread ran a chunk: it equals the
-    one-thread result to the bit.  An exception in a chunk stops the chunks not yet started
-    and is raised here once every thread has stopped.  The pool's threads wait passively
-    (on a queue) and start at first use; a forked child starts its own.  Several callers
-    at once share the pool: each caller's own thread works through its chunks, so none
-    waits on another's.
+    one-thread result to the bit.  An exception in a chunk, or one raised in the calling
+    thread while it waits (KeyboardInterrupt), stops the chunks not yet started and is
+    raised here once every chunk started has finished: no output is written after this
+    returns.  The pool's threads wait passively (on a queue) and start at first use; a
+    forked child starts its own.  Several callers at once share the pool: each caller's
+    own thread works through its chunks, and a caller whose pool submissions are still
+    queued behind another caller's when its chunks are all done drops them instead of
+    waiting for them, so none waits on another's.
     """
     start, stop = int(start), int(stop)
     n = stop - start
@@ -90,9 +93,18 @@ def run_chunks(call, start, stop):
     futures = [pool.submit(work) for _ in range(p - 1)]
     try:
         work()
-    finally:
-        for f in futures:
-            f.result()
+    except BaseException as exc:                # outside a chunk (KeyboardInterrupt)
+        errors.append(exc)
+    # Every chunk is taken (or an error stops them): a submission still queued, behind
+    # another caller's, has nothing left to do and is dropped rather than waited for.
+    running = [f for f in futures if not f.cancel()]
+    while running:
+        try:
+            wait(running)
+            running = []
+        except BaseException as exc:            # noqa: BLE001 - KeyboardInterrupt while
+            errors.append(exc)                  # waiting: stop the chunks not yet started
+            running = [f for f in running if not f.done()]   # and wait for the others
     if errors:
         raise errors[0]
 
