@@ -136,8 +136,10 @@ def _pair(y_name, y, z_name, z, *, multi):
 def _weights(weights, B, H, W, *, multi, name="weights"):
     """Weights as ``(H, W, B, k, k)`` float32/float64 (no copy when already so)."""
     w = np.asarray(weights)
-    if w.dtype == object or not (np.issubdtype(w.dtype, np.number) or w.dtype == bool):
-        raise InputError(f"`{name}` must be a numeric array; got dtype {w.dtype}.")
+    if w.dtype == object or np.iscomplexobj(w) \
+            or not (np.issubdtype(w.dtype, np.number) or w.dtype == bool):
+        # complex weights lost their imaginary part with only numpy's ComplexWarning
+        raise InputError(f"`{name}` must be a real numeric array; got dtype {w.dtype}.")
     if w.dtype not in (np.float32, np.float64):
         w = w.astype(np.float64)
     given = w.shape
@@ -1296,18 +1298,19 @@ class _Probes:
         return out
 
 
-def _probe_vectors(denoiser, x, mean_var, probes, rng, eps):
+def _probe_vectors(denoiser, x, mean_var, probes, rng, eps, name="x"):
     """Check the input of :func:`denoiser_moments` and run the ``K + 1`` denoiser calls
-    (on the whole image: a black box cannot be banded); returns :class:`_Probes`."""
-    xx = as_float_array("x", x, ndim=3, dtype=np.float64)
-    check_nonempty("x", xx)
-    check_finite("x", xx)
+    (on the whole image: a black box cannot be banded); returns :class:`_Probes`.  ``name``
+    is the caller's name of ``x``, used in its messages."""
+    xx = as_float_array(name, x, ndim=3, dtype=np.float64)
+    check_nonempty(name, xx)
+    check_finite(name, xx)
     mv = as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64)
     check_finite("mean_var", mv)
     check_nonnegative("mean_var", mv)
     if mv.shape != xx.shape:
-        raise InputError(f"`mean_var` must have the shape of `x` {xx.shape} (the variance of the "
-                         f"mean of each pixel and channel); got {mv.shape}.")
+        raise InputError(f"`mean_var` must have the shape of `{name}` {xx.shape} (the variance of "
+                         f"the mean of each pixel and channel); got {mv.shape}.")
     if isinstance(probes, bool) or not isinstance(probes, (int, np.integer)) or probes < 1:
         raise InputError(f"`probes` must be an integer >= 1; got {probes!r}.")
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
@@ -1713,14 +1716,18 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
     _check_float32_range("y", yy)                      # the denoiser's float32 copies
     _check_limit("mean_var", as_float_array("mean_var", mean_var, ndim=3, dtype=np.float64),
                  MOMENT_LIMIT)
-    models = (var,) if isinstance(var, str) else tuple(var)
-    if not 1 <= len(models) <= 3 or any(m not in ("smooth", "raw", "max") for m in models):
+    try:
+        models = (var,) if isinstance(var, str) else tuple(var)
+    except TypeError:                              # None, a number: not a sequence of names
+        models = None
+    if models is None or not 1 <= len(models) <= 3 \
+            or any(m not in ("smooth", "raw", "max") for m in models):
         raise InputError(f"`var` must be 'smooth', 'raw', 'max' or a sequence of 1 to 3 of "
                          f"them; got {var!r}.")
     ms = _check_mix(mix, mix_sigma)
     k = _check_window_options(size, stencil, smooth, patch)
     _check_sure_terms(sure_terms, extra_output)
-    pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3)
+    pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3, name="y")
     z = pr.z
     H, W, C = z.shape
     m = int(stencil)

@@ -1291,3 +1291,24 @@ def test_array_arguments_can_be_passed_by_name(name, func, args, kwargs):
     assert len(by_name) == len(by_position) > 0
     for a, b in zip(by_position, by_name):
         np.testing.assert_array_equal(a, b)
+
+
+def test_combination_messages_name_the_argument_given():
+    """Found in session 15's QA: complex weights lost their imaginary part with only a
+    ComplexWarning; ``combine_denoised`` called its image `x` (the parameter is `y`);
+    ``var=None`` raised "'NoneType' object is not iterable"."""
+    rng = np.random.default_rng(3)
+    H, W, C, k = 6, 5, 3, 3
+    y = rng.random((H, W, C))
+    z = y + 0.01
+    v = np.full((H, W, C), 0.01)
+    w = np.full((H, W, k, k), 1.0 / k**2)
+    with pytest.raises(InputError, match=r"`weights` must be a real numeric array; got dtype complex128"):
+        combine.combine(y, z, w + 1j)
+    with pytest.raises(InputError, match=r"`weights` must be a real numeric array"):
+        combine.combine_bias_variance(w + 0j, v, v)
+    blur = lambda c: c                                   # noqa: E731 - a stand-in denoiser
+    with pytest.raises(InputError, match=r"`mean_var` must have the shape of `y` \(6, 5, 3\)"):
+        combine.combine_denoised(y, v[:5], blur)
+    with pytest.raises(InputError, match=r"`var` must be 'smooth', 'raw', 'max' or a sequence"):
+        combine.combine_denoised(y, v, blur, var=None)
