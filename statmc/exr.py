@@ -292,10 +292,12 @@ def _companions(headers: list, index: int) -> tuple[dict, dict]:
 
     A part is read with part ``index`` when the two are one image split into parts (as
     Nuke writes a layer per part, and OpenEXR suggests for reading a subset of channels
-    quickly): it is flat, has the same data window and the same ``view`` (or none), and none
-    of its channel names is held by part ``index`` or another such part.  A part that
-    repeats names (a second render with its own ``R, G, B``, a stereo file's other view) is
-    another image and adds nothing.  Returns ``({name: part}, {part: why not read})``."""
+    quickly): it is flat, has the same data window and the same ``view`` (or none), and no
+    channel name is held twice among part ``index`` and these parts.  A part that repeats
+    names (a second render with its own ``R, G, B``, a stereo file's other view) is another
+    image and adds nothing; and then the window holds more than one image, so which one the
+    other such parts belong to is not known: none is read with it either.  Returns
+    ``({name: part}, {part: why not read})``."""
     def names(h):
         return [str(c.name) for c in h.get("channels", ())]
     base = headers[index]
@@ -318,12 +320,17 @@ def _companions(headers: list, index: int) -> tuple[dict, dict]:
     for j in [index, *same]:
         for n in names(headers[j]):
             held[n] = held.get(n, 0) + 1
+    repeats = [j for j in same if any(held[n] > 1 for n in names(headers[j]))]
     take = {}
     for j in same:
-        if all(held[n] == 1 for n in names(headers[j])):
-            take.update(dict.fromkeys(names(headers[j]), j))
-        else:
+        if j in repeats:
             left[j] = "channel names also in another part: another image"
+        elif repeats:
+            left[j] = (f"part {', '.join(map(str, repeats))} of this window repeat"
+                       f"{'s' if len(repeats) == 1 else ''} channel names, so it holds more "
+                       "than one image and which one this part belongs to is not known")
+        else:
+            take.update(dict.fromkeys(names(headers[j]), j))
     return take, left
 
 

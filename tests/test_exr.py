@@ -1140,6 +1140,27 @@ def test_parts_that_are_not_one_image_are_not_read_together(tmp_path, second, wh
     assert exr_info(p)["merged_parts"] == [] and exr_info(p)["parts"] == 2
 
 
+def test_a_window_holding_two_images_merges_no_part(tmp_path):
+    # parts 0 and 1 are two renders of one window (each its own R, G, B) and part 2 holds
+    # Variance.* of one of them: before, part 2 was read with part 0 whichever render it
+    # belonged to (here part 1's); now no part of the window is read with another
+    rng = np.random.default_rng(6)
+    a, b = _stats_channels_for(4, 3, rng), _stats_channels_for(4, 3, rng)
+    p = tmp_path / "two.exr"
+    w = [0, 0, 2, 3]
+    OpenEXR.File([OpenEXR.Part(_part_header(w), {c: a[c] for c in "RGB"}, name="noisy"),
+                  OpenEXR.Part(_part_header(w), {c: b[c] for c in "RGB"}, name="reference"),
+                  OpenEXR.Part(_part_header(w), {f"Variance.{c}": b[f"Variance.{c}"] for c in "RGB"},
+                               name="reference_var")]).write(str(p))
+    for part in (0, 1, 2):
+        assert exr_info(p, part=part)["merged_parts"] == []
+    with pytest.raises(FileFormatError, match=r"part 2 \('reference_var'\): \[.*\], not read "
+                       r"with it \(part 1 of this window repeats channel names, so it holds more "
+                       r"than one image"):
+        read_exr(p, spp=4)
+    np.testing.assert_array_equal(read_image(p, part=1)[..., 0], b["R"])
+
+
 def test_multipart_file_errors_name_what_the_other_parts_hold(tmp_path):
     # before: "has no Variance.R, ... Channels present: ['B', 'G', 'R']" although part 1 of
     # the file held them; the error did not say that only part 0 is read
