@@ -1,7 +1,10 @@
 """Timing helpers shared by the benchmark scripts (run as ``python bench/NAME.py``)."""
 
+import json
+import os
 import subprocess
 import sys
+import tempfile
 import time
 from contextlib import contextmanager
 
@@ -41,3 +44,16 @@ def busy_loops(n, nice):
         for p in loops:
             p.kill()
             p.wait()
+
+
+def run_cold(checkout: str, child: str, *args: str):
+    """The JSON on the last stdout line of ``python -c child CHECKOUT/statmc *args``, run in
+    ``checkout`` (first on ``PYTHONPATH``) with an empty private ``NUMBA_CACHE_DIR``: a
+    user's first calls, whatever this machine has cached (the ``*_compile`` scripts)."""
+    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache,
+                   PYTHONPATH=os.pathsep.join([checkout, os.environ.get("PYTHONPATH", "")]))
+        res = subprocess.run([sys.executable, "-c", child, os.path.join(checkout, "statmc"),
+                              *args], env=env, cwd=checkout, check=True,
+                             capture_output=True, text=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])

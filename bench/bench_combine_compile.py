@@ -21,13 +21,11 @@ A checkout is a directory holding ``statmc/`` (default: this one).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
-import tempfile
 
 CALLS = ("weights", "denoised", "bins")
+
+from _timing import run_cold  # noqa: E402  (bench/ is the script's folder)
 
 CHILD = r"""
 import json, sys, time
@@ -79,13 +77,7 @@ print(json.dumps({"cpu": time.process_time() - c, "wall": time.perf_counter() - 
 
 
 def run(checkout: str, call: str) -> dict:
-    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache,
-                   PYTHONPATH=os.pathsep.join([checkout, os.environ.get("PYTHONPATH", "")]))
-        res = subprocess.run([sys.executable, "-c", CHILD, os.path.join(checkout, "statmc"),
-                              call], env=env, cwd=checkout, check=True, capture_output=True,
-                             text=True)
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return run_cold(checkout, CHILD, call)
 
 
 def main() -> None:

@@ -19,11 +19,9 @@ Scenarios (64x64x3 images): ``gem`` (float64 ``reconstruct`` then ``sampling_map
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
-import tempfile
+
+from _timing import run_cold  # noqa: E402  (bench/ is the script's folder)
 
 CHILD = r"""
 import json, sys, time
@@ -111,13 +109,7 @@ SCENARIOS = ("gem", "gem32", "mixing_weights", "mc_sure", "output_variance", "an
 
 
 def run(checkout: str, scenario: str) -> list:
-    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache,
-                   PYTHONPATH=os.pathsep.join([checkout, os.environ.get("PYTHONPATH", "")]))
-        res = subprocess.run([sys.executable, "-c", CHILD, os.path.join(checkout, "statmc"),
-                              scenario], env=env, cwd=checkout, check=True,
-                             capture_output=True, text=True)
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return run_cold(checkout, CHILD, scenario)
 
 
 def main() -> None:

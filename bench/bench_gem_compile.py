@@ -16,11 +16,9 @@ a second call of each in the same process (numba's compiled kernels, no compile)
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
-import tempfile
+
+from _timing import run_cold  # noqa: E402  (bench/ is the script's folder)
 
 CHILD = r"""
 import json, sys, time
@@ -45,13 +43,7 @@ print(json.dumps(out))
 
 
 def run(checkout: str, warm: bool) -> dict:
-    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache,
-                   PYTHONPATH=os.pathsep.join([checkout, os.environ.get("PYTHONPATH", "")]))
-        res = subprocess.run([sys.executable, "-c", CHILD, os.path.join(checkout, "statmc"),
-                              "1" if warm else "0"], env=env, cwd=checkout, check=True,
-                             capture_output=True, text=True)
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return run_cold(checkout, CHILD, "1" if warm else "0")
 
 
 def main() -> None:
