@@ -93,6 +93,15 @@ def _positive(name, value, what="a positive number") -> float:
     return v
 
 
+def _constant(name, value, usual) -> float:
+    """An SSIM stabilising constant: a finite float >= 0 (``k1 = k2 = 0`` is Wang and
+    Bovik's universal quality index, 2002), else an :class:`InputError` naming ``name``."""
+    v = real_or_nan(value)
+    if not np.isfinite(v) or v < 0:
+        raise InputError(f"`{name}` must be a constant >= 0 ({usual}); got {value!r}.")
+    return v
+
+
 def _check_per_pixel(per_pixel) -> bool:
     if not isinstance(per_pixel, (bool, np.bool_)):
         raise InputError(f"`per_pixel` must be True or False; got {per_pixel!r}.")
@@ -322,8 +331,8 @@ def ssim_map(x, ref, *, data_range: float = 1.0, sigma: float = 1.5, k1: float =
     xa, ra = _pair(x, ref)
     data_range = _positive("data_range", data_range)
     sigma = _positive("sigma", sigma, "a positive number of pixels")
-    k1 = _positive("k1", k1, "a positive constant (0.01 in Wang et al. 2004)")
-    k2 = _positive("k2", k2, "a positive constant (0.03 in Wang et al. 2004)")
+    k1 = _constant("k1", k1, "0.01 in Wang et al. 2004")
+    k2 = _constant("k2", k2, "0.03 in Wang et al. 2004")
     # SSIM is unchanged when x, ref and L are scaled together: work in units of L, so that
     # HDR values and ranges beyond ~1e154 do not overflow the squares (exact for L = 1)
     if data_range != 1.0:
@@ -352,6 +361,11 @@ def ssim_map(x, ref, *, data_range: float = 1.0, sigma: float = 1.5, k1: float =
         cxy = blur(xa * ra) - mx * my
         s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
     if not np.isfinite(s).all():
+        if c1 == 0 or c2 == 0:
+            zero = " and ".join(f"`{k}`" for k, c in (("k1", c1), ("k2", c2)) if c == 0)
+            raise InputError(f"SSIM with {zero} = 0 is 0/0 in a window where both images are "
+                             "constant (or both black); use positive constants, or images "
+                             "without such windows.")
         big = max(float(np.abs(xa).max()), float(np.abs(ra).max())) * data_range
         raise InputError(f"`x` and `ref` are too large for SSIM at `data_range`={data_range!r} "
                          f"(max |value| {big:.3g}, whose square overflows); pass the range "

@@ -1121,9 +1121,9 @@ def test_pipeline_messages_name_the_library_parameters_not_cli_flags():
     (lambda x: metrics.one_minus_ssim(x, x, sigma=None),
      r"`sigma` must be a positive number of pixels; got None"),
     (lambda x: metrics.ssim_map(x, x, k1=np.nan),
-     r"`k1` must be a positive constant \(0.01 in Wang et al. 2004\); got nan"),
+     r"`k1` must be a constant >= 0 \(0.01 in Wang et al. 2004\); got nan"),
     (lambda x: metrics.ssim_map(x, x, k2="0.03"),
-     r"`k2` must be a positive constant .*; got '0.03'"),
+     r"`k2` must be a constant >= 0 .*; got '0.03'"),
     (lambda x: metrics.flip(x, x, ppd="67"),
      r"`ppd` must be a positive number of pixels per degree; got '67'"),
     (lambda x: metrics.mse(x, x, per_pixel="yes"),
@@ -1312,3 +1312,19 @@ def test_combination_messages_name_the_argument_given():
         combine.combine_denoised(y, v[:5], blur)
     with pytest.raises(InputError, match=r"`var` must be 'smooth', 'raw', 'max' or a sequence"):
         combine.combine_denoised(y, v, blur, var=None)
+
+
+def test_ssim_with_zero_constants_is_the_universal_quality_index():
+    """``k1 = k2 = 0`` (Wang and Bovik's universal quality index, 2002) is a valid call: for
+    ``x = a · ref`` every window's index is ``(2a / (1 + a²))²`` (luminance and contrast-
+    structure terms are each ``2a / (1 + a²)``); refused by 82f3544, restored in session 15.
+    A window constant in both images is 0/0 there, and the message says so."""
+    rng = np.random.default_rng(8)
+    ref = rng.uniform(0.2, 1.0, (16, 18, 3))
+    for a in (1.0, 2.0, 0.3):
+        s = metrics.ssim_map(a * ref, ref, k1=0, k2=0)
+        np.testing.assert_allclose(s, (2 * a / (1 + a * a)) ** 2, rtol=1e-9)
+    with pytest.raises(InputError, match=r"SSIM with `k1` and `k2` = 0 is 0/0 in a window"):
+        metrics.ssim_map(np.ones((8, 8, 1)), np.ones((8, 8, 1)), k1=0, k2=0)
+    with pytest.raises(InputError, match=r"`k1` must be a constant >= 0"):
+        metrics.ssim_map(ref, ref, k1=-0.01)
