@@ -36,12 +36,15 @@ References
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 from scipy import special
 
 from . import _analytic_kernels as _ak
-from .errors import (InputError, as_broadcast_arrays, as_float_array, as_number, as_rng,
-                     as_whole, check_finite, check_nonempty, check_nonnegative)
+from .errors import (MAX_BUDGET, InputError, _scalar, as_bool, as_broadcast_arrays,
+                     as_float_array, as_number, as_rng, as_whole, check_finite, check_nonempty,
+                     check_nonnegative)
 from .sampling import counts_from_density
 from .stats import check_stats
 
@@ -117,6 +120,8 @@ def _numeric_kernels(kernels) -> np.ndarray:
     """``kernels`` as an array, refused unless numeric (a kernel denoiser given in place of
     its ``kernels(shape)`` is named)."""
     K = np.asarray(kernels)
+    if np.iscomplexobj(K):          # was taken as its real part (a ComplexWarning only)
+        raise InputError(f"`kernels` must be a real numeric array; got dtype {K.dtype}.")
     if K.dtype == object or not np.issubdtype(K.dtype, np.number):
         hint = (" (for a kernel denoiser pass its `kernels(shape)`)"
                 if callable(getattr(kernels, "kernels", None)) else "")
@@ -329,6 +334,7 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
     if not lo <= hi:
         raise InputError(f"`bounds` must be (low, high) with low <= high; got {bounds!r}.")
     gen = _rng(rng)
+    shared_stream = as_bool("shared_stream", shared_stream)
     shape = xt.shape[:2] + ((1,) if shared_stream else (xt.shape[2],))
     s3 = np.broadcast_to(sm[..., None], xt.shape)
     degenerate = (s3 == 0) | (vg == 0)
@@ -507,6 +513,7 @@ def gem_kernels(mean, mean_var, *, n=None, gamma=None, final=False, dtype=np.flo
     """
     from . import gem as _gem
     g = _gem.DEFAULT_GAMMA if gamma is None else gamma
+    final = as_bool("final", final)
     _, info = _gem.reconstruct(mean, mean_var, gamma=g, final=final, n=n, extra_output=True)
     return scale_kernels(info["scales"], info["sigmas"], dtype=dtype)
 
@@ -656,10 +663,10 @@ def _water_fill(a, sb, budget, upper):
 
 
 def _check_budget(budget, n_pix, upper):
-    try:
-        b = float(budget)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`budget` must be a number of samples; got {budget!r}.") from exc
+    value = _scalar(budget)         # a string "300" was parsed by float(), True was 1 sample
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise InputError(f"`budget` must be a number of samples; got {budget!r}.")
+    b = float(value)
     if not np.isfinite(b) or b < 0:
         raise InputError(f"`budget` must be a finite number >= 0; got {budget!r}.")
     if upper is not None and b > upper.sum() * (1 + 1e-12):
@@ -1092,7 +1099,9 @@ def _check_mix(mix):
 
 
 def _whole_budget(budget):
-    return float(as_whole("budget", budget, what="number of samples"))
+    # hi: checked here on the budget given, else counts_from_density printed float(budget)
+    # rounded back to an int (10**30 came back as 1000000000000000019884624838656)
+    return float(as_whole("budget", budget, what="number of samples", hi=MAX_BUDGET))
 
 
 def _resolve_kernels(kernels, sigma, stats):

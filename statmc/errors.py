@@ -142,6 +142,15 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
     return int(value)
 
 
+def as_bool(name: str, value) -> bool:
+    """``value`` of a True/False option as a Python bool; anything but a bool or NumPy
+    bool (``"no"`` was taken as True, None as False) is an :class:`InputError`:
+    "`name` must be True or False; got 'no'."."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"`{name}` must be True or False; got {value!r}.")
+    return bool(value)
+
+
 #: Largest sample budget accepted: counts are placed through float64 targets, exact up to
 #: 2**53 (a budget of 2**56 came back 6 samples off, 2**63 overflowed the kernels).
 MAX_BUDGET = 2 ** 53

@@ -32,8 +32,8 @@ import numpy as np
 
 from ._kernel_inputs import writable
 from ._threads import LazyModule, serial_when_small
-from .errors import (InputError, as_float_array, as_int, check_finite, check_nonnegative,
-                     check_same_shape, real_or_nan)
+from .errors import (InputError, as_bool, as_float_array, as_int, check_finite,
+                     check_nonnegative, check_same_shape, real_or_nan)
 
 # the compiled kernels (numba) load at the first filter pass, not with this module:
 # statmc.denoisers imports it, and `statmc denoise --denoiser oidn` runs no kernel
@@ -429,6 +429,7 @@ def filter_bank(mean, mean_var, sigmas=ADAPTIVE_SIGMAS, *, truncate: float = DEF
     >>> bool(abs(vars_[1, 8, 8, 0] - 1 / (4 * np.pi * kernel_moment2(2.0))) < 0.01)
     True
     """
+    sum_channels = as_bool("sum_channels", sum_channels)   # "no" was taken as True
     m, v, sig = _check_bank_input(mean, mean_var, sigmas, truncate)
     vals, vars_ = _bank_rows(m, v, sig, truncate, sum_channels=sum_channels)
     h, w = m.shape[:2]

@@ -38,8 +38,8 @@ import numpy as np
 
 from . import _filter_kernels as _k
 from ._threads import SERIAL_VALUES, serial_when_small
-from .errors import (MAX_BUDGET, InputError, as_float_array, as_number, as_rng, as_whole,
-                     check_finite, check_nonnegative, real_or_nan)
+from .errors import (MAX_BUDGET, InputError, as_bool, as_float_array, as_number, as_rng,
+                     as_whole, check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _as_sigmas, _check_pair,
                       _border_scale, _rows, _run, _taps, _weight_matrix, gaussian_kernel_1d,
                       kernel_moment2)
@@ -188,6 +188,7 @@ def _selector_inputs(values, variances, r2, weight, diff_variances=None):
         raise InputError(f"`values` must hold K >= 2 scales (K, H, W, C); got shape {v.shape}.")
     ref = f"`values` {v.shape}"
     var = _channel_sum("variances", variances, (k, h, w), c, ref)
+    check_nonnegative("variances", var)   # as `mean_var`: < 0 was taken, flipping decisions
     dv = None
     if diff_variances is not None:
         dv = _channel_sum("diff_variances", diff_variances, (k - 1, h, w), c, ref)
@@ -373,6 +374,7 @@ def _resolve_mode(final, bias, sigmas, map_scale):
     else 1).  Returns ``(bias, sigmas, map_scale)`` with ``map_scale`` that factor as a
     float.
     """
+    final = as_bool("final", final)     # "no" was taken as True
     bias = _default_bias(_check_bias(bias), final)
     pooled_final = bias == "pooled" and final
     if sigmas is None:
@@ -435,6 +437,7 @@ def postprocess_stop_maps(stop, sigmas, *, final: bool, truncate: float = DEFAUL
     -------
     (K-1, H, W) bool ndarray
     """
+    final = as_bool("final", final)
     raw = np.ascontiguousarray(as_float_array("stop", stop, dtype=np.float32))
     check_finite("stop", raw)                       # NaN: silently a 'go on' decision
     sig = _check_sigmas(sigmas)
@@ -749,6 +752,8 @@ def _core(m, v, vsum, n, gamma, sig, final, postprocess, truncate, *, keep_bank,
     filter pass), the decision.  ``gamma`` is validated in every mode but only enters
     ``bias="paper"``.
     """
+    final, postprocess = as_bool("final", final), as_bool("postprocess", postprocess)
+    debias = as_bool("debias", debias)
     h, w = m.shape[:2]
     x, c = _rows(m)
     if keep_bank:
@@ -982,7 +987,7 @@ def reconstruct(mean, mean_var, *, gamma: float = DEFAULT_GAMMA, final: bool = T
     >>> out.dtype, bool(np.mean((out - truth) ** 2) < 0.1 * np.mean((noisy - truth) ** 2))
     (dtype('float32'), True)
     """
-    if extra_output:
+    if as_bool("extra_output", extra_output):
         info = select(mean, mean_var, gamma=gamma, final=final, n=n, sigmas=sigmas,
                       map_scale=map_scale, bias=bias)
         return info["image"], info
@@ -1305,6 +1310,7 @@ def sampling_map(mean, mean_var, n, budget: int, *, gamma: float = DEFAULT_GAMMA
         raise InputError("`n` (samples per pixel, (H, W)) is required by `sampling_map`.")
     m, v, vsum, nn = _check_inputs(mean, mean_var, n)
     budget = as_whole("budget", budget, hi=MAX_BUDGET)
+    debias, extra_output = as_bool("debias", debias), as_bool("extra_output", extra_output)
     given = eps, var_prior, var_prior_sigma          # '0.1', True, [1, 2]: float() took
     eps, var_prior, var_prior_sigma = map(real_or_nan, given)   # or raised TypeError
     if not eps > 0 or not math.isfinite(eps):

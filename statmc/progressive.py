@@ -31,8 +31,8 @@ import numbers
 
 import numpy as np
 
-from .errors import (InputError, _scalar, as_broadcast_arrays, as_float_array, as_number,
-                     check_finite, check_nonempty, check_nonnegative)
+from .errors import (InputError, _scalar, as_bool, as_broadcast_arrays, as_float_array,
+                     as_number, check_finite, check_nonempty, check_nonnegative)
 from .stats import PixelStats, check_stats
 
 __all__ = ["mixing_weights", "mix_error", "confidence_gate", "progressive_denoise",
@@ -365,9 +365,8 @@ def mixing_weights(x, y, mean_var, sure_y, divergence, *, smooth: float = DEFAUL
             raise InputError(f"`n` must be an (H, W) count map {shape[:2]}; got {nn.shape}.")
         check_finite("n", nn)
         check_nonnegative("n", nn)
-    for name, flag in (("per_channel", per_channel), ("extra_output", extra_output)):
-        if not isinstance(flag, (bool, np.bool_)):
-            raise InputError(f"`{name}` must be a bool; got {flag!r}.")
+    per_channel = as_bool("per_channel", per_channel)
+    extra_output = as_bool("extra_output", extra_output)
     if z > 0 and sm == 0.0:
         raise InputError(f"`shrink`={shrink!r} needs `smooth` > 0 (the standard error comes from "
                          "the local spread); got smooth=0. Pass shrink=0 for the raw Eq. 9.")
@@ -577,6 +576,7 @@ def confidence_gate(x, y, mean_var, alpha, *, window: int = DEFAULT_WINDOW, sigm
     shape = xx.shape
     if precision not in ("single", "double"):
         raise InputError(f"`precision` must be 'single' or 'double'; got {precision!r}.")
+    extra_output = as_bool("extra_output", extra_output)
     yy = _like("y", y, shape, dtype=dt, check=False)
     v = _variance(mean_var, shape, dtype=dt, check=False)
     al = _like("alpha", alpha, shape, allow_2d=True, dtype=dt, check=False)
@@ -791,8 +791,8 @@ def progressive_denoise(stats: PixelStats, denoiser, *, alpha=None, mean_var=Non
     from .sure import mc_sure
 
     check_stats(stats)
-    if not isinstance(gate, (bool, np.bool_)):
-        raise InputError(f"`gate` must be a bool; got {gate!r}.")
+    gate = as_bool("gate", gate)
+    extra_output = as_bool("extra_output", extra_output)
     if outlier is not None:
         outlier = as_number("outlier", outlier, lo=1.0, lo_open=True)
     if mean_var is None:

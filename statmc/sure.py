@@ -40,9 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .analytic import apply_kernels
-from .errors import (InputError, as_float_array, as_int, as_number, as_rng, check_finite,
-                     check_nonempty, check_nonnegative)
+from .analytic import _numeric_kernels, apply_kernels
+from .errors import (InputError, as_bool, as_float_array, as_int, as_number, as_rng,
+                     check_finite, check_nonempty, check_nonnegative)
 from .stats import check_stats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -323,6 +323,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
+    relative = as_bool("relative", relative)
     k = as_int("k", k)
     f = _check_denoiser(denoiser)
     gen = as_rng(rng)
@@ -369,7 +370,8 @@ def kernel_variance(kernels, mean_var):
     mv = as_float_array("mean_var", mean_var, ndim=(3, 4), dtype=np.float64)
     shape = mv.shape[:3]
     noise = _Noise(mv, shape)
-    K = np.asarray(_kernels_of(kernels, shape))
+    # complex (np.square kept it complex) and string kernels raised numpy's UFuncTypeError
+    K = _numeric_kernels(_kernels_of(kernels, shape))
     if K.ndim != 4:
         raise InputError(f"`kernels` must have shape (H, W, k, k); got {K.shape}.")
     return apply_kernels(np.square(K, dtype=np.float64), noise.diag)
@@ -432,6 +434,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
     k = as_int("k", k)
+    relative = as_bool("relative", relative)
     f = _check_denoiser(denoiser)
     if method == "exact":
         if not callable(getattr(f, "kernels", None)):

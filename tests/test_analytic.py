@@ -1180,3 +1180,57 @@ def test_conditional_expected_error_sampler_refuses_empty_pixels_naming_stats_no
     with pytest.raises(InputError, match=r"`stats`.*objective='conditional'"):
         an.expected_error_sampler(stt, 10, rng=0, objective="conditional")
     assert an.expected_error_sampler(stt, 10, rng=0).sum() == 10     # the default fills it
+
+
+# ---------------------------------------------------------------- bad input (QA, session 15)
+def _qa_inputs():
+    k = np.zeros((4, 5, 3, 3))
+    k[:, :, 1, 1] = 0.5
+    k[:, :, 1, 0] = 0.5
+    x = np.full((4, 5, 2), 0.5)
+    return k, x, np.full((4, 5), 4.0), np.full((4, 5, 2), 0.1)
+
+
+@pytest.mark.parametrize("call", [
+    lambda k, x, n, v: apply_kernels(k, x),
+    lambda k, x, n, v: an.kernel_bias_variance(k, x, n, 1.0, x, v),
+    lambda k, x, n, v: expected_kernel_loss(k, x, n, 1.0, x, v),
+    lambda k, x, n, v: an.optimal_sample_map(k, x, n, x, v, 30.0),
+    lambda k, x, n, v: an.optimal_sample_counts(k, x, n, x, v, 30, rng=0),
+])
+def test_complex_kernels_are_refused(call):
+    """Complex kernels were taken as their real part with only numpy's ComplexWarning."""
+    k, x, n, v = _qa_inputs()
+    with pytest.raises(InputError, match=r"`kernels` must be a real numeric array; got dtype "
+                                         r"complex128"):
+        call(k + 1j, x, n, v)
+    call(k, x, n, v)                                    # the real kernels still run
+
+
+@pytest.mark.parametrize("budget", ["300", True, np.True_, None, [30.0]])
+def test_optimal_sample_map_refuses_a_budget_that_is_not_a_number(budget):
+    """A string budget was parsed by float() and True was a map summing to 1."""
+    k, x, n, v = _qa_inputs()
+    with pytest.raises(InputError, match="`budget` must be a number of samples"):
+        an.optimal_sample_map(k, x, n, x, v, budget)
+    s = an.optimal_sample_map(k, x, n, x, v, np.array(30.0))     # a 0-d array is its number
+    assert s.sum() == pytest.approx(30.0)
+
+
+def test_optimal_sample_counts_prints_the_budget_given():
+    k, x, n, v = _qa_inputs()
+    with pytest.raises(InputError) as exc:
+        an.optimal_sample_counts(k, x, n, x, v, 10 ** 30)
+    assert "got 1000000000000000000000000000000." in str(exc.value)
+    assert "19884624838656" not in str(exc.value)
+
+
+def test_boolean_options_of_analytic_are_checked():
+    k, x, n, v = _qa_inputs()
+    with pytest.raises(InputError, match=r"`shared_stream` must be True or False; got 'no'\."):
+        an.sample_future(x, n, n, x, v, rng=0, shared_stream="no")
+    with pytest.raises(InputError, match=r"`final` must be True or False; got None\."):
+        an.gem_kernels(x, v, final=None)
+    a = an.sample_future(x, n, n, x, v, rng=0, shared_stream=np.False_)
+    b = an.sample_future(x, n, n, x, v, rng=0, shared_stream=False)
+    assert np.array_equal(a, b)

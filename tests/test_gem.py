@@ -1244,3 +1244,53 @@ def test_gem_runs_few_numba_parallel_kernels():
     after_reconstruct, after_sampling = p.stdout.strip().splitlines()
     assert after_reconstruct == "['_scan_counts']"
     assert after_sampling == "['_scan_counts', 'allocate_rounds', 'spread_parts']"
+
+
+# ---------------------------------------------------------------- bad input (QA, session 15)
+def _qa_render():
+    rng = np.random.default_rng(3)
+    m = rng.uniform(0.2, 1.0, (12, 10, 3))
+    return m, np.full_like(m, 0.01)
+
+
+def test_selector_refuses_negative_variances():
+    """Negative variances were accepted (mean_var is refused when negative)."""
+    m, v = _qa_render()
+    vals, vars_ = F.filter_bank(m, v, [0.0, 1.0])
+    r2 = [F.kernel_moment2(0.0), F.kernel_moment2(1.0)]
+    bad = vars_.copy()
+    bad[1, 2, 3, 0] = -1.0
+    with pytest.raises(InputError, match="`variances`"):
+        gem.selector(vals, bad, r2)
+    with pytest.raises(InputError, match="`variances`"):
+        gem.pooled_selector(vals, bad, gem.difference_variance(v, [0.0, 1.0]), r2)
+    gem.selector(vals, vars_, r2)
+
+
+@pytest.mark.parametrize("name, call", [
+    ("final", lambda m, v, f: gem.reconstruct(m, v, final=f)),
+    ("final", lambda m, v, f: gem.reconstruct(m, v, final=f, extra_output=True)),
+    ("final", lambda m, v, f: gem.select_scales(m, v, final=f)),
+    ("final", lambda m, v, f: gem.selected_filter(m, v, final=f)),
+    ("postprocess", lambda m, v, f: gem.select(m, v, postprocess=f)),
+    ("postprocess", lambda m, v, f: gem.select_scales(m, v, postprocess=f)),
+    ("extra_output", lambda m, v, f: gem.reconstruct(m, v, extra_output=f)),
+    ("debias", lambda m, v, f: gem.sampling_map(m, v, np.full(m.shape[:2], 4), 100, rng=0,
+                                                debias=f)),
+    ("extra_output", lambda m, v, f: gem.sampling_map(m, v, np.full(m.shape[:2], 4), 100,
+                                                      rng=0, extra_output=f)),
+    ("final", lambda m, v, f: gem.postprocess_stop_maps(np.ones((4, 12, 10)),
+                                                        gem.ADAPTIVE_SIGMAS, final=f)),
+    ("sum_channels", lambda m, v, f: F.filter_bank(m, v, sum_channels=f)),
+])
+def test_gem_boolean_options_are_checked(name, call):
+    """final="no" behaved as final=True (any truthy value was taken)."""
+    m, v = _qa_render()
+    with pytest.raises(InputError, match=rf"`{name}` must be True or False; got 'no'\."):
+        call(m, v, "no")
+    with pytest.raises(InputError, match=rf"`{name}` must be True or False; got None\."):
+        call(m, v, None)
+    a, b = call(m, v, np.False_), call(m, v, False)      # a NumPy bool is a bool
+    for x, y in zip(a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,)):
+        if isinstance(x, np.ndarray):
+            assert np.array_equal(x, y)

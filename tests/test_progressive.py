@@ -1283,3 +1283,14 @@ def test_mixing_weights_converts_a_float32_covariance_once(monkeypatch):
     got = pg.mixing_weights(x, y, cov, v, 0.3 * v)
     assert copies == ["mean_var"]
     np.testing.assert_array_equal(got, expected)
+
+
+# ---------------------------------------------------------------- bad input (QA, session 15)
+def test_confidence_gate_extra_output_must_be_a_bool():
+    """extra_output="no" behaved as True (a tuple came back)."""
+    x = np.full((6, 7, 3), 0.5)
+    v = np.full_like(x, 0.01)
+    with pytest.raises(InputError, match=r"`extra_output` must be True or False; got 'no'\."):
+        pg.confidence_gate(x, x + 0.1, v, np.full_like(x, 0.5), extra_output="no")
+    a = pg.confidence_gate(x, x + 0.1, v, np.full_like(x, 0.5), extra_output=np.False_)
+    assert np.array_equal(a, pg.confidence_gate(x, x + 0.1, v, np.full_like(x, 0.5)))

@@ -621,3 +621,36 @@ def test_a_step_that_throws_the_probe_out_of_float32_is_refused_naming_eps():
     with pytest.raises(InputError, match="`eps`"):
         S.output_variance(D.gaussian(1.0), x, v, eps=1e300, k=1, rng=0)
     S.mc_sure(D.gaussian(1.0), x, v, eps=1e-2, k=1, rng=0)       # ordinary steps still run
+
+
+# ---------------------------------------------------------------- bad input (QA, session 15)
+def _qa_kernels():
+    k = np.zeros((4, 5, 3, 3))
+    k[:, :, 1, 1] = 1.0
+    return k, np.full((4, 5, 2), 0.5), np.full((4, 5, 2), 0.01)
+
+
+@pytest.mark.parametrize("bad", [lambda k: k + 1j, lambda k: k.astype(str),
+                                 lambda k: k.astype(object)])
+def test_kernel_variance_and_sure_refuse_non_real_kernels(bad):
+    """Complex kernels were taken as their real part by sure() (a ComplexWarning only);
+    kernel_variance raised numpy's UFuncTypeError on complex and string kernels."""
+    k, x, v = _qa_kernels()
+    for call in (lambda kk: S.kernel_variance(kk, v), lambda kk: S.sure(kk, x, v)):
+        with pytest.raises(InputError, match=r"`kernels` must be a (real )?numeric"):
+            call(bad(k))
+    with pytest.raises(InputError, match=r"`kernels` must be a real numeric array; got dtype "
+                                         r"complex128"):
+        S.kernel_variance(k + 1j, v)
+
+
+@pytest.mark.parametrize("call", [
+    lambda x, v, r: S.mc_sure(D.gaussian(sigma=1.0), x, v, k=2, rng=0, relative=r),
+    lambda x, v, r: S.output_variance(D.gaussian(sigma=1.0), x, v, k=2, rng=0, relative=r),
+])
+def test_relative_must_be_a_bool(call):
+    """relative="no" behaved as relative=True."""
+    _, x, v = _qa_kernels()
+    with pytest.raises(InputError, match=r"`relative` must be True or False; got 'no'\."):
+        call(x, v, "no")
+    assert np.array_equal(call(x, v, np.False_), call(x, v, False))
