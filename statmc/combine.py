@@ -48,8 +48,8 @@ import numpy as np
 
 from . import _combine_kernels as _ck
 from ._stencil_kernels import add_neighbour_products_sum, shift_slices
-from .errors import (InputError, as_float_array, as_number, as_rng, check_finite, check_nonempty,
-                     check_nonnegative)
+from .errors import (InputError, as_bool, as_float_array, as_number, as_rng, check_finite,
+                     check_nonempty, check_nonnegative)
 
 __all__ = [
     "combine", "combine_multi", "combine_boosting",
@@ -1547,9 +1547,7 @@ def _mix_rel(y, z, pr, mean_var):
 
 def _check_sure_terms(sure_terms, extra_output):
     """Check ``sure_terms`` of :func:`combine_denoised` / :func:`combine_bins`."""
-    if not isinstance(sure_terms, (bool, np.bool_)):
-        raise InputError(f"`sure_terms` must be True or False; got {sure_terms!r}.")
-    if sure_terms and not extra_output:
+    if as_bool("sure_terms", sure_terms) and not extra_output:
         raise InputError("`sure_terms=True` adds the SURE terms to the dict of "
                          "`extra_output`; pass extra_output=True as well (got "
                          f"extra_output={extra_output!r}).")

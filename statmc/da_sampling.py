@@ -56,8 +56,8 @@ import numbers
 
 import numpy as np
 
-from .errors import (MAX_BUDGET, InputError, _scalar, as_broadcast_arrays, as_float_array,
-                     as_rng, as_whole, check_finite)
+from .errors import (MAX_BUDGET, InputError, _scalar, as_bool, as_broadcast_arrays,
+                     as_float_array, as_rng, as_whole, check_finite)
 from .stats import PixelStats, check_stats
 
 __all__ = ["denoising_aware_density", "denoising_aware_map", "denoising_aware_sampler",
@@ -347,8 +347,7 @@ def denoising_aware_density(stats: PixelStats, denoiser, *, variant: str = "vari
     if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
         raise InputError(f"`k` must be a positive integer; got {k!r}.")
     for flag, value in (("covariance", covariance), ("extra_output", extra_output)):
-        if not isinstance(value, (bool, np.bool_)):      # None or "no" were taken as False / True
-            raise InputError(f"`{flag}` must be True or False; got {value!r}.")
+        as_bool(flag, value)                       # None or "no" were taken as False / True
     if progressive_options is not None and not isinstance(progressive_options, dict):
         raise InputError(f"`progressive_options` must be a dict or None; got "
                          f"{type(progressive_options).__name__}.")

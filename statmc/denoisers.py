@@ -41,7 +41,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import InputError, as_float_array, check_finite, check_nonempty, check_nonnegative
+from .errors import (InputError, as_bool, as_float_array, check_finite, check_nonempty,
+                     check_nonnegative)
 from .filters import (DEFAULT_TRUNCATE, _check_sigma, _check_truncate, _taps, border_scale,
                       gaussian_filter)
 
@@ -195,7 +196,7 @@ class GEMDenoiser:
         check_nonnegative("mean_var", mv)
         self.mean_var = mv
         self.gamma = gamma
-        self.final = bool(final)
+        self.final = as_bool("final", final)   # "no" was taken as True
         self.n = n
         self.bias = bias
 

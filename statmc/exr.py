@@ -43,8 +43,8 @@ import threading
 
 import numpy as np
 
-from .errors import (FileFormatError, InputError, as_float_array, as_int, check_finite,
-                     real_or_nan)
+from .errors import (FileFormatError, InputError, as_bool, as_float_array, as_int,
+                     check_finite, real_or_nan)
 from .stats import PixelStats
 
 _INT64_MAX = int(np.iinfo(np.int64).max)
@@ -82,14 +82,6 @@ def _name(path) -> str:
         raise InputError(f"`path` must be a file path (a str or os.PathLike); got "
                          f"{type(path).__name__} {path!r}.")
     return os.fspath(path)
-
-
-def _check_flag(name: str, value) -> bool:
-    """``value`` of a True/False option, else an :class:`InputError` (``"no"`` was taken as
-    True, None as False)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise InputError(f"`{name}` must be True or False; got {value!r}.")
-    return bool(value)
 
 
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -887,7 +879,7 @@ def read_exr(path, *, spp=None, layer=None, part=0, albedo=None, normal=None,
     _check_policy(nonfinite, replace_value)
     for flag, value in (("covariance", covariance), ("require_variance", require_variance),
                         ("spp_if_missing", spp_if_missing)):
-        _check_flag(flag, value)
+        as_bool(flag, value)
     header, arrays, types = _open(p, part=part)
     whole, whole_types = arrays, types
     arrays, types = _select_layer(p, arrays, types, layer)
@@ -1179,7 +1171,7 @@ def exr_info(path, *, families: bool = False, part=0) -> dict:
     (``"stencil MxM"`` or None), ``bins`` (their number or None) and ``bins_denoised``.
     """
     p = _name(path)
-    _check_flag("families", families)
+    as_bool("families", families)
     header, arrays, types = _open(p, part=part)
     data_window, display_window = _windows(header)
     x0, y0, x1, y1 = data_window
@@ -1234,7 +1226,7 @@ def _atomic_write(path, write, *, overwrite: bool, protect) -> None:
     """Call ``write(tmp)`` on a temporary path beside ``path``, then rename it onto ``path``."""
     from ._atomic import atomic_path
 
-    _check_flag("overwrite", overwrite)               # "no" overwrote the file
+    as_bool("overwrite", overwrite)               # "no" overwrote the file
     with atomic_path(_name(path), protect=protect, overwrite=overwrite) as tmp:
         write(tmp)
 

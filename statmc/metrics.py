@@ -31,7 +31,7 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError, as_float_array, check_finite, real_or_nan
+from .errors import InputError, as_bool, as_float_array, check_finite, real_or_nan
 
 __all__ = ["relmse", "mse", "rmse", "smape", "logloss", "one_minus_ssim", "ssim_map", "flip",
            "all_metrics", "METRICS"]
@@ -103,9 +103,7 @@ def _constant(name, value, usual) -> float:
 
 
 def _check_per_pixel(per_pixel) -> bool:
-    if not isinstance(per_pixel, (bool, np.bool_)):
-        raise InputError(f"`per_pixel` must be True or False; got {per_pixel!r}.")
-    return bool(per_pixel)
+    return as_bool("per_pixel", per_pixel)
 
 
 def _reduce(err, per_pixel):

@@ -49,7 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FileFormatError, InputError, as_float_array, check_finite, check_nonnegative
+from .errors import (FileFormatError, InputError, as_bool, as_float_array, check_finite,
+                     check_nonnegative)
 from .scenes import BUILTIN_SCENES, _check_size, load_scene_dict
 from .stats import PixelStats
 
@@ -220,8 +221,7 @@ def _check_int(name: str, value, *, minimum: int) -> int:
 def _check_flags(**flags) -> None:
     """Refuse a True/False option given as anything else (``progress="no"`` showed the bar)."""
     for name, value in flags.items():
-        if not isinstance(value, (bool, np.bool_)):
-            raise InputError(f"`{name}` must be True or False; got {value!r}.")
+        as_bool(name, value)
 
 
 def _chunk_seed(seed: int, salt: int, chunk: int) -> int:

@@ -353,3 +353,12 @@ def test_gem_denoiser_on_float32_color_whose_variance_exceeds_float32():
     np.testing.assert_array_equal(y, f(x.astype(np.float64)).astype(np.float32))
     assert np.isfinite(var).all() and var.min() > 0
     np.testing.assert_array_equal(img, f(x.astype(np.float64)))
+
+
+def test_gem_denoiser_final_must_be_a_bool():
+    """``GEMDenoiser(mean_var, final="no")`` ran as ``final=True`` (``bool("no")``); the
+    option is checked as gem's own functions check it (session 15)."""
+    v = np.full((6, 7, 3), 0.01)
+    with pytest.raises(InputError, match=r"`final` must be True or False; got 'no'"):
+        D.GEMDenoiser(v, final="no")
+    assert D.GEMDenoiser(v, final=np.False_).final is False
