@@ -32,9 +32,12 @@ def test_a_caller_does_not_wait_behind_another_callers_chunks(monkeypatch):
     release, held = threading.Event(), threading.Semaphore(0)
 
     def blocked(lo, hi):
+        # B's own thread holds its first chunk too: otherwise it could run every chunk
+        # before the pool's threads woke (a fresh pool, a busy machine), and none would
+        # be held
         if _in_pool():
             held.release()
-            release.wait(30)
+        release.wait(30)
 
     b = threading.Thread(target=tt.run_chunks, args=(blocked, 0, 1000))
     b.start()
