@@ -260,6 +260,14 @@ class _Channels(dict):
     left: dict = {}
     layer: str | None = None      # the layer these channels were selected from (names inside it)
 
+    def sharing(self, items=()) -> "_Channels":
+        """``items`` as channels of the same file read: this one's ``parts``, ``read_part``,
+        ``merged`` and ``left`` (``layer`` is the caller's to set)."""
+        out = _Channels(items)
+        out.parts, out.read_part = self.parts, self.read_part
+        out.merged, out.left = self.merged, self.left
+        return out
+
     @property
     def note(self) -> str:
         """``" (only part 0 ('beauty') of this 2-part file is read; part 1 ('variance'):
@@ -498,10 +506,7 @@ def _open(path, *, header_only: bool = False, part=0):
     if part not in files[p]:
         files[p][part] = _decode(p, False, part)
     header, arrays, types = files[p][part]
-    same = _Channels(arrays)
-    same.parts, same.read_part = arrays.parts, arrays.read_part
-    same.merged, same.left = arrays.merged, arrays.left
-    return dict(header), same, dict(types)
+    return dict(header), arrays.sharing(arrays), dict(types)
 
 
 def _decode(p: str, header_only: bool, part=0):
@@ -687,9 +692,8 @@ def _select_layer(p, arrays, types, layer):
         raise InputError(f"`layer` must be a layer name such as 'ViewLayer.Combined' (without "
                          f"the channel's last part); got {layer!r}.")
     prefix = layer + "."
-    out, kinds = _Channels(), {}
-    out.parts, out.read_part, out.layer = arrays.parts, arrays.read_part, layer
-    out.merged, out.left = arrays.merged, arrays.left
+    out, kinds = arrays.sharing(), {}
+    out.layer = layer
     for name, a in arrays.items():
         if name.startswith(prefix) and len(name) > len(prefix):
             out[name[len(prefix):]] = a

@@ -102,13 +102,9 @@ def _constant(name, value, usual) -> float:
     return v
 
 
-def _check_per_pixel(per_pixel) -> bool:
-    return as_bool("per_pixel", per_pixel)
-
-
 def _reduce(err, per_pixel):
     """Mean over channels per pixel (map) or over everything (float)."""
-    return err.mean(axis=2) if _check_per_pixel(per_pixel) else float(err.mean())
+    return err.mean(axis=2) if as_bool("per_pixel", per_pixel) else float(err.mean())
 
 
 def relmse(x, ref, eps: float = 0.01, *, per_pixel: bool = False):
@@ -449,7 +445,7 @@ def flip(x, ref, *, tonemapper: str = "aces", ppd: float | None = None,
     flip_evaluator = _flip_module()
 
     xa, ra = _pair(x, ref)
-    per_pixel = _check_per_pixel(per_pixel)
+    per_pixel = as_bool("per_pixel", per_pixel)
     if xa.shape[2] == 1:
         xa, ra = np.repeat(xa, 3, axis=2), np.repeat(ra, 3, axis=2)
     if xa.shape[2] != 3:
@@ -523,7 +519,7 @@ def all_metrics(x, ref, *, per_pixel: bool = False, include=None) -> dict:
         raise InputError(f"`include` must name metrics from {list(METRICS)}; got unknown "
                          f"{unknown}.")
     xa, ra = _pair(x, ref)             # validate once with a clear message
-    _check_per_pixel(per_pixel)
+    as_bool("per_pixel", per_pixel)
     out = {}
     for n in METRICS:
         if n not in names:
