@@ -511,8 +511,8 @@ def _scene_options(args) -> dict:
 def cmd_render(args) -> int:
     from .exr import read_image, write_exr, write_png_preview
     from .metrics import all_metrics
-    from .pipeline import (BIN_RECONSTRUCTIONS, merge_bins, reconstruct_bins, reconstruct_stats,
-                           render_bins, render_with_sampler)
+    from .pipeline import (BIN_RECONSTRUCTIONS, DENOISER_SAMPLERS, merge_bins, reconstruct_bins,
+                           reconstruct_stats, render_bins, render_with_sampler)
     from .plots import write_map_png
     from .renderers import make_renderer
 
@@ -545,7 +545,7 @@ def cmd_render(args) -> int:
     if args.stencil is not None and not args.crn:
         raise InputError("--stencil is the width of --crn's covariance stencil; it needs --crn.")
     if (args.denoiser is not None and args.reconstruct != "progressive"
-            and args.sampler not in ("denoising-aware", "expected-error")):
+            and args.sampler not in DENOISER_SAMPLERS):
         raise InputError(f"--denoiser chooses the denoiser of --sampler denoising-aware / "
                          f"expected-error and of --reconstruct progressive; it has no effect on "
                          f"--sampler {args.sampler} with --reconstruct {args.reconstruct}.")
@@ -626,8 +626,8 @@ def cmd_render(args) -> int:
         stats = render_with_sampler(renderer, args.spp, sampler=args.sampler, counts=counts,
                                     seed=args.seed, progress=not args.quiet, gamma=args.gamma,
                                     # --denoiser may be the reconstruction's alone
-                                    denoiser=args.denoiser if args.sampler in (
-                                        "denoising-aware", "expected-error") else None,
+                                    denoiser=args.denoiser
+                                    if args.sampler in DENOISER_SAMPLERS else None,
                                     gem_bias=args.gem_bias,
                                     initial_spp=INITIAL_SPP, iterations=ITERATIONS)
     seconds = time.perf_counter() - t0

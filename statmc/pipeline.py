@@ -22,6 +22,8 @@ BIN_RECONSTRUCTIONS = ("gem+bins", "oidn+bins")
 #: seed ``s`` do not reuse the numbers of ``render(seed=s)`` (a hashed seed may still equal
 #: some other plain seed, with probability ~2⁻³¹ per pair).
 _SALT_BINS = 0xB1B5
+#: The samplers of :func:`render_with_sampler` that take a ``denoiser``.
+DENOISER_SAMPLERS = ("denoising-aware", "expected-error")
 
 
 def _check_renderer(renderer) -> None:
@@ -254,7 +256,7 @@ def render_with_sampler(renderer, spp, *, sampler: str = "uniform", counts=None,
         raise InputError(f"`sampler` must be one of {sorted(SAMPLERS)}; got {sampler!r}, an "
                          "unknown sampler.")
     _check_gem_bias(gem_bias)
-    if denoiser is not None and sampler not in ("denoising-aware", "expected-error"):
+    if denoiser is not None and sampler not in DENOISER_SAMPLERS:
         raise InputError(f"`denoiser` is the denoiser of the 'denoising-aware' and "
                          f"'expected-error' samplers; sampler={sampler!r} does not use it: "
                          "leave it None.")
