@@ -491,7 +491,7 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2, pa
     """
     nt = (ys.shape[2] + BIAS_TILE - 1) // BIAS_TILE
     run_rows(_bias_tasks, 0, nt * k * k, ys, zs, P, cov_z, cov_yz, bool(has_yz), int(k),
-                  int(patch), bool(loo), int(y0), int(y1), s2, bool(pairs))
+             int(patch), bool(loo), int(y0), int(y1), s2, bool(pairs))
 
 
 @njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
@@ -779,7 +779,7 @@ def _weights_band(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
     there only a numerically singular solve could get here.
     """
     run_rows(_weights_rows, y0, y1, var_y, P, cov_z, cov_yz, bool(has_yz), zb,
-                  int(bias_mode), s2, int(method), int(k), int(B), int(y0), out)
+             int(bias_mode), s2, int(method), int(k), int(B), int(y0), out)
 
 
 def _self_term(var_y, cov_z, cov_yz, has_yz):

@@ -44,7 +44,7 @@ def add_neighbour_products_sum(prod, a, b, R, use):
     kernel, no parallel loop to compile).
     """
     run_rows(_add_neighbour_products_sum, 0, a.shape[1], prod, readonly(a), readonly(b),
-                  int(R), readonly(use, np.bool_))
+             int(R), readonly(use, np.bool_))
 
 
 @njit(cache=True, nogil=True)
