@@ -1423,7 +1423,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_layer_option(pg, "the input")
     _add_feature_options(pg)
     _add_gem_options(pg, "--denoiser gem", refuse_unused=True)
-    pg.add_argument("--seed", type=SEED, default=0, help="seed of MC-SURE's random probes")
+    pg.add_argument("--seed", type=SEED, default=0,
+                    help="seed of MC-SURE's random probes (default 0)")
     pg.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     pg.set_defaults(func=cmd_progressive)
 

@@ -2743,3 +2743,13 @@ def test_commands_do_not_import_what_they_do_not_use(tmp_path, command, absent):
     r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_every_seed_option_gives_its_default_in_help():
+    """`progressive --seed` help gave no default (it is 0, as docs/cli.md says)."""
+    for name, sub in _subparsers().items():
+        for a in sub._actions:
+            if "--seed" in a.option_strings:
+                assert "default" in a.help, f"statmc {name} --seed: {a.help!r}"
+    code, out, _ = run_cli("progressive", "--help")
+    assert code == 0 and "probes (default 0)" in " ".join(out.split())
