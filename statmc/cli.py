@@ -1004,7 +1004,8 @@ def _combine_bins_file(args) -> int:
              if getattr(args, o.replace("-", "_")) is not None]
     if given:
         what = "a layer" if given[0].endswith("layer") else "a part"
-        raise InputError(f"{given[0]} selects {what} of Y and Z; a sample-bins file ({args.y}, "
+        whose = {"--y": "Y", "--z": "Z"}.get(given[0][:3], "Y and Z")
+        raise InputError(f"{given[0]} selects {what} of {whose}; a sample-bins file ({args.y}, "
                          f"without Z) is statmc's own single-part, unlayered file: leave "
                          f"{given[0]} out.")
     with _reading_once(args.y):                # an alpha channel: from the same decoding

@@ -2445,10 +2445,13 @@ def test_per_file_layers_are_refused_for_a_bins_file(tmp_path):
     ys = np.random.default_rng(32).random((2, 4, 5, 3))
     p = tmp_path / "bins.exr"
     write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
-    for opt in ("--y-layer", "--z-layer"):
+    # --y-layer / --z-layer name the layer of one file: the message said "of Y and Z"
+    for opt, whose in (("--y-layer", "a layer of Y;"), ("--z-layer", "a layer of Z;"),
+                       ("--y-part", "a part of Y;"), ("--z-part", "a part of Z;"),
+                       ("--part", "a part of Y and Z;")):
         code, _, err = run_cli("combine", p, opt, "X", "--out", tmp_path / "o.exr")
         assert code == 2 and err.count("\n") == 1, err
-        assert f"{opt} selects a layer of Y and Z" in err and f"leave {opt} out" in err
+        assert f"{opt} selects {whose}" in err and f"leave {opt} out" in err, err
 
 
 def _two_part_file(path, rng, alpha=True):
@@ -2567,10 +2570,10 @@ def test_part_options_are_refused_for_a_bins_file(tmp_path):
     ys = np.random.default_rng(35).random((2, 4, 5, 3))
     p = tmp_path / "bins.exr"
     write_exr(p, ys.mean(0), extra=bin_channels(ys, ys))
-    for opt in ("--part", "--y-part", "--z-part"):
+    for opt, whose in (("--part", "Y and Z"), ("--y-part", "Y"), ("--z-part", "Z")):
         code, _, err = run_cli("combine", p, opt, "1", "--out", tmp_path / "o.exr")
         assert code == 2 and err.count("\n") == 1, err
-        assert f"{opt} selects a part of Y and Z" in err and f"leave {opt} out" in err
+        assert f"{opt} selects a part of {whose};" in err and f"leave {opt} out" in err, err
 
 
 def test_a_part_hint_of_a_command_without_part_names_no_option(tmp_path):
