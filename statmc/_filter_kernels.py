@@ -9,19 +9,21 @@ separable filter run over contiguous memory and vectorise; the channel count ``C
 stride of the horizontal pass.  Inner loops index views from 0 so that LLVM can prove
 indices non-negative (numba's negative-index wraparound otherwise blocks vectorisation).
 
-Parallelism: most kernels are a public Python function that hands a serial compiled
-``_*_rows(t0, t1, ...)`` function to :func:`statmc._task_threads.run_tasks`, which runs
-contiguous ranges of rows (tasks) on a few threads.  As numba parallel loops (``prange``)
-each cost about 1 s more CPU to compile on a cold cache, and the filter passes about 4 s
-more per dtype: numba's parallel lowering links the loop body, with everything it calls,
-into a function of its own and that into the kernel, optimising it again at each level.
-The count scan, the spread of samples and the greedy rounds are still parallel loops.
+Parallelism: the kernels that run on several threads are a public Python function that
+hands a serial compiled ``_*_rows(t0, t1, ...)`` function to
+:func:`statmc._task_threads.run_tasks`, which runs contiguous ranges of rows (tasks) on a
+few threads.  As numba parallel loops (``prange``) each cost about 1 s more CPU to compile
+on a cold cache, the filter passes about 4 s more per dtype and the greedy rounds and the
+spread of samples several seconds each: numba's parallel lowering links the loop body,
+with everything it calls, into a function of its own and that into the kernel, optimising
+it again at each level.  No kernel here is a parallel loop (the count scan, the spread
+and the greedy rounds were the last, until session 16).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ._kernel_inputs import writable
 from ._task_threads import run_tasks
@@ -29,7 +31,7 @@ from ._threads import wait_passively_in_numba
 
 wait_passively_in_numba()
 
-# Output rows per parallel task; the vertical pass walks the task's rows strip by strip
+# Output rows per task; the vertical pass walks the task's rows strip by strip
 # (_STRIP values wide) so the 2r+1 input rows of a strip stay in cache.
 _ROW_BLOCK = 32
 _STRIP = 256
@@ -598,23 +600,20 @@ def scan_counts(n, out):
     entries (the sample-count checks of ``gem._check_inputs``) in one pass.
 
     ``n`` reaches the kernel C-contiguous and writable (a read-only, strided or Fortran
-    count map is copied, 16 MB at 1080p), so each dtype compiles one variant."""
-    return _scan_counts(writable(n), out)
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _scan_counts(n, out):  # pragma: no cover - compiled
-    """:func:`scan_counts`."""
+    count map is copied, 16 MB at 1080p), so each dtype compiles one variant.  Each row
+    writes its own three counts, summed here (integers: the same whatever the chunks)."""
     H = n.shape[0]
-    tally = np.empty((H, 3), np.int64)  # zeroed by the rows: np.zeros and tally[:, j].sum()
-    for y in prange(H):                 # were parallel loops of their own, compiled too
-        _scan_count_row(n[y], out[y], tally[y])
-    bad = frac = low = 0
-    for y in range(H):
-        bad += tally[y, 0]
-        frac += tally[y, 1]
-        low += tally[y, 2]
+    tally = np.empty((H, 3), np.int64)      # every row writes its counts
+    run_tasks(_scan_counts, H, writable(n), out, tally)
+    bad, frac, low = tally.sum(axis=0).tolist()
     return bad, frac, low
+
+
+@njit(cache=True, nogil=True)
+def _scan_counts(t0, t1, n, out, tally):  # pragma: no cover - compiled
+    """Rows ``t0 .. t1 − 1`` of :func:`scan_counts`, run by :func:`run_tasks`."""
+    for y in range(t0, t1):
+        _scan_count_row(n[y], out[y], tally[y])
 
 
 def weight_map(n, z, out):
@@ -726,18 +725,27 @@ def _difference_variance_rows(t0, t1, vars_, cov, out):  # pragma: no cover
                 o[j] = max(a[j] + b[j] - 2 * cv[j], 0.0)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def spread_parts(amount, scales, fy, fx, density, parts):  # pragma: no cover - compiled
+def spread_parts(amount, scales, fy, fx, density, parts):
     """Split ``amount`` by selected scale and pre-scale it for the spreading filters.
 
     ``density = amount`` where scale 0 (the pixel filter) is selected, else 0;
     ``parts[s − 1] = (amount · fy[s − 1, y]) · fx[s − 1, x]`` where scale ``s >= 1`` is
     selected, else 0 (``fy``, ``fx`` the border renormalisation factors of scale ``s``:
-    the spread is the adjoint of the renormalised filter).  Returns the amount per scale.
+    the spread is the adjoint of the renormalised filter).  Returns the amount per scale
+    (each row's sums, added row after row).
     """
     Km1, H, W = parts.shape
     tot = np.zeros((H, Km1 + 1))
-    for y in prange(H):
+    run_tasks(_spread_parts_rows, H, amount, scales, fy, fx, density, parts, tot)
+    return tot.sum(axis=0)
+
+
+@njit(cache=True, nogil=True)
+def _spread_parts_rows(t0, t1, amount, scales, fy, fx, density, parts, tot):  # pragma: no cover
+    """Rows ``t0 .. t1 − 1`` of :func:`spread_parts`, run by :func:`run_tasks`; ``tot[y]``
+    the amount per scale of row ``y``."""
+    Km1, H, W = parts.shape
+    for y in range(t0, t1):
         for k in range(Km1):
             row = parts[k, y]
             for i in range(W):
@@ -754,7 +762,6 @@ def spread_parts(amount, scales, fy, fx, density, parts):  # pragma: no cover - 
             else:
                 d[i] = 0.0
                 parts[si - 1, y, i] = (ai * fy[si - 1, y]) * fx[si - 1, i]
-    return tot.sum(axis=0)
 
 
 _DIGIT = 16                      # radix selection: bits per level
@@ -823,50 +830,69 @@ def _gain(r, nn, fb):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _start_chunk(rel, n, fb, amount, r, nn, g, keys, hist, i0, i1):  # pragma: no cover
-    hist[:] = 0
-    npos = 0
-    for i in range(i0, i1):
-        r[i] = rel[i]
-        nn[i] = n[i]
-        amount[i] = 0.0
-        x = _gain(r[i], nn[i], fb)
-        g[i] = x
-        npos += x > 0.0
-        hist[keys[i] >> _TOP] += 1
-    return npos
+def _start_chunks(c0, c1, step, rel, n, fb, amount, r, nn, g, hists,
+                  npos_c):  # pragma: no cover - compiled
+    """Chunks ``c0 .. c1 − 1`` of :func:`allocate_rounds`' start, run by :func:`run_tasks`:
+    chunk ``p`` (pixels ``p·step .. (p + 1)·step − 1``) copies ``rel`` and ``n`` to ``r``
+    and ``nn``, zeroes ``amount``, forms the gains, counts their first radix digit into
+    ``hists[p]`` and the pixels that can gain into ``npos_c[p]``."""
+    size = rel.size
+    keys = g.view(np.uint64)
+    for p in range(c0, c1):
+        i0 = min(size, p * step)
+        i1 = min(size, (p + 1) * step)
+        hist = hists[p]
+        hist[:] = 0
+        npos = 0
+        for i in range(i0, i1):
+            r[i] = rel[i]
+            nn[i] = n[i]
+            amount[i] = 0.0
+            x = _gain(r[i], nn[i], fb)
+            g[i] = x
+            npos += x > 0.0
+            hist[keys[i] >> _TOP] += 1
+        npos_c[p] = npos
 
 
 @njit(cache=True, nogil=True)
-def _assign_chunk(base, t, need, cut, extra, fb, amount, r, nn, g, keys, hist, i0, i1):  # pragma: no cover
-    """One round on pixels i0..i1: ``base`` each, ``fb`` more above the threshold ``t``
-    and for the ties taken (all of them if ``cut < 0``, else those up to index ``cut``,
-    which gets ``extra``); update the gains and count their first digit into ``hist``."""
-    hist[:] = 0
-    npos = 0
-    for i in range(i0, i1):
-        gi = g[i]
-        ai = base
-        if gi > t:
-            ai += fb
-        elif gi == t and need > 0:
-            if cut < 0 or i == cut:
-                ai += extra
-            elif i < cut:
+def _assign_chunks(c0, c1, step, base, t, need, cut, extra, fb, amount, r, nn, g, hists,
+                   npos_c):  # pragma: no cover - compiled
+    """Chunks ``c0 .. c1 − 1`` of one round of :func:`allocate_rounds`, run by
+    :func:`run_tasks`.  On the pixels of chunk ``p``: ``base`` each, ``fb`` more above the
+    threshold ``t`` and for the ties taken (all of them if ``cut < 0``, else those up to
+    index ``cut``, which gets ``extra``); update the gains and count their first digit
+    into ``hists[p]``, the pixels that can still gain into ``npos_c[p]``."""
+    size = g.size
+    keys = g.view(np.uint64)
+    for p in range(c0, c1):
+        i0 = min(size, p * step)
+        i1 = min(size, (p + 1) * step)
+        hist = hists[p]
+        hist[:] = 0
+        npos = 0
+        for i in range(i0, i1):
+            gi = g[i]
+            ai = base
+            if gi > t:
                 ai += fb
-        if ai != 0.0:
-            amount[i] += ai
-            r[i] *= nn[i] / (nn[i] + ai)
-            nn[i] += ai
-            gi = _gain(r[i], nn[i], fb)
-            g[i] = gi
-        npos += gi > 0.0
-        hist[keys[i] >> _TOP] += 1
-    return npos
+            elif gi == t and need > 0:
+                if cut < 0 or i == cut:
+                    ai += extra
+                elif i < cut:
+                    ai += fb
+            if ai != 0.0:
+                amount[i] += ai
+                r[i] *= nn[i] / (nn[i] + ai)
+                nn[i] += ai
+                gi = _gain(r[i], nn[i], fb)
+                g[i] = gi
+            npos += gi > 0.0
+            hist[keys[i] >> _TOP] += 1
+        npos_c[p] = npos
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):  # pragma: no cover
+def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):
     """Greedy allocation of ``budget`` samples in ``rounds`` rounds (§5 of Rousselle 2011).
 
     Fast version of ``gem._allocate_rounds`` (the NumPy reference) on flat float64
@@ -878,28 +904,29 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):  # 
     ``rel ← rel·n/(n + a)``, ``n ← n + a``.  ``amount`` (out) gets the total per pixel.
 
     ``r``, ``nn``, ``g`` (size,) float64 and ``hists`` (P, 2**16) int64 are work space
-    (P parallel chunks).  One pass per round assigns the samples, updates the gains and
-    counts the first radix digit of the new gains for the next round's selection
-    (:func:`_rank_key`); only if several pixels tie at the threshold does a serial scan
-    find the last one taken.
+    (P chunks of pixels).  One pass per round (:func:`_assign_chunks`, the chunks on
+    :func:`run_tasks`' threads) assigns the samples, updates the gains and counts the
+    first radix digit of the new gains for the next round's selection; between the
+    passes :func:`_round_plan` finds the round's threshold (:func:`_rank_key`).  Each
+    chunk writes only its own pixels, histogram and count, and the plan adds the
+    chunks' integer counts, so the result does not depend on the number of chunks or
+    threads.  The rounds loop is Python: as one numba parallel kernel (``prange`` over
+    the chunks inside it) the allocation cost about 6 s CPU to compile on a cold cache.
     """
     size = rel.size
     P = hists.shape[0]
     step = (size + P - 1) // P
     fb = float(batch)
-    keys = g.view(np.uint64)
     npos_c = np.empty(P, np.int64)      # every chunk writes its count
-    for p in prange(P):
-        npos_c[p] = _start_chunk(rel, n, fb, amount, r, nn, g, keys, hists[p],
-                                 min(size, p * step), min(size, (p + 1) * step))
+    run_tasks(_start_chunks, P, step, rel, n, fb, amount, r, nn, g, hists, npos_c)
+    keys = g.view(np.uint64)
     for it in range(rounds):
         part = budget // rounds + (1 if it < budget % rounds else 0)
         if part == 0:
             continue
         base, t, need, cut, extra = _round_plan(part, size, batch, fb, npos_c, keys, hists, g)
-        for p in prange(P):
-            npos_c[p] = _assign_chunk(base, t, need, cut, extra, fb, amount, r, nn, g, keys,
-                                      hists[p], min(size, p * step), min(size, (p + 1) * step))
+        run_tasks(_assign_chunks, P, step, base, t, need, cut, extra, fb, amount, r, nn, g,
+                  hists, npos_c)
 
 
 @njit(cache=True, nogil=True)
@@ -908,8 +935,8 @@ def _round_plan(part, size, batch, fb, npos_c, keys, hists, g):  # pragma: no co
     extra)`` for :func:`_assign_chunk`, from the ``part`` samples of the round, the
     chunks' counts of pixels that can gain (``npos_c``) and first-digit histograms.
 
-    Serial, outside the parallel kernel: there its array sums and allocations were
-    parallel loops of their own, each compiled (cold cache) for nothing.
+    Serial, between the chunk passes (inside the former parallel kernel its array sums
+    and allocations were parallel loops of their own, each compiled for nothing).
     """
     t = np.inf                      # nobody above: only the base amount
     need = 0

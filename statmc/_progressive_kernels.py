@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ._kernel_inputs import readonly
 from ._task_threads import run_tasks
@@ -270,13 +270,16 @@ def _run(u, v, r, sigma_s, alpha=None, keep=True, **finish):
     return num.reshape(shp), var.reshape(shp), t.reshape(shp), out.reshape(shp)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _prepare(x, y, v, al, u, vw, cast, big, bad, vsum):  # pragma: no cover - compiled
-    """Per row: u = α(y − x) in the inputs' precision, stored in ``u``'s dtype; with
-    ``cast`` also ``vw = v`` in ``vw``'s dtype.  Counts of non-finite x, y, v, α, of
-    negative v and of |u| or v above ``big`` (values the working dtype cannot hold); Σ v."""
+@njit(cache=True, nogil=True)
+def _prepare(i0, i1, x, y, v, al, u, vw, cast, big, bad, vsum):  # pragma: no cover - compiled
+    """Rows ``i0 .. i1 − 1`` of :func:`prepare`, run by :func:`run_tasks`.  Per row: u =
+    α(y − x) in the inputs' precision, stored in ``u``'s dtype; with ``cast`` also ``vw =
+    v`` in ``vw``'s dtype.  Counts of non-finite x, y, v, α, of negative v and of |u| or v
+    above ``big`` (values the working dtype cannot hold) into ``bad[i]``; Σ v into
+    ``vsum[i]``.  Each row writes its own counts and sum, added by :func:`prepare` (a
+    numba parallel loop until session 16, which cost more to compile on a cold cache)."""
     h, n = x.shape
-    for i in prange(h):
+    for i in range(i0, i1):
         b0 = 0
         b1 = 0
         b2 = 0
@@ -335,7 +338,7 @@ def prepare(x, y, v, alpha, work=None):
     big = SINGLE_MAX if (cast and work == np.float32) else np.inf
     bad = np.zeros((h, 6), np.int64)
     vsum = np.zeros(h, np.float64)
-    _prepare(as2(x), as2(y), v2, as2(alpha), u, vw, cast, big, bad, vsum)
+    run_tasks(_prepare, h, as2(x), as2(y), v2, as2(alpha), u, vw, cast, big, bad, vsum)
     v_out = vw if cast else v2
     return u.reshape(h, w, c), v_out.reshape(h, w, c), bad.sum(axis=0), float(vsum.sum())
 

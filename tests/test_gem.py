@@ -1166,9 +1166,10 @@ def test_sampling_map_hands_out_the_budget_exactly_on_any_image(seed, h, w, c, d
 
 def test_count_maps_of_any_integer_or_float_dtype_reuse_one_count_scan_each():
     """gem reads a count map as int64 (integers that int64 holds) or float64 (the rest),
-    native byte order: '>i8', int32 or uint16 counts compiled the parallel count scan once
+    native byte order: '>i8', int32 or uint16 counts compiled the count scan once
     more each (4 s on a cold cache; '>i8' as float64), float32 counts likewise, for the
-    same float64 counts out.  The scan is watched at its compiled kernel."""
+    same float64 counts out.  The scan is watched at its compiled kernel (called once
+    per chunk of rows)."""
     from statmc import _filter_kernels as K
 
     rng = np.random.default_rng(3)
@@ -1178,9 +1179,9 @@ def test_count_maps_of_any_integer_or_float_dtype_reuse_one_count_scan_each():
     seen = []
     scan = K._scan_counts
 
-    def spy(counts, out):
-        seen.append((scan.typeof_pyval(counts), scan.typeof_pyval(out)))
-        return scan(counts, out)
+    def spy(t0, t1, counts, out, tally):
+        seen.append((dt, scan.typeof_pyval(counts), scan.typeof_pyval(out)))
+        return scan(t0, t1, counts, out, tally)
 
     expected = gem.reconstruct(x, v, n=n, final=False)
     for kinds in (["int64", ">i8", "<i4", ">i4", "int16", "uint8", "uint16", "uint32"],
@@ -1191,7 +1192,8 @@ def test_count_maps_of_any_integer_or_float_dtype_reuse_one_count_scan_each():
             for dt in kinds:
                 got = gem.reconstruct(x, v, n=n.astype(dt), final=False)
                 np.testing.assert_array_equal(got, expected, err_msg=dt)
-        assert len(seen) == len(kinds) and len(set(seen)) == 1, (kinds, sorted(set(map(str, seen))))
+        types = {s[1:] for s in seen}
+        assert {s[0] for s in seen} == set(kinds) and len(types) == 1, (kinds, sorted(map(str, types)))
 
 
 @pytest.mark.parametrize("dtype", [bool, np.complex128, "m8[s]", object, "U3"])
@@ -1208,22 +1210,30 @@ def test_count_maps_that_are_not_numbers_are_refused(dtype):
 
 
 _PARALLEL_KERNELS = r"""
+import importlib, pkgutil
 import numpy as np
 from numba.core.registry import CPUDispatcher
-from statmc import _filter_kernels as K, gem
+import statmc
+from statmc import _filter_kernels as K, _progressive_kernels as PK, gem, progressive
 
-def parallel():
-    return sorted(n for n, d in vars(K).items() if isinstance(d, CPUDispatcher)
-                  and d.signatures and d.targetoptions.get("parallel"))
+def parallel(*mods, compiled=True):
+    return sorted(f"{m.__name__}.{n}" for m in mods for n, d in vars(m).items()
+                  if isinstance(d, CPUDispatcher) and (d.signatures or not compiled)
+                  and d.targetoptions.get("parallel"))
 
 rng = np.random.default_rng(0)
 m = rng.uniform(0.1, 1.0, (40, 36, 3))
 v = np.full_like(m, 0.01)
 gem.reconstruct(m, v)
 gem.reconstruct(m, v, final=False, n=np.full((40, 36), 8))
-print(parallel())
+print(parallel(K))
 gem.sampling_map(m, v, np.full((40, 36), 8), 5000, rng=0)
-print(parallel())
+print(parallel(K))
+progressive.confidence_gate(m, m + 0.01, v, np.full_like(m, 0.5))
+print(parallel(PK))
+kernels = [importlib.import_module("statmc." + i.name) for i in pkgutil.iter_modules(statmc.__path__)
+           if i.name.startswith("_") and i.name.endswith("_kernels")]
+print(len(kernels), parallel(*kernels, compiled=False))
 """
 
 
@@ -1231,9 +1241,12 @@ def test_gem_runs_few_numba_parallel_kernels():
     """numba's parallel lowering compiles a ``prange`` loop's body as a function of its
     own and links it, with what it calls, into the kernel: each parallel kernel cost
     about 1 s CPU on a cold cache beyond its body (the filter passes about 4 s per
-    dtype).  ``reconstruct`` now runs serial row-range kernels on
-    ``statmc._task_threads.run_tasks``, but for the count scan of ``n``; ``sampling_map``
-    adds two more parallel kernels (the spread and the greedy rounds).  In a fresh process, so
+    dtype; the greedy rounds and the spread of samples 5-6 s each in session 15).
+    ``reconstruct``, ``sampling_map`` and the gate
+    run no parallel kernel now, only serial kernels over ranges of rows or chunks on
+    ``statmc._task_threads.run_tasks`` (the count scan, spread, greedy rounds and the
+    gate's input pass were the last parallel loops, until session 16); and no kernel
+    module defines one (``@njit(parallel=True)``), run or not.  In a fresh process, so
     that the signatures are those of these calls."""
     import subprocess
     import sys
@@ -1241,9 +1254,11 @@ def test_gem_runs_few_numba_parallel_kernels():
     p = subprocess.run([sys.executable, "-c", _PARALLEL_KERNELS], capture_output=True,
                        text=True, timeout=900)
     assert p.returncode == 0, p.stderr
-    after_reconstruct, after_sampling = p.stdout.strip().splitlines()
-    assert after_reconstruct == "['_scan_counts']"
-    assert after_sampling == "['_scan_counts', 'allocate_rounds', 'spread_parts']"
+    after_reconstruct, after_sampling, after_gate, defined = p.stdout.strip().splitlines()
+    assert after_reconstruct == "[]"
+    assert after_sampling == "[]"
+    assert after_gate == "[]"
+    assert defined == "5 []"          # the five _*_kernels modules, none with a parallel kernel
 
 
 # ---------------------------------------------------------------- bad input (QA, session 15)

@@ -353,3 +353,81 @@ def test_prepare_kernel_on_degenerate_images(shape):
     np.testing.assert_array_equal(vw, v)
     assert list(bad) == [0] * len(bad)
     np.testing.assert_allclose(vsum, v.sum(), rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- the last parallel loops
+def _on_threads(call):
+    """``call()`` on 1, 2, ... ``NUMBA_NUM_THREADS`` numba threads (``run_tasks`` splits its
+    range into about four chunks per thread), the results of each."""
+    import numba
+    before = numba.get_num_threads()
+    out = []
+    try:
+        for t in range(1, numba.config.NUMBA_NUM_THREADS + 1):
+            numba.set_num_threads(t)
+            out.append((t, call()))
+    finally:
+        numba.set_num_threads(before)
+    return out
+
+
+@pytest.mark.parametrize("hw", DEGENERATE + [(37, 5)])
+def test_former_parallel_loops_equal_numpy_on_any_thread_count(hw):
+    """The count scan, the spread of samples, the greedy rounds and the gate's input pass
+    (``scan_counts``, ``spread_parts``, ``allocate_rounds``, ``_progressive_kernels.prepare``;
+    numba parallel loops until session 16, now serial kernels over chunks of rows or pixels
+    on ``run_tasks``) against NumPy on every thread count and, for the rounds, 1 to 64
+    chunks of pixels.  Exact: each chunk writes its own rows (pixels), and the sums are
+    of integers or of multiples of 1/4 far below 2**53, the same in any order."""
+    H, W = hw
+    rng = np.random.default_rng(7 * H + W)
+    # count scan: float64 copy; numbers of non-finite, non-integer, < 2 entries
+    n = rng.integers(0, 9, (H, W)).astype(float)
+    n.ravel()[:3] = [np.nan, np.inf, 2.5][:n.size]
+    fin = np.isfinite(n)
+    ref_n = (int((~fin).sum()), int((np.floor(n[fin]) != n[fin]).sum()), int((n < 2).sum()))
+    for t, (counts, out) in _on_threads(lambda: (fk.scan_counts(n, o := np.empty(n.shape)), o)):
+        assert counts == ref_n, t
+        np.testing.assert_array_equal(out, n)
+    # spread: pixel-filter amounts, the pre-scaled parts per coarser scale, amount per scale
+    K1 = len(F.ADAPTIVE_SIGMAS) - 1
+    amount = rng.integers(0, 40, (H, W)) / 4.0
+    scales = rng.integers(0, K1 + 1, (H, W))
+    fy, fx = rng.uniform(1, 2, (K1, H)), rng.uniform(1, 2, (K1, W))
+    ref_d = np.where(scales == 0, amount, 0.0)
+    ref_p = np.stack([np.where(scales == s + 1, (amount * fy[s][:, None]) * fx[s][None, :], 0.0)
+                      for s in range(K1)])
+    ref_t = np.array([amount[scales == s].sum() for s in range(K1 + 1)])
+
+    def spread():
+        d, p = np.full((H, W), np.nan), np.full((K1, H, W), np.nan)
+        return fk.spread_parts(amount, scales, fy, fx, d, p), d, p
+
+    for t, got in _on_threads(spread):
+        for g, r in zip(got, (ref_t, ref_d, ref_p)):
+            np.testing.assert_array_equal(g, r, err_msg=f"{t} threads")
+    # greedy rounds, with ties and zero gains
+    rel = np.where(rng.random((H, W)) < 0.3, 0.0, rng.integers(1, 4, (H, W)) * 0.25)
+    nn = rng.integers(2, 20, (H, W)).astype(float)
+    for budget, batch, rounds in ((0, 2, 3), (1, 1, 1), (H * W, 3, 4), (9 * H * W + 5, 2, 7)):
+        ref = gem._allocate_rounds(rel, nn, budget, batch, rounds)
+        for chunks in (1, 2, 5, 64):
+            def rounds_():
+                out, work = np.empty(H * W), np.empty((3, H * W))
+                fk.allocate_rounds(rel.ravel(), nn.ravel(), budget, batch, rounds, out, *work,
+                                   np.empty((chunks, 1 << fk._DIGIT), np.int64))
+                return out
+            for t, got in _on_threads(rounds_):
+                np.testing.assert_array_equal(got.reshape(H, W), ref,
+                                              err_msg=f"{t} threads, {chunks} chunks")
+    # the gate's input pass: u = α(y − x), the bad-input counts, Σ v
+    x, y, a = (rng.integers(-8, 8, (H, W, 3)) / 4.0 for _ in range(3))
+    v = rng.integers(0, 8, (H, W, 3)) / 4.0
+    v.ravel()[0] = -0.25
+    x.ravel()[-1] = np.inf
+    with np.errstate(invalid="ignore"):
+        ref_u = a * (y - x)
+    for t, (u, vw, bad, vsum) in _on_threads(lambda: pk.prepare(x, y, v, a, np.float64)):
+        np.testing.assert_array_equal(u, ref_u, err_msg=f"{t} threads")
+        np.testing.assert_array_equal(vw, v)
+        assert list(bad) == [1, 0, 0, 1, 0, 0] and vsum == v.sum(), t
