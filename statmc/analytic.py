@@ -591,6 +591,7 @@ def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=
     kernels takes 0.4–0.6 s on 2 busy cores (``bench/bench_analytic.py``).
     """
     loss, eps = _check_loss(loss, eps)
+    return_grad = as_bool("return_grad", return_grad)
     xt, sb, sm, xg, vg, mvt, _ = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
     K = _check_kernels(kernels, xt.shape[:2])
     _check_rel_denominator(loss, eps, xg)
@@ -729,6 +730,7 @@ def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss=
     is a local optimum.
     """
     loss, eps = _check_loss(loss, eps)
+    return_info = as_bool("return_info", return_info)
     xt, sb, _, xg, vg, mvt, _ = _prepare(x_t, s_bar, 0.0, x_g_est, var_g_est, mean_var_t,
                                          names=("x_t", "s_bar", "s", "x_g_est", "var_g_est"))
     hw = xt.shape[:2]
@@ -887,13 +889,9 @@ def pooled_sample_variance(sample_var, n, *, sigma=POOL_SIGMA, prior_dof=None):
     check_finite("sample_var", sv)
     check_nonnegative("sample_var", sv)
     cnt = _count_map("n", n, sv.shape[:2])
-    try:
-        sigma, nu0 = float(sigma), 0.0 if prior_dof is None else float(prior_dof)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"`sigma` and `prior_dof` must be numbers >= 0; got {sigma!r}, "
-                         f"{prior_dof!r}.") from exc
-    if not (np.isfinite(sigma) and sigma >= 0 and np.isfinite(nu0) and nu0 >= 0):
-        raise InputError(f"`sigma` and `prior_dof` must be finite numbers >= 0; got {sigma}, {nu0}.")
+    # as_number: float() parsed a string "2" and took True for 1 here before
+    sigma = as_number("sigma", sigma, lo=0.0)
+    nu0 = 0.0 if prior_dof is None else as_number("prior_dof", prior_dof, lo=0.0)
     from .filters import gaussian_filter
     dof = np.maximum(cnt - 1.0, 0.0)
     dof_c = dof if sv.ndim == 2 else dof[..., None]

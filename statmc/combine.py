@@ -311,6 +311,9 @@ def combine_boosting(y, z, weights):
     inside = np.stack([_valid(H, W, dy - k // 2, dx - k // 2)
                        for dy in range(k) for dx in range(k)], axis=-1).reshape(H, W, k, k)
     w = np.where(inside > 0, w, 0.0)                # outside taps are never used (as in Eq. 8)
+    bad = ~np.isfinite(w).all(axis=(2, 3))
+    if bad.any():   # apply_kernels would name them `kernels`, not the caller's `weights`
+        _raise_bad(w[:, :, None], bad.sum(axis=1))
     y64, z64 = ys[0].astype(np.float64), zs[0].astype(np.float64)
     num = apply_kernels(w, y64 - z64)
     den = apply_kernels(w, np.ones(y64.shape[:2]))
@@ -1249,6 +1252,7 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
        for Monte Carlo Ray Tracing". SIGGRAPH 2023. https://doi.org/10.1145/3588432.3591537
     """
     m = _check_size(size)
+    extra_output = as_bool("extra_output", extra_output)
     pr = _probe_vectors(denoiser, x, mean_var, probes, rng, eps)
     cov_z, cov_yz = pr.stencils(m, 0, pr.z.shape[0])
     if extra_output:
@@ -1553,12 +1557,30 @@ def _check_sure_terms(sure_terms, extra_output):
                          f"extra_output={extra_output!r}).")
 
 
-def _check_mix(mix, mix_sigma) -> float:
-    """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins`;
-    returns ``mix_sigma`` as a float."""
+#: ``mix_sigma`` may be at most this many times the image's longer side (and never less
+#: than :data:`DEFAULT_MIX_SIGMA`).  The local mix pools with SciPy's ``gaussian_filter``
+#: (mode "reflect"), whose taps cover ``4 mix_sigma`` pixels each side: 1e30 raised SciPy's
+#: "Maximum allowed size exceeded", 1e9 asked for 64 GB of taps, and the cost grows with
+#: ``mix_sigma`` though the result stops changing: at twice the longer side the pooled
+#: values already vary by < 2e-5 relative over the image (measured on 5² to 256² random
+#: images), i.e. the pool is the whole image's, which ``mix="global"`` computes directly.
+MIX_SIGMA_IMAGES = 4.0
+
+
+def _check_mix(mix, mix_sigma, hw) -> float:
+    """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins` for
+    an image of height and width ``hw``; returns ``mix_sigma`` as a float."""
     if mix not in ("local", "global", None):
         raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
-    return as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
+    ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
+    limit = max(DEFAULT_MIX_SIGMA, MIX_SIGMA_IMAGES * max(hw))
+    if ms > limit:
+        raise InputError(
+            f"`mix_sigma` must be at most {limit:g} pixels for a {hw[0]}x{hw[1]} image "
+            f"({MIX_SIGMA_IMAGES:g} times its longer side, and never less than "
+            f"{DEFAULT_MIX_SIGMA:g}); got {mix_sigma!r}.  A Gaussian that wide pools the "
+            "SURE terms evenly over the whole image: pass mix='global' for that.")
+    return ms
 
 
 def _pooled_mix(z, betas, nums, rel, mix, sigma):
@@ -1641,6 +1663,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
         Variance models for the weights (step 2), at most 3; one combination each.
     mix : {"local", "global", None}
     mix_sigma : float
+        σ (pixels) of the Gaussian that pools the SURE terms for ``mix="local"``; ``> 0``
+        and at most ``MIX_SIGMA_IMAGES`` (4) times the image's longer side, or 16 if that
+        is less (a wider one pools the whole image: use ``mix="global"``).
     rng : numpy Generator or seed, optional
         Seeds the probe vectors.
     extra_output : bool
@@ -1722,8 +1747,9 @@ def combine_denoised(y, mean_var, denoiser, *, size=DEFAULT_SIZE, probes=DEFAULT
             or any(m not in ("smooth", "raw", "max") for m in models):
         raise InputError(f"`var` must be 'smooth', 'raw', 'max' or a sequence of 1 to 3 of "
                          f"them; got {var!r}.")
-    ms = _check_mix(mix, mix_sigma)
+    ms = _check_mix(mix, mix_sigma, yy.shape[:2])
     k = _check_window_options(size, stencil, smooth, patch)
+    extra_output = as_bool("extra_output", extra_output)
     _check_sure_terms(sure_terms, extra_output)
     pr = _probe_vectors(denoiser, yy, mean_var, probes, rng, 1e-3, name="y")
     z = pr.z
@@ -1836,6 +1862,7 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
         or the whole image (never better than ``"local"`` in session 7); ``None``: Eq. 14
         alone.
     mix_sigma : float
+        As in :func:`combine_denoised` (``> 0``, at most 4x the longer side or 16).
     bin_probes : int or None
         With a mix: ``±σ`` probes of the denoiser at each bin (``B · bin_probes`` extra
         calls) for the Jacobians ``J_b`` in the Stein terms (Notes, (iii)).  None (default):
@@ -1957,6 +1984,8 @@ def combine_bins(ys, mean_var, denoiser, *, size=DEFAULT_SIZE, stencil=DEFAULT_S
        Rendered Images". Computer Graphics Forum 41(2), 2022.
        https://doi.org/10.1111/cgf.14454
     """
+    extra_output = as_bool("extra_output", extra_output)
+    return_denoised = as_bool("return_denoised", return_denoised)
     _check_sure_terms(sure_terms, extra_output)
     out, info = _combine_bins(ys, mean_var, denoiser, size=size, stencil=stencil,
                               probes=probes, smooth=smooth, patch=patch, mix=mix,
@@ -1990,7 +2019,7 @@ def _combine_bins(ys, mean_var, denoiser, *, size, stencil, probes, smooth, patc
     check_nonnegative("mean_var", mv)
     if not callable(denoiser):
         raise InputError(f"`denoiser` must be a callable f(color) -> color; got {denoiser!r}.")
-    ms = _check_mix(mix, mix_sigma)
+    ms = _check_mix(mix, mix_sigma, yb.shape[1:3])
     k = _check_window_options(size, stencil, smooth, patch)
     if bin_probes is None:
         from .gem import SelectedFilter

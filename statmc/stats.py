@@ -115,11 +115,20 @@ def _as_counts(n: np.ndarray) -> np.ndarray:
 
 
 def _check_feature(name, a, hw):
+    """A feature buffer as float32: ``albedo`` and ``normal`` ``(H, W, 3)``, ``depth``
+    ``(H, W)`` (or ``(H, W, 1)``), the shapes every consumer reads (OIDN, the networks'
+    :func:`statmc.nn.pixel_features`, the EXR writer); an ``(H, W)`` albedo failed in
+    ``pixel_features`` with NumPy's concatenate error, an ``(H, W, 1)`` one gave it two
+    planes too few."""
     if a is None:
         return None
     arr = as_float_array(name, a, ndim=(2, 3)).astype(np.float32, copy=False)
     if arr.shape[:2] != tuple(hw):
         raise InputError(f"feature `{name}` must be {tuple(hw)} in height and width; got {arr.shape}.")
+    if name == "depth" and arr.ndim == 3 and arr.shape[2] != 1:
+        raise InputError(f"feature `depth` must be an (H, W) map; got shape {arr.shape}.")
+    if name != "depth" and (arr.ndim != 3 or arr.shape[2] != 3):
+        raise InputError(f"feature `{name}` must be an (H, W, 3) image; got shape {arr.shape}.")
     return arr
 
 

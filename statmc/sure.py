@@ -235,6 +235,7 @@ def sure(kernels, x, mean_var, *, extra_output: bool = False):
     >>> s.shape
     (16, 16, 3)
     """
+    extra_output = as_bool("extra_output", extra_output)
     xx = _image(x)
     noise = _Noise(mean_var, xx.shape)
     K = _kernels_of(kernels, xx.shape)
@@ -325,6 +326,7 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
     eps = as_number("eps", eps, lo=0.0, lo_open=True)
     relative = as_bool("relative", relative)
     k = as_int("k", k)
+    extra_output = as_bool("extra_output", extra_output)
     f = _check_denoiser(denoiser)
     gen = as_rng(rng)
     _check_float32("x", xx)
@@ -435,6 +437,7 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
     noise = _Noise(mean_var, xx.shape)
     k = as_int("k", k)
     relative = as_bool("relative", relative)
+    extra_output = as_bool("extra_output", extra_output)
     f = _check_denoiser(denoiser)
     if method == "exact":
         if not callable(getattr(f, "kernels", None)):

@@ -1328,3 +1328,95 @@ def test_ssim_with_zero_constants_is_the_universal_quality_index():
         metrics.ssim_map(np.ones((8, 8, 1)), np.ones((8, 8, 1)), k1=0, k2=0)
     with pytest.raises(InputError, match=r"`k1` must be a constant >= 0"):
         metrics.ssim_map(ref, ref, k1=-0.01)
+
+
+# ---------------------------------------------------------------- session 16, helper C
+def _small(seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.1, 1.0, (7, 9, 3))
+    v = rng.uniform(1e-3, 1e-2, (7, 9, 3))
+    n = rng.integers(2, 9, (7, 9)).astype(float)
+    k = rng.uniform(0.0, 1.0, (7, 9, 5, 5))
+    return x, v, n, k / k.sum(axis=(2, 3), keepdims=True)
+
+
+@pytest.mark.parametrize("bad", ["no", None, 1, "False"])
+def test_true_false_options_refuse_non_bools(bad):
+    """``return_grad``, ``return_info`` (analytic) and ``extra_output`` (sure, combine),
+    ``return_denoised`` (combine_bins) took any truthy value: ``"no"`` returned the tuple,
+    None the bare value.  Now "`name` must be True or False", as the rest of the library."""
+    x, v, n, k = _small()
+    s = np.full(n.shape, 4.0)
+    f = denoisers.gaussian(1.0)
+    ys = np.stack([x, 1.05 * x])
+    small = dict(size=5, probes=2, stencil=3, smooth=1, patch=1, rng=1)
+    calls = {
+        "return_grad": lambda: analytic.expected_kernel_loss(k, x, n, s, x, v, return_grad=bad),
+        "return_info": lambda: analytic.optimal_sample_map(k, x, n, x, v, 100.0, max_iter=5,
+                                                           return_info=bad),
+        "extra_output": lambda: sure.sure(k, x, v, extra_output=bad),
+        "extra_output ": lambda: sure.mc_sure(f, x, v, k=1, rng=1, extra_output=bad),
+        "extra_output  ": lambda: sure.output_variance(f, x, v, k=1, rng=1, extra_output=bad),
+        "extra_output   ": lambda: combine.denoiser_moments(f, x, v, size=3, probes=1, rng=1,
+                                                            extra_output=bad),
+        "extra_output    ": lambda: combine.combine_denoised(x, v, f, extra_output=bad, **small),
+        "extra_output     ": lambda: combine.combine_bins(ys, v, f, extra_output=bad, **small),
+        "return_denoised": lambda: combine.combine_bins(ys, v, f, return_denoised=bad, **small),
+    }
+    for name, call in calls.items():
+        with pytest.raises(InputError, match=rf"`{name.strip()}` must be True or False"):
+            call()
+
+
+def test_mix_sigma_too_wide_for_the_image_is_an_input_error():
+    """``combine_denoised(..., mix_sigma=1e30)`` raised SciPy's "Maximum allowed size
+    exceeded" from the Gaussian pool (1e9 asked for 64 GB of taps); beyond 4x the image's
+    longer side the pool is the whole image's, so such a σ is refused, naming
+    ``mix="global"``.  The bound never refuses the default 16, even on tiny images."""
+    x, v, _, _ = _small()
+    f = denoisers.gaussian(1.0)
+    ys = np.stack([x, 1.05 * x])
+    small = dict(size=5, probes=2, stencil=3, smooth=1, patch=1, rng=1)
+    for big in (1e30, 1e9, 37.0):
+        with pytest.raises(InputError, match=r"`mix_sigma` must be at most 36 pixels for a "
+                                             r"7x9 image.*mix='global'"):
+            combine.combine_denoised(x, v, f, mix_sigma=big, **small)
+        with pytest.raises(InputError, match=r"`mix_sigma` must be at most 36 pixels"):
+            combine.combine_bins(ys, v, f, mix_sigma=big, **small)
+    out = combine.combine_denoised(x, v, f, mix_sigma=36.0, **small)   # the limit itself
+    assert np.isfinite(out).all()
+    tiny = x[:2, :2]                                 # 4 x 2 = 8 < the default 16: allowed
+    assert np.isfinite(combine.combine_denoised(tiny, v[:2, :2], f, **small)).all()
+
+
+def test_combine_boosting_names_weights_when_they_are_not_finite():
+    """A NaN weight inside the image made ``combine_boosting`` report "`kernels` holds 1
+    NaN" (the name inside apply_kernels); ``combine`` names `weights`, and so does it now."""
+    x, _, _, _ = _small()
+    z = denoisers.gaussian(1.0)(x)
+    w = combine.gaussian_weights(7, 9, 1, 5, 1.0).copy()
+    w[3, 4, 0, 2, 2] = np.nan
+    for func in (combine.combine, combine.combine_boosting):
+        with pytest.raises(InputError, match=r"`weights` must be finite .* \(row 3, column 4\)"):
+            func(x, z, w)
+
+
+@pytest.mark.parametrize("name,bad", [("sigma", "2"), ("sigma", True), ("prior_dof", "1"),
+                                      ("prior_dof", True), ("sigma", np.nan)])
+def test_pooled_sample_variance_refuses_strings_and_bools(name, bad):
+    """``sigma="2"`` and ``prior_dof=True`` were read by ``float()`` as 2.0 and 1.0."""
+    _, v, n, _ = _small()
+    with pytest.raises(InputError, match=rf"`{name}` must be a finite number"):
+        analytic.pooled_sample_variance(v, n, **{name: bad})
+
+
+@pytest.mark.parametrize("feature,shape", [("albedo", (7, 9)), ("albedo", (7, 9, 1)),
+                                           ("normal", (7, 9, 4)), ("depth", (7, 9, 3))])
+def test_feature_buffers_of_the_wrong_channel_count_are_refused(feature, shape):
+    """PixelStats took an ``(H, W)`` or ``(H, W, 1)`` albedo: ``nn.pixel_features`` then
+    failed with NumPy's concatenate error, or built two planes too few for the network."""
+    x, v, n, _ = _small()
+    st = PixelStats.from_mean_var(x, v, n)
+    with pytest.raises(InputError, match=rf"feature `{feature}` must be an \(H, W"):
+        st.with_features(**{feature: np.ones(shape)})
+    assert st.with_features(depth=np.ones((7, 9, 1))).depth.shape == (7, 9, 1)   # still fine
