@@ -30,7 +30,11 @@ def _tensor(name, t, ndim):
     if t.shape[0] != 1:
         raise InputError(f"`{name}` must hold one image (leading N = 1) to become a statmc "
                          f"array; got shape {tuple(t.shape)}.  Convert `{name}[i:i+1]` per image.")
-    return t.detach().cpu()
+    if t.is_complex():   # lost its imaginary part with only a ComplexWarning before
+        raise InputError(f"`{name}` must be a real tensor; got {t.dtype}.")
+    # float64 in torch: NumPy has no bfloat16 (`.numpy()` raised TypeError "Got unsupported
+    # ScalarType BFloat16"); exact for the other real dtypes (then copied, as before)
+    return t.detach().cpu().to(torch.float64)
 
 
 def _dtype(dtype):

@@ -1072,3 +1072,27 @@ def test_statmc_never_imports_torch():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                        timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_layout_to_numpy_takes_bfloat16_and_refuses_complex():
+    """``tensor_to_image`` (and the kernels/weights twins) of a bfloat16 tensor, as mixed-
+    precision training gives, raised NumPy's TypeError "Got unsupported ScalarType
+    BFloat16"; a complex tensor lost its imaginary part with only NumPy's ComplexWarning.  Now bfloat16 converts
+    exactly to float64 and complex is an InputError naming `t`."""
+    t = torch.rand(1, 3, 4, 5).bfloat16()
+    img = snn.tensor_to_image(t)
+    assert img.dtype == np.float64 and img.shape == (4, 5, 3)
+    np.testing.assert_array_equal(img, t.double()[0].permute(1, 2, 0).numpy())
+    k = torch.rand(1, 9, 4, 5).bfloat16()
+    np.testing.assert_array_equal(snn.kernels_to_numpy(k),
+                                  snn.kernels_to_numpy(k.double()))
+    w = torch.rand(1, 2, 9, 4, 5).bfloat16()
+    np.testing.assert_array_equal(snn.weights_to_numpy(w), snn.weights_to_numpy(w.double()))
+    for func, a in ((snn.tensor_to_image, t), (snn.kernels_to_numpy, k),
+                    (snn.weights_to_numpy, w)):
+        with pytest.raises(InputError, match=r"`t` must be a real tensor; got torch.complex"):
+            func(a.to(torch.complex64))
+    d = torch.rand(1, 3, 4, 5, dtype=torch.float64)
+    out = snn.tensor_to_image(d)
+    out[0, 0, 0] = -1.0                                  # a copy, never the tensor's memory
+    assert d[0, 0, 0, 0] >= 0
