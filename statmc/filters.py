@@ -229,8 +229,10 @@ def _border_scale(n: int, w: np.ndarray) -> np.ndarray:
     r = len(w) // 2
     c = np.concatenate([[0.0], np.cumsum(w)])
     pos = np.arange(n)
-    lo = np.clip(pos - r, 0, None) - (pos - r)          # first tap index in the image
-    hi = np.clip(pos + r, None, n - 1) - (pos - r) + 1  # one past the last one
+    # np.maximum/np.minimum, not np.clip: the same integers, 15 µs less a call (a 136x136
+    # reconstruct makes 44 of these calls)
+    lo = np.maximum(pos - r, 0) - (pos - r)             # first tap index in the image
+    hi = np.minimum(pos + r, n - 1) - (pos - r) + 1     # one past the last one
     return 1.0 / (c[hi] - c[lo])
 
 

@@ -79,11 +79,13 @@ BIAS_POOL_SIGMA = 1.0
 #: bit for bit the same either way (docs/gem.md §7).
 FUSED_PIXELS = 1 << 18
 #: ``select``/``reconstruct``/``selected_filter`` calls with the pooled selection run on
-#: numba's pool from this many values (about 128x128 RGB) instead of
-#: ``_threads.SERIAL_VALUES`` (about 320x320): fused, they wake the pool 11 times instead
-#: of 73, so parallel pays off sooner (one thread against the pool crossed between 96x96
-#: and 128x128, docs/gem.md §7).
-FUSED_SERIAL_VALUES = 50_000
+#: the task threads (:mod:`statmc._task_threads`) from this many values (about 224x224
+#: RGB) instead of ``_threads.SERIAL_VALUES`` (about 320x320): fused, they run 11 parallel
+#: regions instead of 73.  It was 50,000 (about 128x128), measured for numba's OpenMP pool
+#: (session 11); the Python task threads lose more when the cores are busy.  On 2026-11-23
+#: at load 2.1-2.3, two threads against one took 1.5-1.8x as long at 136x136 and
+#: 1.4-1.6x at 192x192 (59b4b59's OpenMP pool: 0.9-1.6x and 0.8-1.0x); docs/gem.md §7.
+FUSED_SERIAL_VALUES = 150_000
 
 
 # ---------------------------------------------------------------------------------------

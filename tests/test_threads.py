@@ -146,17 +146,45 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
         return first_stop(*args)
 
     monkeypatch.setattr(_filter_kernels, "first_stop", spy)
-    h = w = 136                                       # 55,488 values: between the thresholds
+    h = w = 240                                       # 172,800 values: between the thresholds
     assert gem.FUSED_SERIAL_VALUES < h * w * 3 < _threads.SERIAL_VALUES
     m = np.random.default_rng(1).random((h, w, 3))
     v = np.full_like(m, 0.01)
     gem.reconstruct(m, v)
     gem.select(m, v, bias="pooled", final=False)
     gem.reconstruct(m, v, final=False)
-    gem.reconstruct(m[:100, :100], v[:100, :100])
+    gem.reconstruct(m[:200, :200], v[:200, :200])      # 120,000 values: below both
     gem.selected_filter(m, v)                         # the same _core, the same thresholds
     gem.selected_filter(m, v, final=False)
     assert threads == [before, before, 1, 1, before, 1]
+    assert numba.get_num_threads() == before
+
+
+def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
+    """Regression (session 16): a 136x136 and a 192x192 RGB final reconstruction ran on two
+    task threads (the fused threshold was 50,000 values, tuned for numba's OpenMP pool) and
+    took 1.4-1.8x as long as on one thread at load 2; below ``gem.FUSED_SERIAL_VALUES``
+    they now run on the calling thread, and a 256x256 one still on every thread."""
+    from statmc import _filter_kernels, gem
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread only")
+    for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
+        monkeypatch.delenv(k, raising=False)
+    threads = []
+    first_stop = _filter_kernels.first_stop
+
+    def spy(*args):
+        threads.append(numba.get_num_threads())
+        return first_stop(*args)
+
+    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    before = numba.get_num_threads()
+    rng = np.random.default_rng(2)
+    for side in (136, 192, 256):
+        m = rng.random((side, side, 3)).astype(np.float32)
+        gem.reconstruct(m, np.full_like(m, 0.01))
+    assert threads == [1, 1, before]
     assert numba.get_num_threads() == before
 
 
