@@ -176,7 +176,10 @@ def as_whole(name: str, value, *, lo: int = 0, what: str = "number",
 def as_rng(value, name: str = "rng") -> np.random.Generator:
     """``np.random.default_rng(value)``: None, a non-negative int seed, a SeedSequence or
     a Generator (returned as it is); anything else is an :class:`InputError` naming
-    ``name``."""
+    ``name``.  A bool is refused: ``default_rng(True)`` would seed with 1."""
+    if isinstance(value, (bool, np.bool_)):
+        raise InputError(f"`{name}` must be None, a non-negative int seed or a numpy "
+                         f"Generator; got {value!r}.")
     try:
         return np.random.default_rng(value)
     except (TypeError, ValueError) as exc:

@@ -424,7 +424,7 @@ def test_rng_arguments_refuse_what_numpy_cannot_seed():
     g = np.random.default_rng(1)
     assert as_rng(g) is g
     assert as_rng(5).random() == np.random.default_rng(5).random()
-    for bad in ("x", 2.5, -1, [1.5]):
+    for bad in ("x", 2.5, -1, [1.5], True, False, np.True_):   # a bool seeded with 0/1
         with pytest.raises(InputError, match="`rng` must be"):
             as_rng(bad)
     with pytest.raises(InputError, match="`rng` must be"):
@@ -436,6 +436,8 @@ def test_rng_arguments_refuse_what_numpy_cannot_seed():
         mc_sure(lambda x: x, m, 0.1 * m, rng=-3)
     with pytest.raises(InputError, match="`seed` must be"):
         ToyRenderer("mixed", width=4, height=4).render(np.ones((4, 4), np.int64), seed="x")
+    with pytest.raises(InputError, match="`seed` must be"):
+        ToyRenderer("mixed", width=4, height=4).render(np.ones((4, 4), np.int64), seed=True)
 
 
 # ----------------------------------------------------------------------------- audit (session 8)
