@@ -19,6 +19,8 @@ from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
 
+from ._threads import thread_count
+
 _POOL = None
 _POOL_LOCK = threading.Lock()
 
@@ -50,13 +52,14 @@ CHUNKS_PER_THREAD = 4
 def run_chunks(call, start, stop):
     """``call(lo, hi)`` for contiguous chunks ``lo .. hi − 1`` covering ``start .. stop − 1``.
 
-    On ``numba.get_num_threads()`` threads (1, on the calling thread alone, inside
-    :func:`statmc._threads.serial_when_small` / ``serial_below`` or with
-    ``NUMBA_NUM_THREADS=1``): the calling thread and the pool's, each taking the next of
-    about :data:`CHUNKS_PER_THREAD` chunks per thread when it is done with one.  ``call``
-    runs a serial ``nogil`` numba kernel whose chunks write disjoint outputs, so the result
-    does not depend on the chunking or on which thread ran a chunk: it equals the
-    one-thread result to the bit.  An exception in a chunk, or one raised in the calling
+    On :func:`statmc._threads.thread_count` threads (1, on the calling thread alone,
+    inside :func:`statmc._threads.serial_when_small` / ``serial_below``, with
+    ``NUMBA_NUM_THREADS=1`` or after ``numba.set_num_threads(1)``; found without starting
+    numba's own thread pool, which statmc does not use): the calling thread and the pool's,
+    each taking the next of about :data:`CHUNKS_PER_THREAD` chunks per thread when it is
+    done with one.  ``call`` runs a serial ``nogil`` numba kernel whose chunks write
+    disjoint outputs, so the result does not depend on the chunking or on which thread ran
+    a chunk: it equals the one-thread result to the bit.  An exception in a chunk, or one raised in the calling
     thread while it waits (KeyboardInterrupt), stops the chunks not yet started and is
     raised here once every chunk started has finished: no output is written after this
     returns.  The pool's threads wait passively (on a queue) and start at first use; a
@@ -67,7 +70,7 @@ def run_chunks(call, start, stop):
     """
     start, stop = int(start), int(stop)
     n = stop - start
-    p = min(numba.get_num_threads(), n)
+    p = min(thread_count(), n)
     if p <= 1:
         if n > 0:
             call(start, stop)

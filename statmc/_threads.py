@@ -1,5 +1,6 @@
-"""Thread control for the numba kernels: the OpenMP wait policy of their thread pool, and
-small problems run on the calling thread."""
+"""Thread control for the numba kernels: how many threads statmc's kernel runner uses
+(:func:`thread_count`, small problems on the calling thread alone), and the OpenMP wait
+policy of numba's thread pool, should the user's own numba code start it."""
 
 from __future__ import annotations
 
@@ -87,11 +88,14 @@ def wait_passively_in_numba() -> None:
     """Make numba start its thread pool, when it does, with passive OpenMP waits.
 
     numba starts its pool (with the ``omp`` threading layer: the system's libgomp) at the
-    first parallel kernel call, and libgomp's default wait policy spins at every barrier.
-    On a machine whose cores are busy with other work a spinning thread holds the core the
-    thread it waits for needs: with two busy loops on the two cores of the machine this
-    was measured on, ``gem.reconstruct`` of a 64x64 image took a median 116 ms instead of
-    11 ms, at 512x512 1.6 s instead of 0.17 s (``bench/bench_numba_load.py``).
+    first parallel kernel call or ``numba.get_num_threads()``/``set_num_threads`` call, and
+    libgomp's default wait policy spins at every barrier.  On a machine whose cores are
+    busy with other work a spinning thread holds the core the thread it waits for needs:
+    with two busy loops on the two cores of the machine this was measured on, when
+    statmc's kernels were numba parallel loops, ``gem.reconstruct`` of a 64x64 image took
+    a median 116 ms instead of 11 ms, at 512x512 1.6 s instead of 0.17 s
+    (``bench/bench_numba_load.py``).  statmc's kernels no longer use the pool and statmc
+    does not start it (:func:`thread_count`); the user's own numba code still may.
 
     numba's pool start (``numba.np.ufunc.parallel._launch_threads``, which numba looks up
     at every use) is wrapped so that it runs inside :func:`passive_omp`: the pool still
@@ -120,24 +124,49 @@ def wait_passively_in_numba() -> None:
     parallel._launch_threads = launch_passive
 
 
+_LOCAL = threading.local()      # .serial: depth of the calling thread's serial_below blocks
+
+
+def thread_count() -> int:
+    """The number of threads statmc's kernel runner (:mod:`statmc._task_threads`) uses for
+    a call from the calling thread, found without starting numba's thread pool.
+
+    1 inside :func:`serial_below` on this thread; else ``numba.get_num_threads()`` when
+    numba's pool is already started (by the user's ``numba.set_num_threads(n)``, which
+    so still limits statmc, or by their own parallel numba code); else
+    ``numba.config.NUMBA_NUM_THREADS`` (the ``NUMBA_NUM_THREADS`` environment variable, or
+    the number of cores).  statmc's kernels are serial ``nogil`` functions on its own
+    Python threads and never need numba's pool, and starting it is not free: with torch
+    imported first numba's pool runs on torch's OpenMP runtime, and its start reset
+    torch's thread count after ``torch.set_num_threads(1)`` (docs/nn.md, "Threads").
+    """
+    if getattr(_LOCAL, "serial", 0):
+        return 1
+    import numba
+    from numba.np.ufunc import parallel
+
+    if parallel._is_initialized:
+        return numba.get_num_threads()
+    return numba.config.NUMBA_NUM_THREADS
+
+
 @contextmanager
 def serial_below(work: int, threshold: int):
-    """Run the block on one numba thread when ``work < threshold`` (restored after).
+    """Run the block's statmc kernels on the calling thread alone when ``work < threshold``.
 
-    Waking numba's worker threads costs milliseconds on a busy machine, more than a
-    small kernel takes serially; each kernel module sets its own ``threshold``.
+    Inside the block :func:`thread_count` is 1 on this thread (other threads are not
+    affected; nested blocks and exceptions restore the count).  Waking other threads costs
+    more than a small kernel takes serially; each kernel module sets its own ``threshold``.
+    numba's own thread count is neither read nor changed.
     """
     if work >= threshold:
         yield
         return
-    import numba
-
-    before = numba.get_num_threads()
-    numba.set_num_threads(1)
+    _LOCAL.serial = getattr(_LOCAL, "serial", 0) + 1
     try:
         yield
     finally:
-        numba.set_num_threads(before)
+        _LOCAL.serial -= 1
 
 
 #: Below this many values (about 320x320 RGB) statmc's GEM and filter-bank calls run on
@@ -151,9 +180,9 @@ SERIAL_VALUES = 300_000
 
 
 def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
-    """Decorator: run the function on one numba thread when its first argument (given by
-    position or by name) holds fewer than ``threshold`` values (:func:`serial_below`) and
-    numba's pool waits passively (the user set no wait policy, see :func:`passive_omp`).
+    """Decorator: run the function's kernels on the calling thread alone when its first
+    argument (given by position or by name) holds fewer than ``threshold`` values
+    (:func:`serial_below`) and the user set no OpenMP wait policy (see :func:`passive_omp`).
     ``threshold_of(kwargs)``, if given, picks the threshold from the call's keyword
     arguments (a call that runs fewer parallel regions pays fewer wake-ups, so it is
     parallel from a smaller size)."""

@@ -33,11 +33,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from . import _filter_kernels as _k
-from ._threads import SERIAL_VALUES, serial_when_small
+from ._threads import SERIAL_VALUES, serial_when_small, thread_count
 from .errors import (MAX_BUDGET, InputError, as_bool, as_float_array, as_number, as_rng,
                      as_whole, check_finite, check_nonnegative, real_or_nan)
 from .filters import (ADAPTIVE_SIGMAS, DEFAULT_TRUNCATE, FINAL_SIGMAS, _as_sigmas, _check_pair,
@@ -1182,7 +1181,7 @@ def _allocate_rounds_fast(rel, n, budget, batch, rounds):
     _k.allocate_rounds(np.ascontiguousarray(rel, np.float64).ravel(),
                        np.ascontiguousarray(n, np.float64).ravel(), int(budget), int(batch),
                        int(rounds), amount.reshape(-1), work[0], work[1], work[2],
-                       np.empty((2 * numba.get_num_threads(), 1 << _k._DIGIT), np.int64))
+                       np.empty((2 * thread_count(), 1 << _k._DIGIT), np.int64))
     return amount
 
 

@@ -26,10 +26,12 @@ F64 = torch.float64
 def _one_thread_each():
     """torch and numba on one thread each, for this module only (restored after).
 
-    Not torch alone: numba's parallel kernels run on torch's OpenMP runtime when torch was
-    imported first, and with different thread counts there every statmc kernel call left
-    torch's small ops 10-200x slower on this loaded 2-core machine (gradcheck after one
-    statmc.combine call: 0.7 s -> 7.7 s; docs/nn.md "Threads")."""
+    Not torch alone (session 10): numba's parallel kernels then ran on torch's OpenMP
+    runtime when torch was imported first, and with different thread counts there every
+    statmc kernel call left torch's small ops 10-200x slower on this loaded 2-core machine
+    (gradcheck after one statmc.combine call: 0.7 s -> 7.7 s; docs/nn.md "Threads").
+    statmc no longer uses numba's pool; numba.set_num_threads(1) now keeps statmc's
+    kernels on the calling thread."""
     import numba
     before = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)

@@ -13,7 +13,6 @@ import sys
 import threading
 import time
 
-import numba
 import pytest
 
 from statmc import _task_threads as tt
@@ -28,7 +27,7 @@ def test_a_caller_does_not_wait_behind_another_callers_chunks(monkeypatch):
     returns at once instead of waiting for its own queued (now pointless) submission."""
     pool = tt._task_pool()
     workers = pool._max_workers
-    monkeypatch.setattr(numba, "get_num_threads", lambda: workers + 1)
+    monkeypatch.setattr(tt, "thread_count", lambda: workers + 1)
     release, held = threading.Event(), threading.Semaphore(0)
 
     def blocked(lo, hi):
@@ -67,7 +66,7 @@ def test_an_interrupt_while_waiting_returns_after_the_started_chunks(monkeypatch
     """An exception raised in the calling thread while it waits for the pool (a
     KeyboardInterrupt; here a signal handler's) is raised after the chunk the pool thread
     runs has finished, so no output changes after the call returned."""
-    monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(tt, "thread_count", lambda: 2)
     started, done = threading.Event(), []
 
     def chunk(lo, hi):

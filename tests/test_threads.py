@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 
 import numba
 import numpy as np
@@ -27,6 +28,7 @@ from numba.np.ufunc import parallel
 started_at_import = parallel._is_initialized
 {PRINT_BEGIN}
 statmc.gem.reconstruct(np.ones((16, 16, 3)), np.full((16, 16, 3), 0.01))
+numba.get_num_threads()            # the user's own numba code starts numba's pool
 {PRINT_END}
 print(repr(os.environ.get("OMP_WAIT_POLICY")), numba.threading_layer(), started_at_import,
       file=sys.stderr)
@@ -41,10 +43,13 @@ def _run(**env):
     return gomp, after, started_at_import
 
 
-def test_numba_pool_starts_on_a_passive_runtime_at_the_first_kernel_call():
+def test_numba_pool_starts_on_a_passive_runtime_when_the_users_code_starts_it():
     """The old code loaded libgomp with spin count 300000 at the first kernel call (this
-    failed on ``gomp``).  The pool is not started by the import (see the fork test), and
-    the user's environment is the same afterwards."""
+    failed on ``gomp``).  statmc's kernels no longer start numba's pool (see
+    test_statmc_calls_leave_numbas_pool_and_torchs_thread_count_alone); the user's own
+    numba code, run after statmc's import, still starts it passively.  The pool is not
+    started by the import (see the fork test), and the user's environment is the same
+    afterwards."""
     gomp, after, started_at_import = _run()
     assert gomp == [("0", "PASSIVE")], gomp
     assert after == "None" and started_at_import == "False"
@@ -87,10 +92,10 @@ def test_fork_after_import_still_works():
 
 
 def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
-    """Below ``_threads.SERIAL_VALUES`` a decorated call runs on one numba thread while the
-    pool waits passively (each parallel region would pay a sleeping worker's wake-up), in
-    parallel when the user chose a wait policy; the thread count is restored after, also
-    when the call raises."""
+    """Below ``_threads.SERIAL_VALUES`` a decorated call runs on one thread (each parallel
+    region would pay a sleeping worker's wake-up), in parallel when the user chose a wait
+    policy; statmc's thread count (``_threads.thread_count``) is restored after, also when
+    the call raises, and in a nested block."""
     from statmc import _threads
 
     if numba.config.NUMBA_NUM_THREADS < 2:
@@ -99,13 +104,13 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
 
     @_threads.serial_when_small(100)
     def probe(x, fail=False):
-        seen.append(numba.get_num_threads())
+        seen.append(_threads.thread_count())
         if fail:
             raise ValueError("refused")
 
     for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
         monkeypatch.delenv(k, raising=False)
-    before = numba.get_num_threads()
+    before = _threads.thread_count()
     probe(np.zeros(99))
     probe(np.zeros(100))
     with pytest.raises(ValueError):
@@ -113,7 +118,19 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
     monkeypatch.setenv("GOMP_SPINCOUNT", "300000")
     probe(np.zeros(99))
     assert seen == [1, before, 1, before]
-    assert numba.get_num_threads() == before
+    monkeypatch.delenv("GOMP_SPINCOUNT")
+    with _threads.serial_below(1, 2):
+        with _threads.serial_below(1, 2):
+            seen.append(_threads.thread_count())
+        seen.append(_threads.thread_count())
+        with _threads.serial_below(2, 2):           # not small: no change
+            seen.append(_threads.thread_count())
+        other = []                                  # another thread: its own count
+        t = threading.Thread(target=lambda: other.append(_threads.thread_count()))
+        t.start()
+        t.join()
+    assert seen[4:] == [1, 1, 1] and other == [before]
+    assert _threads.thread_count() == before
 
 
 def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monkeypatch):
@@ -131,9 +148,9 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
 
     @_threads.serial_when_small(10, threshold_of=lambda kw: kw.get("limit", 10))
     def probe(x, limit=10):
-        seen.append(numba.get_num_threads())
+        seen.append(_threads.thread_count())
 
-    before = numba.get_num_threads()
+    before = _threads.thread_count()
     probe(np.zeros(50), limit=100)
     probe(np.zeros(50))
     assert seen == [1, before]
@@ -142,7 +159,7 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
     first_stop = _filter_kernels.first_stop           # every select/reconstruct calls it once
 
     def spy(*args):
-        threads.append(numba.get_num_threads())
+        threads.append(_threads.thread_count())
         return first_stop(*args)
 
     monkeypatch.setattr(_filter_kernels, "first_stop", spy)
@@ -157,7 +174,7 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
     gem.selected_filter(m, v)                         # the same _core, the same thresholds
     gem.selected_filter(m, v, final=False)
     assert threads == [before, before, 1, 1, before, 1]
-    assert numba.get_num_threads() == before
+    assert _threads.thread_count() == before
 
 
 def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
@@ -165,7 +182,7 @@ def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
     task threads (the fused threshold was 50,000 values, tuned for numba's OpenMP pool) and
     took 1.4-1.8x as long as on one thread at load 2; below ``gem.FUSED_SERIAL_VALUES``
     they now run on the calling thread, and a 256x256 one still on every thread."""
-    from statmc import _filter_kernels, gem
+    from statmc import _filter_kernels, _threads, gem
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one numba thread only")
@@ -175,17 +192,92 @@ def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
     first_stop = _filter_kernels.first_stop
 
     def spy(*args):
-        threads.append(numba.get_num_threads())
+        threads.append(_threads.thread_count())
         return first_stop(*args)
 
     monkeypatch.setattr(_filter_kernels, "first_stop", spy)
-    before = numba.get_num_threads()
+    before = _threads.thread_count()
     rng = np.random.default_rng(2)
     for side in (136, 192, 256):
         m = rng.random((side, side, 3)).astype(np.float32)
         gem.reconstruct(m, np.full_like(m, 0.01))
     assert threads == [1, 1, before]
-    assert numba.get_num_threads() == before
+    assert _threads.thread_count() == before
+
+
+_TORCH_PROBE = """
+import torch
+torch.set_num_threads(1)
+assert torch.get_num_threads() == 1
+import numba
+import numpy as np
+from numba.np.ufunc import parallel
+import statmc.combine as C
+import statmc.gem as gem
+from statmc import _task_threads
+run_chunks, chunks = _task_threads.run_chunks, []
+
+
+def counted(call, start, stop):          # how many chunks each kernel pass ran in
+    n = [0]
+    def one(lo, hi):
+        n[0] += 1
+        call(lo, hi)
+    run_chunks(one, start, stop)
+    chunks.append(n[0])
+
+
+_task_threads.run_chunks = counted
+rng = np.random.default_rng(0)
+most = []
+for side in (24, 300):          # 300x300 RGB: above every serial threshold
+    m = rng.random((side, side, 3))
+    gem.reconstruct(m, 0.01 * m)
+    most.append(max(chunks))
+y = rng.random((256, 256, 3)).astype(np.float32)
+C.combine(y, y + 0.01, C.gaussian_weights(256, 256, 1, 15, 3.0)[:, :, 0])
+print(torch.get_num_threads(), parallel._is_initialized, *most, numba.config.NUMBA_NUM_THREADS)
+"""
+
+
+def test_statmc_calls_leave_numbas_pool_and_torchs_thread_count_alone():
+    """Regression (session 16, docs review): statmc asked ``numba.get_num_threads()`` (and
+    set it for small calls), which starts numba's OpenMP pool; with torch imported first
+    that is torch's libgomp, and after ``torch.set_num_threads(1)`` and a
+    ``torch.get_num_threads()`` call its start reset torch to one thread per core (a 32x32
+    ``unfold`` then took 8-16 ms instead of 0.12-0.22 ms).  statmc's kernels never use
+    numba's pool: GEM of a small and a 300x300 image (several task threads) and a combine
+    must leave it unstarted and torch at its one thread."""
+    pytest.importorskip("torch")
+    p = subprocess.run([sys.executable, "-c", _TORCH_PROBE], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    torch_threads, started, small, large, cores = p.stdout.split()
+    assert (torch_threads, started) == ("1", "False"), p.stdout
+    assert small == "1", p.stdout                        # one chunk: the calling thread
+    assert int(large) > 1 or cores == "1", p.stdout      # several task threads
+
+
+def test_numba_set_num_threads_still_limits_statmc():
+    """The user's ``numba.set_num_threads(n)`` (tests and docs use it) still sets how many
+    threads statmc's runner uses: 1 runs every chunk inline on the calling thread."""
+    from statmc import _task_threads, _threads
+
+    before = numba.get_num_threads()
+    calls = []
+    try:
+        for n in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(n)
+            calls.clear()
+            _task_threads.run_chunks(
+                lambda lo, hi: calls.append((lo, hi, threading.current_thread().name)), 0, 100)
+            assert _threads.thread_count() == n
+            if n == 1:
+                assert calls == [(0, 100, threading.current_thread().name)]
+            else:
+                assert len(calls) == min(100, n * _task_threads.CHUNKS_PER_THREAD)
+    finally:
+        numba.set_num_threads(before)
 
 
 _OIDN_PROBE = f"""
