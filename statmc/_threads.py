@@ -182,7 +182,10 @@ SERIAL_VALUES = 300_000
 def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
     """Decorator: run the function's kernels on the calling thread alone when its first
     argument (given by position or by name) holds fewer than ``threshold`` values
-    (:func:`serial_below`) and the user set no OpenMP wait policy (see :func:`passive_omp`).
+    (:func:`serial_below`), whatever OpenMP wait policy the user set: statmc's threads are
+    Python threads (:mod:`statmc._task_threads`) that never spin, so a user's
+    ``OMP_WAIT_POLICY=ACTIVE`` no longer makes small calls cheap in parallel (until
+    session 16 it kept them on numba's spinning OpenMP pool).
     ``threshold_of(kwargs)``, if given, picks the threshold from the call's keyword
     arguments (a call that runs fewer parallel regions pays fewer wake-ups, so it is
     parallel from a smaller size)."""
@@ -199,8 +202,6 @@ def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):
                 work = int(np.size(first))
             except Exception:                  # ragged input: the function will say why
                 work = limit
-            if _user_chose_policy():
-                work = limit                   # spinning workers wake at once: stay parallel
             with serial_below(work, limit):
                 return fn(*args, **kwargs)
         return run
