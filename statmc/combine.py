@@ -1569,12 +1569,13 @@ MIX_SIGMA_IMAGES = 4.0
 
 def _check_mix(mix, mix_sigma, hw) -> float:
     """Check the SURE mix options of :func:`combine_denoised` / :func:`combine_bins` for
-    an image of height and width ``hw``; returns ``mix_sigma`` as a float."""
+    an image of height and width ``hw``; returns ``mix_sigma`` as a float.  Its upper
+    bound applies to ``mix="local"`` only, the one mix that uses it."""
     if mix not in ("local", "global", None):
         raise InputError(f"`mix` must be 'local', 'global' or None; got {mix!r}.")
     ms = as_number("mix_sigma", mix_sigma, lo=0.0, lo_open=True)
     limit = max(DEFAULT_MIX_SIGMA, MIX_SIGMA_IMAGES * max(hw))
-    if ms > limit:
+    if mix == "local" and ms > limit:   # the other mixes do not use mix_sigma
         raise InputError(
             f"`mix_sigma` must be at most {limit:g} pixels for a {hw[0]}x{hw[1]} image "
             f"({MIX_SIGMA_IMAGES:g} times its longer side, and never less than "

@@ -1389,6 +1389,23 @@ def test_mix_sigma_too_wide_for_the_image_is_an_input_error():
     assert np.isfinite(combine.combine_denoised(tiny, v[:2, :2], f, **small)).all()
 
 
+@pytest.mark.parametrize("mix", ["global", None])
+def test_mix_sigma_bound_only_applies_to_the_local_mix(mix):
+    """``mix_sigma`` only sizes the Gaussian of ``mix="local"``; with ``mix="global"`` or
+    None it is not used, and a wide one was refused with "pass mix='global'" even when
+    mix='global' was given.  The output equals the one with the default σ."""
+    x, v, _, _ = _small()
+    f = denoisers.gaussian(1.0)
+    ys = np.stack([x, 1.05 * x])
+    small = dict(size=5, probes=2, stencil=3, smooth=1, patch=1, rng=1, mix=mix)
+    ref = combine.combine_denoised(x, v, f, **small)
+    np.testing.assert_array_equal(combine.combine_denoised(x, v, f, mix_sigma=1e30, **small), ref)
+    ref_b = combine.combine_bins(ys, v, f, **small)
+    np.testing.assert_array_equal(combine.combine_bins(ys, v, f, mix_sigma=1e30, **small), ref_b)
+    with pytest.raises(InputError, match="`mix_sigma`"):       # still a positive number
+        combine.combine_denoised(x, v, f, mix_sigma=0.0, **small)
+
+
 def test_combine_boosting_names_weights_when_they_are_not_finite():
     """A NaN weight inside the image made ``combine_boosting`` report "`kernels` holds 1
     NaN" (the name inside apply_kernels); ``combine`` names `weights`, and so does it now."""
