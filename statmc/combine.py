@@ -311,8 +311,10 @@ def combine_boosting(y, z, weights):
     inside = np.stack([_valid(H, W, dy - k // 2, dx - k // 2)
                        for dy in range(k) for dx in range(k)], axis=-1).reshape(H, W, k, k)
     w = np.where(inside > 0, w, 0.0)                # outside taps are never used (as in Eq. 8)
-    bad = ~np.isfinite(w).all(axis=(2, 3))
-    if bad.any():   # apply_kernels would name them `kernels`, not the caller's `weights`
+    # apply_kernels would name them `kernels`, not the caller's `weights`; zero sums
+    # counted too, as _raise_bad names the first pixel that fails either way
+    bad = ~np.isfinite(w).all(axis=(2, 3)) | (w.sum(axis=(2, 3)) == 0)
+    if bad.any():
         _raise_bad(w[:, :, None], bad.sum(axis=1))
     y64, z64 = ys[0].astype(np.float64), zs[0].astype(np.float64)
     num = apply_kernels(w, y64 - z64)

@@ -1416,6 +1416,11 @@ def test_combine_boosting_names_weights_when_they_are_not_finite():
     for func in (combine.combine, combine.combine_boosting):
         with pytest.raises(InputError, match=r"`weights` must be finite .* \(row 3, column 4\)"):
             func(x, z, w)
+    w[3, 1] = 0.0         # and a zero W_c before it in the row: both counted, it named first
+    for func in (combine.combine, combine.combine_boosting):
+        with pytest.raises(InputError, match=r"2 pixel\(s\) fail, the first at \(row 3, column 1\) "
+                                             r"with W_c = 0"):
+            func(x, z, w)
 
 
 @pytest.mark.parametrize("name,bad", [("sigma", "2"), ("sigma", True), ("prior_dof", "1"),
