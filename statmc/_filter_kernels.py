@@ -932,7 +932,7 @@ def allocate_rounds(rel, n, budget, batch, rounds, amount, r, nn, g, hists):
 @njit(cache=True, nogil=True)
 def _round_plan(part, size, batch, fb, npos_c, keys, hists, g):  # pragma: no cover - compiled
     """What one round of :func:`allocate_rounds` hands out: ``(base, t, need, cut,
-    extra)`` for :func:`_assign_chunk`, from the ``part`` samples of the round, the
+    extra)`` for :func:`_assign_chunks`, from the ``part`` samples of the round, the
     chunks' counts of pixels that can gain (``npos_c``) and first-digit histograms.
 
     Serial, between the chunk passes (inside the former parallel kernel its array sums

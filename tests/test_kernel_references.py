@@ -107,7 +107,7 @@ def test_filter_bank_float32_on_degenerate_images(shape):
 
 @pytest.mark.parametrize("hw", DEGENERATE)
 def test_greedy_allocation_on_degenerate_images(hw):
-    """``allocate_rounds`` (with ``_rank_key``, ``_start_chunk``, ``_assign_chunk``) equals
+    """``allocate_rounds`` (with ``_rank_key``, ``_start_chunks``, ``_assign_chunks``) equals
     ``gem._allocate_rounds`` on single-pixel/row/column maps with zero gains (ties) and
     budgets below, at and far above the pixel count.  Exact: both hand out whole samples
     by the same (gain, index) order."""
