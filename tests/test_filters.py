@@ -103,6 +103,37 @@ def test_border_scale_renormalises():
         assert s[p] * inside == pytest.approx(1.0, rel=1e-14)
 
 
+def test_kept_kernels_and_border_factors_are_fresh_copies_of_the_formula():
+    """``_gauss`` and ``_border_scale`` keep their results for repeated sizes (session
+    16): every call returns its own writable array, bit for bit the direct formula (taps
+    ``exp(−k²/2σ²)/Σ``; factors ``1/Σ in-image taps``), for float64 and float32 taps,
+    also after a caller scaled an earlier result in place, and past the kept size."""
+    F._gauss_kept.cache_clear()
+    F._border_scale_kept.cache_clear()
+    for s, r in [(0.6, 2), (2.0, 6), (13.6, 41), (3000.0, 9000)]:   # the last is not kept
+        k = np.arange(-r, r + 1, dtype=np.float64)
+        ref = np.exp(-0.5 * (k / s) ** 2)
+        ref = ref / ref.sum()
+        for _ in range(2):
+            w = F._gauss(s, r)
+            assert w.flags.writeable and w.dtype == np.float64
+            assert np.array_equal(w, ref)
+            w *= 3.0                                   # must not reach the next call
+        for dt in (np.float64, np.float32):
+            taps = ref.astype(dt)
+            for n in (1, 5, 2 * r + 7, 20000):
+                c = np.concatenate([[0.0], np.cumsum(taps)])
+                pos = np.arange(n)
+                lo = np.maximum(pos - r, 0) - (pos - r)
+                hi = np.minimum(pos + r, n - 1) - (pos - r) + 1
+                expect = 1.0 / (c[hi] - c[lo])
+                for _ in range(2):
+                    b = F._border_scale(n, taps)
+                    assert b.flags.writeable and b.dtype == expect.dtype
+                    assert np.array_equal(b, expect)
+                    b[:] = -1.0
+
+
 # ------------------------------------------------------------- numba kernel vs NumPy
 @pytest.mark.parametrize("shape", [(23, 31, 3), (1, 40, 1), (40, 1, 2), (1, 1, 3), (7, 9, 4), (12, 10)])
 @pytest.mark.parametrize("sigmas", [F.ADAPTIVE_SIGMAS, F.FINAL_SIGMAS, (0.7, 3.3)])
