@@ -125,8 +125,14 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
     xp = np.maximum(x, 0.0)
     planes = [np.log1p(xp),
               np.log(stats.mean_var / (x * x + REL_EPS) + VAR_FLOOR) / 10.0]
-    for feat in (stats.albedo, stats.normal):
-        planes.append(np.zeros((H, W, 3)) if feat is None else np.asarray(feat, np.float64))
+    for name in ("albedo", "normal"):
+        feat = getattr(stats, name)
+        if feat is None:
+            planes.append(np.zeros((H, W, 3)))
+            continue
+        feat = np.asarray(feat, np.float64)
+        check_finite(f"stats.{name}", feat)       # named here, not as the `features` below
+        planes.append(feat)
     if extra is not None:
         for e in _extra(extra, x.shape):
             planes += [np.log1p(np.maximum(e, 0.0)), np.abs(e - x) / (np.abs(x) + DIST_EPS)]

@@ -433,6 +433,19 @@ def test_pixel_features_refuse_pixels_without_a_variance(n_low):
         snn.KernelNet().kernels(low)
 
 
+@pytest.mark.parametrize("name", ["albedo", "normal"])
+def test_pixel_features_name_the_feature_buffer_that_is_not_finite(name):
+    """Regression (session 16): a NaN in the albedo or normal buffer (PixelStats accepts
+    them: files of other tools may hold some) was refused as "`features` holds 1 NaN",
+    a name the caller never gave; the message names ``stats.albedo`` / ``stats.normal``."""
+    st = _render(size=6, spp=4)
+    buf = getattr(st, name).copy()
+    buf[2, 3, 1] = np.nan
+    setattr(st, name, buf)
+    with pytest.raises(InputError, match=rf"`stats\.{name}` holds 1 NaN"):
+        snn.pixel_features(st)
+
+
 # ============================================================================ networks
 def test_kernel_net_gives_normalised_kernels_for_statmc():
     st = _render()
