@@ -35,6 +35,7 @@ def render_reference(renderer, spp: int, *, pass_spp: int = 256, seed: int = 1_0
     from tqdm import tqdm
 
     spp, pass_spp = as_int("spp", spp), as_int("pass_spp", pass_spp)
+    seed = as_int("seed", seed, lo=0)          # True would run as seed 1
     per = min(spp, pass_spp)
     sizes = [per] * (spp // per) + ([spp % per] if spp % per else [])
     stats = None
@@ -87,6 +88,7 @@ def compare(renderer, ref, spps, methods=METHODS, *, seed: int = 0, out: str | N
     from .pipeline import reconstruct_stats, render_with_sampler
     from .plots import write_map_png
 
+    seed = as_int("seed", seed, lo=0)          # True would run as seed 1
     rows = []
     for spp in spps:
         for name, (sampler, rec) in methods.items():

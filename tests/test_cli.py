@@ -1842,6 +1842,22 @@ def test_demo_reports_bad_input_in_one_line(tmp_path, capsys, monkeypatch):
     assert demo.main([]) == 0
 
 
+def test_demo_library_functions_refuse_a_bool_or_negative_seed():
+    """Regression (session 16, review): ``render_reference(seed=True)`` and
+    ``compare(seed=True)`` ran as seed 1 (pass seeds ``seed + 7919 k`` are plain ints, so
+    the renderers' own seed checks never saw the bool)."""
+    import statmc.demo as demo
+    from statmc.errors import InputError
+    from statmc.renderers import make_renderer
+    r = make_renderer("toy:constant", width=4, height=4)
+    for bad in (True, -1, 2.0):
+        with pytest.raises(InputError, match="`seed` must be a non-negative integer"):
+            demo.render_reference(r, 2, seed=bad, progress=False)
+        with pytest.raises(InputError, match="`seed` must be a non-negative integer"):
+            demo.compare(r, None, [4], seed=bad, quiet=True)
+    assert demo.render_reference(r, 2, seed=0, progress=False).n.min() == 2
+
+
 def test_python_dash_m_statmc_demo_exits_2_on_bad_input(tmp_path):
     """The module entry itself: one line on stderr, exit status 2 (was a traceback, 1)."""
     p = subprocess.run([sys.executable, "-m", "statmc.demo", "--scene", "nosuchscene",
