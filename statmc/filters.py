@@ -137,11 +137,12 @@ _CACHE_VALUES = 1 << 14
 
 def _cached(compute):
     """``compute(*key)`` kept for keys whose result holds at most :data:`_CACHE_VALUES`
-    values; each call gets its own writable copy (a caller may scale it in place)."""
+    values; each call gets its own writable array (a copy of the kept one: a caller may
+    scale it in place), a larger result is computed afresh at each call."""
     keep = functools.lru_cache(maxsize=256)(compute)
 
     def get(*key, size):
-        return (keep(*key) if size <= _CACHE_VALUES else compute(*key)).copy()
+        return keep(*key).copy() if size <= _CACHE_VALUES else compute(*key)
     get.cache_clear = keep.cache_clear
     return get
 
