@@ -169,14 +169,16 @@ def serial_below(work: int, threshold: int):
         _LOCAL.serial -= 1
 
 
-#: Below this many values (about 320x320 RGB) statmc's GEM and filter-bank calls run on
-#: the calling thread while numba's pool waits passively.  Then every parallel region of
-#: a call pays for waking a sleeping worker: about 13 ms per ``gem.reconstruct`` on an
-#: idle 2-core machine, whatever the size.  Serially a 256x256 RGB reconstruction took
-#: 21 ms against 26 ms in parallel, a 384x384 one 47 against 40 ms (median of repeated
-#: calls, load average about 1).  Re-measured in session 11 (docs/gem.md §7): the two
-#: cross between 320x320 (33 vs 34 ms) and 384x384.
-SERIAL_VALUES = 300_000
+#: Below this many values (about 245x245 RGB) statmc's GEM and filter-bank calls run on
+#: the calling thread alone.  Every parallel region of a call pays for handing chunks to
+#: the other task threads (:mod:`statmc._task_threads`), so small images are faster on
+#: one thread.  It was 300,000 (about 316x316) from session 11, measured for numba's
+#: OpenMP pool.  On an idle 2-core machine (session 17, docs/gem.md §7) two task threads
+#: won from about 224x224 (150,528 values): the paper-mode ``reconstruct`` 20.4 against
+#: 16.4 ms there and 24.3 against 18.6 ms at 256x256, ``filter_bank`` 10.7 against 7.8 ms;
+#: at 192x192 the two were even.  With other jobs on the cores one thread won at every size
+#: up to 320x320, so the threshold sits above the idle crossover.
+SERIAL_VALUES = 180_000
 
 
 def serial_when_small(threshold: int = SERIAL_VALUES, *, threshold_of=None):

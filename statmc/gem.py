@@ -79,7 +79,7 @@ BIAS_POOL_SIGMA = 1.0
 FUSED_PIXELS = 1 << 18
 #: ``select``/``reconstruct``/``selected_filter`` calls with the pooled selection run on
 #: the task threads (:mod:`statmc._task_threads`) from this many values (about 224x224
-#: RGB) instead of ``_threads.SERIAL_VALUES`` (about 320x320): fused, they run 11 parallel
+#: RGB) instead of ``_threads.SERIAL_VALUES`` (about 245x245): fused, they run 11 parallel
 #: regions instead of 73.  It was 50,000 (about 128x128), measured for numba's OpenMP pool
 #: (session 11); the Python task threads lose more when the cores are busy.  On 2026-11-23
 #: at load 2.1-2.3, two threads against one took 1.5-1.8x as long at 136x136 and

@@ -206,6 +206,33 @@ def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
     assert _threads.thread_count() == before
 
 
+def test_unfused_calls_of_a_256_image_use_every_thread(monkeypatch):
+    """Session 17 (docs/gem.md §7): on an idle 2-core machine two task threads won from
+    about 224x224 RGB for the paper selection, ``sampling_map`` and the filter bank, so
+    ``_threads.SERIAL_VALUES`` is 180,000 (was 300,000): a 240x240 image still runs on
+    the calling thread, a 256x256 one on every thread."""
+    from statmc import _filter_kernels, _threads, gem
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread only")
+    threads = []
+    first_stop = _filter_kernels.first_stop
+
+    def spy(*args):
+        threads.append(_threads.thread_count())
+        return first_stop(*args)
+
+    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    before = _threads.thread_count()
+    rng = np.random.default_rng(3)
+    for side in (240, 256):
+        m = rng.random((side, side, 3)).astype(np.float32)
+        gem.reconstruct(m, np.full_like(m, 0.01), final=False)
+        gem.sampling_map(m, np.full_like(m, 0.01), np.full((side, side), 4), side * side, rng=0)
+    assert threads == [1, 1, before, before]
+    assert _threads.thread_count() == before
+
+
 _TORCH_PROBE = """
 import torch
 torch.set_num_threads(1)
