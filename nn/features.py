@@ -37,7 +37,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import InputError, as_float_array, as_number, check_finite
+from statmc.errors import (MAX_BUDGET, InputError, as_float_array, as_int, as_number, as_whole,
+                           check_finite)
 from statmc.progressive import as_mix_inputs, bind_denoiser
 from statmc.stats import PixelStats, check_stats
 
@@ -70,13 +71,11 @@ def feature_channels(channels: int = 3, *, extra: int = 0, budget: bool = False)
     int
         ``2C + 6 + 2C·extra + 2·budget``.
     """
-    for name, v in (("channels", channels), ("extra", extra)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise InputError(f"`{name}` must be a non-negative int; got {v!r}.")
+    channels, extra = as_int("channels", channels, lo=0), as_int("extra", extra, lo=0)
     if not isinstance(budget, (bool, np.bool_)):
         raise InputError(f"`budget` must be a bool (whether pixel_features gets a budget); "
                          f"got {budget!r}.")
-    return 2 * channels + 6 + 2 * channels * int(extra) + 2 * bool(budget)
+    return 2 * channels + 6 + 2 * channels * extra + 2 * bool(budget)
 
 
 def _extra(extra, shape):
@@ -105,7 +104,8 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
         correlated image(s) and bins for :class:`CombinerNet`.
     budget : int, optional
         The next iteration's total sample budget, for :class:`SamplingNet` (Salehi 2022
-        Eq. 11 feeds it, and the current sampling map, to the sampler).
+        Eq. 11 feeds it, and the current sampling map, to the sampler): a whole number in
+        ``[0, 2**53]``, as :func:`statmc.sampling.counts_from_density` takes.
     dtype : torch.float32 or torch.float64
 
     Returns
@@ -136,10 +136,8 @@ def pixel_features(stats: PixelStats, *, extra=None, budget=None,
     if extra is not None:
         for e in _extra(extra, x.shape):
             planes += [np.log1p(np.maximum(e, 0.0)), np.abs(e - x) / (np.abs(x) + DIST_EPS)]
-    if budget is not None:
-        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
-            raise InputError(f"`budget` must be a non-negative int (total samples of the next "
-                             f"iteration); got {budget!r}.")
+    if budget is not None:     # 2**70 was taken here, and refused by SamplingNet.counts
+        budget = as_whole("budget", budget, what="number of samples", hi=MAX_BUDGET)
         planes += [np.log1p(np.asarray(stats.n, np.float64))[..., None],
                    np.full((H, W, 1), np.log1p(budget / (H * W)))]
     a = np.concatenate(planes, axis=2)
@@ -168,9 +166,7 @@ MIX_GAIN = 100.0
 
 def mix_feature_channels(channels: int = 3) -> int:
     """Number of planes ``F = 6C`` that :func:`mix_features` returns for ``C`` channels."""
-    if isinstance(channels, bool) or not isinstance(channels, (int, np.integer)) or channels < 1:
-        raise InputError(f"`channels` must be an int >= 1; got {channels!r}.")
-    return 6 * int(channels)
+    return 6 * as_int("channels", channels, lo=1)
 
 
 def _check_mix_options(relative=True, gain=MIX_GAIN):

@@ -32,6 +32,8 @@ def _tensor(name, t, ndim):
                          f"array; got shape {tuple(t.shape)}.  Convert `{name}[i:i+1]` per image.")
     if t.is_complex():   # lost its imaginary part with only a ComplexWarning before
         raise InputError(f"`{name}` must be a real tensor; got {t.dtype}.")
+    if t.is_meta:        # NotImplementedError "Cannot copy out of meta tensor" before
+        raise InputError(f"`{name}` is on the meta device, which holds no values.")
     # float64 in torch: NumPy has no bfloat16 (`.numpy()` raised TypeError "Got unsupported
     # ScalarType BFloat16"); exact for the other real dtypes (then copied, as before)
     return t.detach().cpu().to(torch.float64)
@@ -41,6 +43,17 @@ def _dtype(dtype):
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"`dtype` must be torch.float32 or torch.float64; got {dtype!r}.")
     return dtype
+
+
+def _to_tensor(name, a, dtype):
+    """The finite float64 array ``a`` as a tensor of ``dtype``, refused if a value overflows
+    it (1e300 became Inf in float32 silently)."""
+    t = torch.from_numpy(np.ascontiguousarray(a)).to(_dtype(dtype))
+    if not bool(torch.isfinite(t).all()):
+        raise InputError(f"`{name}` holds values beyond the range of {dtype} (largest "
+                         f"magnitude {float(np.abs(a).max()):.3g}); use dtype=torch.float64, "
+                         "or rescale it.")
+    return t
 
 
 def image_to_tensor(image, *, dtype=torch.float32) -> torch.Tensor:
@@ -57,7 +70,7 @@ def image_to_tensor(image, *, dtype=torch.float32) -> torch.Tensor:
     check_finite("image", a)
     if a.ndim == 2:
         a = a[..., None]
-    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)[None])).to(_dtype(dtype))
+    return _to_tensor("image", a.transpose(2, 0, 1)[None], dtype)
 
 
 def tensor_to_image(t) -> np.ndarray:
@@ -73,8 +86,7 @@ def kernels_from_numpy(kernels, *, dtype=torch.float32) -> torch.Tensor:
     if k != k2 or k % 2 == 0:
         raise InputError(f"`kernels` must have shape (H, W, k, k) with odd k; got {K.shape}.")
     check_finite("kernels", K)
-    return torch.from_numpy(np.ascontiguousarray(
-        K.reshape(H, W, k * k).transpose(2, 0, 1)[None])).to(_dtype(dtype))
+    return _to_tensor("kernels", K.reshape(H, W, k * k).transpose(2, 0, 1)[None], dtype)
 
 
 def kernels_to_numpy(t) -> np.ndarray:
@@ -92,8 +104,7 @@ def weights_from_numpy(weights, *, dtype=torch.float32) -> torch.Tensor:
     if k != k2 or k % 2 == 0:
         raise InputError(f"`weights` must have shape (H, W, B, k, k) with odd k; got {w.shape}.")
     check_finite("weights", w)
-    return torch.from_numpy(np.ascontiguousarray(
-        w.reshape(H, W, B, k * k).transpose(2, 3, 0, 1)[None])).to(_dtype(dtype))
+    return _to_tensor("weights", w.reshape(H, W, B, k * k).transpose(2, 3, 0, 1)[None], dtype)
 
 
 def weights_to_numpy(t) -> np.ndarray:

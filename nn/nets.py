@@ -38,14 +38,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import InputError, as_float_array, as_number, check_finite
+from statmc.errors import (MAX_BUDGET, InputError, as_float_array, as_int, as_number, as_whole,
+                           check_finite)
 from statmc.sampling import counts_from_density
 from statmc.stats import check_stats
 
 from .features import (_check_mix_options, feature_channels, mix_feature_channels, mix_features_of,
                        pixel_features, swap_mix_planes)
 from .layout import kernels_to_numpy, weights_to_numpy
-from .ops import apply_kernels, check_finite_tensor, check_tensor
+from .ops import _finite_result, apply_kernels, check_finite_tensor, check_tensor, torch_seed
 
 __all__ = ["KernelNet", "CombinerNet", "MixNet", "SamplingNet", "F_ACT_EPS",
            "F_ACT_INIT_BIAS", "F_ACT_INIT_SCALE"]
@@ -63,10 +64,10 @@ F_ACT_INIT_SCALE = 0.1
 
 
 def _int(name, v, lo, odd=False):
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo or (odd and v % 2 == 0):
-        want = f"an odd int >= {lo}" if odd else f"an int >= {lo}"
-        raise InputError(f"`{name}` must be {want}; got {v!r}.")
-    return int(v)
+    v = as_int(name, v, lo=lo)
+    if odd and v % 2 == 0:
+        raise InputError(f"`{name}` must be an odd integer (a window side); got {v!r}.")
+    return v
 
 
 def _images(name, a, stats, count=None):
@@ -89,15 +90,16 @@ class _Net(torch.nn.Module):
     """The shared body; ``seed`` makes the initial weights reproducible without touching
     torch's global random state."""
 
-    def __init__(self, in_channels, out_channels, width, seed):
+    def __init__(self, channels, in_channels, out_channels, width, seed):
         super().__init__()
         width = _int("width", width, 1)
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
-            raise InputError(f"`seed` must be an int or None; got {seed!r}.")
+        if seed is not None:
+            seed = torch_seed("seed", seed)
+        self.channels = channels            # C of the render, checked by the NumPy methods
         self.in_channels = in_channels
         with torch.random.fork_rng(devices=[]):
             if seed is not None:
-                torch.manual_seed(int(seed))
+                torch.manual_seed(seed)
             self.body = torch.nn.Sequential(
                 torch.nn.Conv2d(in_channels, width, 3, padding=1), torch.nn.ReLU(),
                 torch.nn.Conv2d(width, width, 3, padding=1), torch.nn.ReLU(),
@@ -113,6 +115,11 @@ class _Net(torch.nn.Module):
         if features.device != self._device:
             raise InputError(f"`features` is on device {features.device} but the network is on "
                              f"{self._device}; move one of them (`features.to(net_device)`).")
+        if not features.is_floating_point():     # complex lost its imaginary part in the cast
+            raise InputError(f"`features` must be a floating-point tensor; got {features.dtype}.")
+        if features.shape[2] == 0 or features.shape[3] == 0:     # a conv RuntimeError
+            raise InputError(f"`features` must have at least one row and column; got shape "
+                             f"{tuple(features.shape)}.")
         check_finite_tensor("features", features)
         return self.body(features.to(self._dtype))
 
@@ -129,7 +136,17 @@ class _Net(torch.nn.Module):
 
     def _features(self, stats, **kw):
         """:func:`pixel_features` in this network's dtype, on its device (the NumPy methods)."""
+        self._check_stats(stats)
         return pixel_features(stats, dtype=self._dtype, **kw).to(self._device)
+
+    def _check_stats(self, stats):
+        """``InputError`` unless ``stats`` is a render of the ``C`` this network was built for
+        (the refusal named `features`, which the caller of a NumPy method never gave)."""
+        check_stats(stats)
+        C = stats.mean.shape[2]
+        if C != self.channels:
+            raise InputError(f"`stats` has C = {C} channels, but this network was built for "
+                             f"channels={self.channels}; build it with channels={C}.")
 
     @property
     def _dtype(self):
@@ -172,8 +189,8 @@ class KernelNet(_Net):
 
     def __init__(self, channels: int = 3, *, k: int = 5, width: int = 16, seed=0):
         self.k = _int("k", k, 1, odd=True)
-        super().__init__(feature_channels(_int("channels", channels, 1)), self.k * self.k,
-                         width, seed)
+        C = _int("channels", channels, 1)
+        super().__init__(C, feature_channels(C), self.k * self.k, width, seed)
 
     def forward(self, features):
         """``(N, 2C + 6, H, W)`` features -> ``(N, k·k, H, W)`` kernels, softmax over taps.
@@ -227,8 +244,9 @@ class CombinerNet(_Net):
         self.k = _int("k", k, 1, odd=True)
         self.buffers = _int("buffers", buffers, 1)
         extra = 1 if self.buffers == 1 else 2 * self.buffers
-        super().__init__(feature_channels(_int("channels", channels, 1), extra=extra),
-                         self.buffers * self.k * self.k, width, seed)
+        C = _int("channels", channels, 1)
+        super().__init__(C, feature_channels(C, extra=extra), self.buffers * self.k * self.k,
+                         width, seed)
 
     def forward(self, features):
         """Features -> ``(N, B, k·k, H, W)`` positive weights (softmax over ``B·k·k``).
@@ -242,6 +260,7 @@ class CombinerNet(_Net):
 
     def features(self, stats, zs, ys=None) -> torch.Tensor:
         """This network's inputs: ``z`` for ``B = 1``; ``ys`` and ``zs`` ``(B, H, W, C)`` for ``B > 1``."""
+        self._check_stats(stats)
         if self.buffers == 1:
             if ys is not None:
                 raise InputError("`ys` is for B > 1 bins; with buffers=1 the independent "
@@ -338,7 +357,7 @@ class MixNet(_Net):
         self.per_channel = bool(per_channel)
         K = C if self.per_channel else 1   # α maps: one per channel, or one shared
         F = feature_channels(C, extra=1) if inputs == "pixel" else mix_feature_channels(C)
-        super().__init__(F, K if activation == "sigmoid" else 3 * K, width, seed)
+        super().__init__(C, F, K if activation == "sigmoid" else 3 * K, width, seed)
         if activation == "f_act":          # start inside the clamp, x3 > ε (F_ACT_INIT_BIAS)
             head = self.body[-1]
             with torch.no_grad():
@@ -373,7 +392,8 @@ class MixNet(_Net):
         if a.shape[1] != 1 and a.shape[1] != x.shape[1]:
             raise InputError(f"`x` must have the {a.shape[1]} channels of this per-channel "
                              f"network's α; got shape {tuple(x.shape)}.")
-        return x + a * (y - x)
+        # NaN/Inf in x or y reaches the result (it was returned silently): checked there
+        return _finite_result(x + a * (y - x), (("x", x), ("y", y)))
 
     def alpha(self, stats, y, *, sure=None, divergence=None) -> np.ndarray:
         """α for a render and its denoised image ``y`` ``(H, W, C)``, as an ``(H, W)`` float64
@@ -383,6 +403,7 @@ class MixNet(_Net):
         :func:`statmc.sure.mc_sure`) are needed too; :meth:`alpha_from` takes them in a
         :func:`statmc.nn.mix_inputs` dict.
         """
+        self._check_stats(stats)
         if self.inputs == "pixel":
             if sure is not None or divergence is not None:
                 raise InputError("`sure` and `divergence` are inputs of MixNet(inputs='mix'); "
@@ -392,7 +413,6 @@ class MixNet(_Net):
         if sure is None or divergence is None:
             raise InputError("MixNet(inputs='mix') needs `sure` and `divergence` of `y` "
                              "(statmc.sure.mc_sure(..., extra_output=True)); got None.")
-        check_stats(stats)
         # as pixel_features and mix_inputs: mean_var is 0 where n < 2, which reads as noise-free
         stats.require_variance(why="for the VAR plane of the mixing network's inputs",
                                hint=" Render a uniform pass of >= 2 spp first.")
@@ -446,8 +466,8 @@ class SamplingNet(_Net):
     """
 
     def __init__(self, channels: int = 3, *, width: int = 16, seed=0):
-        super().__init__(feature_channels(_int("channels", channels, 1), budget=True), 1,
-                         width, seed)
+        C = _int("channels", channels, 1)
+        super().__init__(C, feature_channels(C, budget=True), 1, width, seed)
 
     def forward(self, features):
         """Features -> ``(N, 1, H, W)`` logits ``Φ`` of Salehi 2022 Eq. 11
@@ -479,6 +499,9 @@ class SamplingNet(_Net):
         rng : numpy Generator or int, optional
             Randomness of the rounding (:func:`statmc.sampling.counts_from_density`).
         """
+        # checked first: budget=None built features without the budget planes, refused
+        # as the wrong `features`
+        budget = as_whole("budget", budget, what="number of samples", hi=MAX_BUDGET)
         with torch.no_grad():
             d = self.density(self._features(stats, budget=budget))
         return counts_from_density(d[0, 0].cpu().numpy().astype(np.float64), budget, rng=rng)

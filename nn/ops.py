@@ -50,10 +50,27 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from statmc.errors import InputError
+import numbers
+
+from statmc.errors import InputError, as_int
 
 __all__ = ["apply_kernels", "combine", "combine_multi", "ApplyKernels", "Combine",
-           "CombineMulti", "kernel_size", "check_tensor", "check_finite_tensor", "check_like"]
+           "CombineMulti", "kernel_size", "check_tensor", "check_finite_tensor", "check_like",
+           "torch_seed"]
+
+#: Largest seed :func:`torch.manual_seed` takes (it raised a bare ValueError "Overflow when
+#: unpacking long long" beyond).
+MAX_TORCH_SEED = 2 ** 64 - 1
+
+
+def torch_seed(name, seed):
+    """``seed`` as an int for :func:`torch.manual_seed`, in ``[0, 2**64 − 1]``
+    (``InputError`` naming ``name`` otherwise).  Negative seeds are refused as
+    :func:`statmc.errors.as_rng` refuses them (torch would remap them to ``2**64 − 1 + seed``)."""
+    seed = as_int(name, seed, lo=0)
+    if seed > MAX_TORCH_SEED:
+        raise InputError(f"`{name}` must be <= 2**64 - 1 (torch.manual_seed's range); got {seed!r}.")
+    return seed
 
 
 def check_tensor(name, t, ndim, what):
@@ -142,7 +159,8 @@ def _check_weight_sums(wsum):
 
 def kernel_size(taps: int, name: str = "kernels") -> int:
     """Odd window side ``k`` of a tap axis of length ``k·k`` (``InputError`` otherwise)."""
-    k = int(round(taps ** 0.5))
+    ok = isinstance(taps, numbers.Integral) and not isinstance(taps, bool) and taps >= 0
+    k = int(round(taps ** 0.5)) if ok else 0     # -9 ** 0.5 is complex, "9" ** 0.5 a TypeError
     if k * k != taps or k % 2 == 0:
         raise InputError(f"`{name}` must hold k·k taps with odd k on its tap axis (9, 25, 49, "
                          f"...); got {taps}.")

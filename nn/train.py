@@ -7,15 +7,15 @@ training framework: no data loading, no checkpoints, no schedules.
 
 from __future__ import annotations
 
+import inspect
 import time
 
-import numpy as np
 import torch
 
-from statmc.errors import InputError, as_number
+from statmc.errors import InputError, as_int, as_number
 
 from .features import swap_mix_planes
-from .ops import check_finite_tensor, check_like, check_tensor
+from .ops import _readable, check_finite_tensor, check_like, check_tensor, torch_seed
 
 __all__ = ["relmse_loss", "train", "random_swap", "swap_mix_loss", "RELMSE_EPS"]
 
@@ -28,14 +28,21 @@ def relmse_loss(x, ref, eps: float = RELMSE_EPS):
 
     Parameters
     ----------
-    x, ref : tensors of the same shape
+    x, ref : floating-point tensors of the same shape, dtype and device
+        Not empty, finite.
     eps : float
         ε = 0.01 of §7 of Rousselle et al. 2011 (the value of :func:`statmc.metrics.relmse`,
         which this equals on the same numbers in any layout: the mean is over all entries).
+        ``eps = 0`` needs a reference without zeros.
 
     Returns
     -------
     0-d tensor
+
+    Raises
+    ------
+    InputError
+        For anything else, and when the loss overflows the dtype (e.g. float16).
 
     References
     ----------
@@ -48,17 +55,31 @@ def relmse_loss(x, ref, eps: float = RELMSE_EPS):
                          f"{type(ref).__name__}.")
     if x.shape != ref.shape:
         raise InputError(f"`ref` must have the shape of `x` {tuple(x.shape)}; got {tuple(ref.shape)}.")
+    if not x.is_floating_point():   # ints gave a silent result, bools a RuntimeError,
+        raise InputError(f"`x` and `ref` must be floating-point tensors; got {x.dtype}.")  # complex a complex loss
     check_like("ref", ref, "x", x)
+    if x.numel() == 0:              # the mean of nothing was a silent NaN
+        raise InputError(f"`x` and `ref` must not be empty; got shape {tuple(x.shape)}.")
     check_finite_tensor("x", x)
     check_finite_tensor("ref", ref)
     eps = as_number("eps", eps, lo=0.0)
-    return torch.mean((x - ref) ** 2 / (ref * ref + eps))
+    if eps == 0.0 and _readable((ref == 0).any()):     # 0/0 was a silent NaN
+        raise InputError(f"`eps` = 0 needs a reference without zeros; `ref` has "
+                         f"{int((ref == 0).sum())}.  Use eps > 0 (default 0.01).")
+    loss = torch.mean((x - ref) ** 2 / (ref * ref + eps))
+    if _readable(torch.isfinite(loss)) is False:
+        raise InputError(f"`x`: the loss overflowed {x.dtype} although `x` and `ref` are "
+                         "finite; use float32 or float64, or rescale them.")
+    return loss
 
 
 def _check_loss(loss, step):
     """``InputError`` unless ``loss`` is a finite one-element tensor with a gradient."""
     if not isinstance(loss, torch.Tensor) or loss.numel() != 1:
         raise InputError(f"`loss_fn` must return a scalar tensor; got {loss!r} at step {step}.")
+    if not loss.is_floating_point():     # complex: a RuntimeError deep in backward()
+        raise InputError(f"`loss_fn` must return a real floating-point loss; got {loss.dtype} "
+                         f"at step {step}.")
     if not loss.requires_grad:
         raise InputError(f"`loss_fn` returned a loss without a gradient at step {step} "
                          "(requires_grad is False): it must be computed from the "
@@ -75,16 +96,19 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     Parameters
     ----------
     model : torch.nn.Module
+        With at least one trainable parameter.
     loss_fn : callable ``(model, step) -> 0-d tensor``
         Builds one step's loss, e.g. ``relmse_loss(net.denoise(features, image), truth)``
-        on a fresh render per step.
+        on a fresh render per step; it must be computed from ``model``'s parameters.
     steps : int
+        ``>= 0``.
     lr : float
-        Adam's learning rate (default 3e-3: the rate that fitted the notebook's kernel
-        network in a few dozen steps).
+        Adam's learning rate, ``> 0`` (default 3e-3: the rate that fitted the notebook's
+        kernel network in a few dozen steps).
     seed : int
-        Seeds torch's random state inside the run (restored afterwards), for any
-        randomness in ``loss_fn`` or the model; the run is then reproducible.
+        In ``[0, 2**64 − 1]``.  Seeds torch's random state inside the run (restored
+        afterwards), for any randomness in ``loss_fn`` or the model; the run is then
+        reproducible.
 
     Returns
     -------
@@ -95,8 +119,11 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     Raises
     ------
     InputError
-        For bad arguments, and when ``loss_fn`` returns something other than a one-element
-        tensor with a gradient, or a NaN/Inf loss.  The run then stops before that step's
+        For bad arguments (a ``loss_fn`` that cannot be called as ``loss_fn(model, step)``
+        among them); when ``loss_fn`` raises an ``InputError`` (re-raised naming
+        ``loss_fn`` and the step); and when it returns something other than a real
+        one-element tensor with a gradient, a NaN/Inf loss, or a loss from which no
+        gradient reaches the model's parameters.  The run then stops before that step's
         optimiser update: the model keeps the weights of the last finite step.
 
     Notes
@@ -106,31 +133,61 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
     """
     if not isinstance(model, torch.nn.Module):
         raise InputError(f"`model` must be a torch.nn.Module; got {type(model).__name__}.")
-    if not callable(loss_fn):
-        raise InputError(f"`loss_fn` must be callable as loss_fn(model, step); got {loss_fn!r}.")
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
-        raise InputError(f"`steps` must be an int >= 0; got {steps!r}.")
+    params = [p for p in model.parameters() if p.requires_grad]
+    if not params:    # none: torch's ValueError; all frozen: a misleading "no gradient"
+        raise InputError(f"`model` must have trainable parameters (requires_grad=True); "
+                         f"{type(model).__name__} has none.")
+    _check_loss_fn(loss_fn)
+    steps = as_int("steps", steps, lo=0)
     lr = as_number("lr", lr, lo=0.0, lo_open=True)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise InputError(f"`seed` must be an int; got {seed!r}.")
+    top = min(float(torch.finfo(p.dtype).max) for p in params)
+    if lr > top:      # a RuntimeError inside Adam's update
+        raise InputError(f"`lr` must be at most {top:.3g}, the largest value of the model's "
+                         f"parameter dtype; got {lr!r}.")
+    seed = torch_seed("seed", seed)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     losses = []
     t0 = time.perf_counter()
     model.train()
     try:
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(int(seed))
-            for step in range(int(steps)):
-                loss = loss_fn(model, step)
+            torch.manual_seed(seed)
+            for step in range(steps):
+                try:
+                    loss = loss_fn(model, step)
+                except InputError as exc:   # e.g. relmse_loss passed as loss_fn itself
+                    raise InputError(f"`loss_fn` (called as loss_fn(model, step)) failed at "
+                                     f"step {step}: {exc}") from exc
                 _check_loss(loss, step)
                 opt.zero_grad()
                 loss.backward()
+                if all(p.grad is None for p in params):     # Adam would skip them all
+                    raise InputError(f"`loss_fn` returned a loss that does not depend on the "
+                                     f"model's parameters (no gradient reached them at step "
+                                     f"{step}): compute it from the `model` argument's output.")
                 opt.step()
                 losses.append(float(loss.detach()))
     finally:
         model.eval()
-    return {"losses": losses, "steps": int(steps), "lr": lr, "seed": int(seed),
+    return {"losses": losses, "steps": steps, "lr": lr, "seed": seed,
             "optimizer": "Adam", "seconds": time.perf_counter() - t0}
+
+
+def _check_loss_fn(loss_fn):
+    """``InputError`` unless ``loss_fn`` is callable with two positional arguments
+    ``(model, step)`` (a one-argument function was a TypeError at step 0)."""
+    if not callable(loss_fn):
+        raise InputError(f"`loss_fn` must be callable as loss_fn(model, step); got {loss_fn!r}.")
+    try:
+        sig = inspect.signature(loss_fn)
+    except (TypeError, ValueError):      # some builtins have none: left to the call
+        return
+    try:
+        sig.bind(None, 0)
+    except TypeError:
+        raise InputError(f"`loss_fn` must be callable as loss_fn(model, step), with two "
+                         f"positional arguments; got {getattr(loss_fn, '__name__', loss_fn)!r} "
+                         f"with signature {sig}.") from None
 
 
 def random_swap(features, x, y, *, p: float = 0.5, generator=None):
@@ -221,5 +278,7 @@ def swap_mix_loss(model, features, x, y, ref, *, p: float = 0.5, loss=relmse_los
     if getattr(model, "inputs", None) != "mix":
         raise InputError("`model` must be a MixNet(inputs='mix'): the swap permutes "
                          "mix_features planes.")
+    if not callable(loss):
+        raise InputError(f"`loss` must be callable as loss(z, ref); got {loss!r}.")
     f, a, b, _ = random_swap(features, x, y, p=p, generator=generator)
     return loss(model.mix(f, a, b), ref)

@@ -296,6 +296,21 @@ def _nan_loss(model, step):
     return next(model.parameters()).sum() * float("nan")
 
 
+def _kernel_loss(model, step):
+    return snn.relmse_loss(model.denoise(snn.pixel_features(_ST), _IMG), _IMG)
+
+
+def _const_loss(model, step):
+    """A loss with a gradient that never reaches the model."""
+    return torch.ones((), requires_grad=True) * 2.0
+
+
+def _frozen_net():
+    net = snn.KernelNet(width=2)
+    net.requires_grad_(False)
+    return net
+
+
 @pytest.mark.parametrize("call, name, what", [
     # the torch twins: one dtype and one device, finite values, a non-empty image
     (lambda: snn.apply_kernels(_K.double(), _IMG), "image", "dtype"),
@@ -348,10 +363,47 @@ def _nan_loss(model, step):
     (lambda: snn.relmse_loss(_NAN, _IMG), "x", "NaN"),
     (lambda: snn.train(snn.KernelNet(width=2), _nan_loss, 3), "loss_fn", "non-finite"),
     (lambda: snn.train(snn.KernelNet(width=2), lambda m, s: torch.ones(()), 3), "loss_fn", "grad"),
+    # session 17 (a fuzz of train's options and the networks' inputs)
+    (lambda: snn.train(torch.nn.ReLU(), _const_loss, 1), "model", "trainable"),     # torch ValueError
+    (lambda: snn.train(_frozen_net(), _kernel_loss, 1), "model", "trainable"),    # blamed loss_fn
+    (lambda: snn.train(snn.KernelNet(width=2), lambda m: _kernel_loss(m, 0), 1), "loss_fn",
+     "two positional"),                                                            # TypeError
+    (lambda: snn.train(snn.KernelNet(width=2), snn.relmse_loss, 1), "loss_fn", "step 0"),  # named `x`
+    (lambda: snn.train(snn.KernelNet(width=2), _const_loss, 2), "loss_fn", "does not depend"),  # no-op run
+    (lambda: snn.train(snn.KernelNet(width=2), lambda m, s: _kernel_loss(m, s) * (1 + 1j), 1), "loss_fn",
+     "floating-point"),                                                            # RuntimeError
+    (lambda: snn.train(snn.KernelNet(width=2), _kernel_loss, 1, lr=1e300), "lr", "at most"),  # RuntimeError
+    (lambda: snn.train(snn.KernelNet(width=2), _kernel_loss, 1, seed=-1), "seed", "non-negative"),
+    (lambda: snn.train(snn.KernelNet(width=2), _kernel_loss, 1, seed=2 ** 64), "seed", "2**64"),  # ValueError
+    (lambda: snn.relmse_loss(torch.ones(3, dtype=torch.int64), torch.zeros(3, dtype=torch.int64)), "x",
+     "floating-point"),                                                            # silent result
+    (lambda: snn.relmse_loss(torch.ones(3, dtype=torch.complex64), torch.ones(3, dtype=torch.complex64)), "x",
+     "floating-point"),                                                            # a complex loss
+    (lambda: snn.relmse_loss(torch.ones(0), torch.ones(0)), "x", "empty"),        # silent NaN
+    (lambda: snn.relmse_loss(torch.ones(3), torch.zeros(3), eps=0), "eps", "zeros"),       # silent NaN
+    (lambda: snn.relmse_loss(torch.full((3,), 6e4, dtype=torch.float16), torch.zeros(3, dtype=torch.float16)),
+     "x", "overflowed"),                                                           # silent Inf
+    (lambda: snn.swap_mix_loss(snn.MixNet(inputs="mix", width=2), *_mix_batch(), loss="smape"), "loss",
+     "callable"),                                                                  # TypeError
+    (lambda: snn.KernelNet(seed=-1), "seed", "non-negative"),
+    (lambda: snn.KernelNet(seed=2 ** 64), "seed", "2**64"),                        # ValueError
+    (lambda: snn.KernelNet()(snn.pixel_features(_ST).to(torch.complex64)), "features", "floating"),  # imag. lost
+    (lambda: snn.KernelNet()(snn.pixel_features(_ST)[:, :, :0]), "features", "row and column"),  # conv error
+    (lambda: snn.MixNet().mix(snn.pixel_features(_ST, extra=_ST.mean), _NAN, _IMG), "x", "1 NaN"),  # NaN out
+    (lambda: snn.KernelNet().kernels(PixelStats(_ST.n, _ST.mean[..., :1], _ST.m2[..., :1])), "stats",
+     "channels=3"),                                                                # named `features`
+    (lambda: snn.SamplingNet().counts(_ST, None), "budget", "whole number"),      # named `features`
+    (lambda: snn.pixel_features(_ST, budget=2 ** 70), "budget", "<="),            # taken silently
+    (lambda: snn.image_to_tensor(np.full((2, 2, 1), 1e300)), "image", "range"),   # silent Inf
+    (lambda: snn.kernels_from_numpy(np.full((2, 2, 1, 1), 1e300)), "kernels", "range"),
+    (lambda: snn.weights_from_numpy(np.full((2, 2, 1, 1, 1), 1e300)), "weights", "range"),
+    (lambda: snn.tensor_to_image(_IMG.to("meta")), "t", "meta"),                  # NotImplementedError
+    (lambda: snn.ops.kernel_size(-9), "kernels", "odd k"),                        # TypeError
 ])
 def test_bad_tensors_are_refused_before_torch_sees_them(call, name, what):
-    """Session 10: each of these gave a silent NaN/Inf or float64 result, or a torch
-    RuntimeError/AttributeError/ValueError that named no parameter."""
+    """Session 10 (and 17 below its comment): each of these gave a silent NaN/Inf, cast or
+    wrong result, or a torch RuntimeError/AttributeError/ValueError that named no parameter
+    (or named another one)."""
     with pytest.raises(InputError, match=f"`{name}`") as e:
         call()
     assert what in str(e.value), str(e.value)
@@ -381,6 +433,25 @@ def test_ops_still_work_under_vmap_jvp_and_on_the_meta_device():
     torch.testing.assert_close(jv, snn.combine(v, torch.zeros_like(v), K[0]), rtol=1e-14, atol=1e-14)
     with pytest.raises(InputError, match="NaN"):           # outside vmap the checks run
         snn.apply_kernels(K[0], x[0] * float("nan"))
+
+
+def test_whole_float_budgets_and_partly_frozen_models_are_taken():
+    """Session 17: ``budget`` is read as counts_from_density reads it (a whole float such as
+    9.0, e.g. computed in floating point, was refused by pixel_features and SamplingNet.counts
+    only); a model with some frozen parameters trains its others; a network still casts
+    floating-point features to its dtype (docs/nn.md), only complex ones are refused."""
+    net = snn.KernelNet(width=2)
+    torch.testing.assert_close(net(snn.pixel_features(_ST, dtype=F64)), net(snn.pixel_features(_ST)),
+                               rtol=0, atol=0)
+    torch.testing.assert_close(snn.pixel_features(_ST, budget=9.0), snn.pixel_features(_ST, budget=9),
+                               rtol=0, atol=0)
+    assert snn.SamplingNet(width=2).counts(_ST, np.float64(9.0), rng=0).sum() == 9
+    net = snn.KernelNet(width=2)
+    net.body[0].requires_grad_(False)
+    before = [p.detach().clone() for p in net.parameters()]
+    snn.train(net, _kernel_loss, 2)
+    same = [torch.equal(p, q) for p, q in zip(net.parameters(), before)]
+    assert same[:2] == [True, True] and not all(same[2:])     # body[0]'s weight and bias frozen
 
 
 def test_nan_loss_stops_before_the_optimiser_step():
