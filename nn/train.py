@@ -156,8 +156,9 @@ def train(model, loss_fn, steps: int, *, lr: float = 3e-3, seed: int = 0) -> dic
                 try:
                     loss = loss_fn(model, step)
                 except InputError as exc:   # e.g. relmse_loss passed as loss_fn itself
-                    raise InputError(f"`loss_fn` (called as loss_fn(model, step)) failed at "
-                                     f"step {step}: {exc}") from exc
+                    # same class (a FileFormatError stays one), the message naming loss_fn
+                    raise type(exc)(f"`loss_fn` (called as loss_fn(model, step)) failed at "
+                                    f"step {step}: {exc}") from exc
                 _check_loss(loss, step)
                 opt.zero_grad()
                 loss.backward()

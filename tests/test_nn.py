@@ -15,7 +15,7 @@ torch = pytest.importorskip("torch")
 
 import statmc.nn as snn  # noqa: E402
 from statmc import analytic, combine as cb, metrics, progressive  # noqa: E402
-from statmc.errors import InputError  # noqa: E402
+from statmc.errors import FileFormatError, InputError  # noqa: E402
 from statmc.stats import PixelStats  # noqa: E402
 from statmc.toy import ToyRenderer  # noqa: E402
 
@@ -452,6 +452,17 @@ def test_whole_float_budgets_and_partly_frozen_models_are_taken():
     snn.train(net, _kernel_loss, 2)
     same = [torch.equal(p, q) for p, q in zip(net.parameters(), before)]
     assert same[:2] == [True, True] and not all(same[2:])     # body[0]'s weight and bias frozen
+
+
+def test_an_input_error_inside_loss_fn_keeps_its_class_and_names_loss_fn():
+    """A FileFormatError raised by loss_fn (e.g. a broken EXR read per step) stays one, with
+    `loss_fn` and the step in front of its message (session 17)."""
+    def loss_fn(model, step):
+        if step == 1:
+            raise FileFormatError("`path` is not an EXR file.")
+        return _kernel_loss(model, step)
+    with pytest.raises(FileFormatError, match=r"^`loss_fn` .* at step 1: `path` is not an EXR"):
+        snn.train(snn.KernelNet(width=2), loss_fn, 3)
 
 
 def test_nan_loss_stops_before_the_optimiser_step():
