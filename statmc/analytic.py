@@ -44,7 +44,7 @@ from scipy import special
 from . import _analytic_kernels as _ak
 from .errors import (MAX_BUDGET, InputError, _scalar, as_bool, as_broadcast_arrays,
                      as_float_array, as_number, as_rng, as_whole, check_finite, check_nonempty,
-                     check_nonnegative)
+                     check_nonnegative, check_overflow)
 from .sampling import counts_from_density
 from .stats import check_stats
 
@@ -219,10 +219,38 @@ def future_moments(x_t, s_bar, s, x_g, var_g, *, mean_var_t=None):
     (0.58, 0.0140625)
     """
     xt, sb, sm, xg, vg, mvt, ndim = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
-    mean, var = _moments(xt, sb, sm, xg, vg, mvt)
+    with np.errstate(over="ignore", invalid="ignore"):     # checked just below
+        mean, var = _moments(xt, sb, sm, xg, vg, mvt)
+    _check_moments_overflow((mean, var), xt, sb, sm, xg, vg, mvt)
     if ndim == 2:
         mean, var = mean[..., 0], var[..., 0]
     return mean, var
+
+
+#: The range that :func:`_check_moments_overflow` names (the products of Eq. 6, 7, 19).
+_MOMENTS_RANGE = ("products s_bar·x_t, s·x_g, s·var_g and s_bar²·mean_var_t (and their "
+                  "sums) below 1.8e308, e.g. |x_t|, |x_g| and var_g below 1e300 at up to "
+                  "1e7 samples")
+
+_KBV_RANGE = ("the sums Σ K·E[Y] − x_g and Σ K²·Var[Y] below 1.8e308 (Var[Y] as in "
+              "future_moments)")
+_LOSS_RANGE = ("squared errors (Σ K·E[Y] − x_g)² + Σ K²·Var[Y] below 1.8e308, i.e. "
+               "|x_t|, |x_g| (times the kernel weights) below about 1e154 and var_g below "
+               "about 1e308; for loss='mrse' also x_g² + eps below 1.8e308 (|x_g| below "
+               "1.3e154)")
+
+
+def _check_moments_overflow(results, xt, sb, sm, xg, vg, mvt, what="the future moments",
+                            expected=_MOMENTS_RANGE, K=None):
+    """:func:`check_overflow` of each array in ``results`` (None skipped), naming the
+    moment inputs (and the kernels ``K`` if given)."""
+    given = {} if K is None else {"kernels": K}
+    given.update({"x_t": xt, "s_bar": sb, "s": sm, "x_g": xg, "var_g": vg})
+    if mvt is not None:
+        given["mean_var_t"] = mvt
+    for r in results:
+        if r is not None:
+            check_overflow(r, what, given, expected)
 
 
 # =========================================================================== sampling
@@ -234,16 +262,52 @@ def gamma_parameters(x_g, var_g, s):
     goes with ``(H, W, C)`` images as in :func:`future_moments`; undefined (NaN) where
     ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.  ``x_g`` must be
     ``>= 0``: a gamma law has a positive mean (a negative ``x_g`` would give a negative
-    rate ``β``).
+    rate ``β``).  Where ``x_g²`` or a product leaves float64's range but ``α`` and ``β`` do
+    not, they are computed exactly from mantissas and exponents; an ``α`` or ``β`` beyond
+    float64 (5e-324 to 1.8e308) is an :class:`~statmc.errors.InputError`.
     """
     if np.ndim(s) == 2 and np.ndim(x_g) == 3 and np.shape(s) == np.shape(x_g)[:2]:
         s = np.asarray(s)[..., None]                    # per-pixel counts, all channels
     xg, v, s = as_broadcast_arrays({"x_g": x_g, "var_g": var_g, "s": s},
                                    nonnegative=("x_g", "var_g", "s"))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
         ok = (xg != 0) & (v > 0) & (s > 0)
         alpha = np.where(ok, xg * xg * s / np.where(ok, v, 1.0), np.nan)
         beta = np.where(ok, xg * s / np.where(ok, v, 1.0), np.nan)
+        # Where ok, both are > 0 and finite unless an intermediate left float64's range
+        # (x_g² beyond 1.8e308, or below the smallest float): redo those entries exactly.
+        # fmin/fmax skip the NaN of the undefined entries; one pass each, no temporary.
+        if not all(np.fmin.reduce(a, axis=None) > 0 and np.fmax.reduce(a, axis=None) < np.inf
+                   for a in (alpha, beta) if a.size):
+            alpha, beta = _gamma_rescaled(xg, v, s, ok, alpha, beta)
+    return alpha, beta
+
+
+def _gamma_rescaled(xg, v, s, ok, alpha, beta):
+    """:func:`gamma_parameters` where the plain products over- or underflowed: the same
+    products of the mantissas (``np.frexp``), scaled back by the summed exponents with
+    ``np.ldexp`` — scaling by powers of two is exact, so an entry comes out as the plain
+    formula would give it with an unlimited exponent range.  A result outside float64's
+    range is an :class:`InputError`."""
+    alpha, beta = np.array(alpha, dtype=np.float64), np.array(beta, dtype=np.float64)
+    bad = ok & ~((alpha > 0) & (alpha < np.inf) & (beta > 0) & (beta < np.inf))
+    xb, sb, vb = (np.broadcast_to(a, alpha.shape)[bad] for a in (xg, s, v))
+    (mx, ex), (ms, es), (mv, ev) = np.frexp(xb), np.frexp(sb), np.frexp(vb)
+    a = np.ldexp(mx * mx * ms / mv, 2 * ex + es - ev)
+    b = np.ldexp(mx * ms / mv, ex + es - ev)
+    out = ~((a > 0) & (a < np.inf) & (b > 0) & (b < np.inf))
+    if out.any():
+        i = int(np.argmax(out))
+        x0, s0, v0 = float(xb[i]), float(sb[i]), float(vb[i])
+        lb = np.log10(x0) + np.log10(s0) - np.log10(v0)
+        raise InputError(
+            f"`x_g`, `var_g` and `s` must give a gamma shape α = x_g² s / var_g and rate "
+            f"β = x_g s / var_g within float64's range (5e-324 to 1.8e308); got "
+            f"{int(out.sum())} entries outside it, e.g. x_g = {x0:.3g}, var_g = {v0:.3g}, "
+            f"s = {s0:.3g} (α ≈ 1e{lb + np.log10(x0):.0f}, β ≈ 1e{lb:.0f}).  Scaling x_g by "
+            "c and var_g by c² divides β by c and leaves α (the squared signal-to-noise "
+            "ratio) as it is.")
+    alpha[bad], beta[bad] = a, b
     return alpha, beta
 
 
@@ -348,19 +412,35 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
         z = np.broadcast_to(gen.standard_normal(shape), xt.shape)[ok]
     # Point masses: N(x_g, 0) clipped to `bounds` is clip(x_g), the limit var_g -> 0.
     ybar = np.clip(xg, lo, hi) if dist == "clipped_normal" else xg.copy()
-    if ok.any():
-        mu = xg[ok]
-        var_mean = vg[ok] / s3[ok]
-        if dist == "gamma" and not shared_stream:
-            ybar[ok] = gen.gamma(mu * mu / var_mean, var_mean / mu)
-        else:
-            ybar[ok] = _draw_mean(dist, mu, var_mean, u, z, (lo, hi))
-    n = (sb + sm)[..., None]
-    has = n > 0
-    y = np.where(has, (sb[..., None] * xt + sm[..., None] * ybar) / np.where(has, n, 1.0), xt)
-    if ndim == 2:
-        y = y[..., 0]
-    return y.astype(out_dtype, copy=False)
+    with np.errstate(over="ignore", invalid="ignore"):    # the result is checked below
+        if ok.any():
+            mu = xg[ok]
+            var_mean = vg[ok] / s3[ok]
+            if dist == "gamma" and not shared_stream:
+                # NumPy's sampler refuses a NaN or Inf shape: say which input caused it
+                shape_ = mu * mu / var_mean
+                if not np.isfinite(np.sum(shape_)):
+                    raise InputError(
+                        f"`x_g`, `var_g` and `s` must give a gamma shape s·x_g²/var_g below "
+                        f"1.8e308 for dist='gamma'; got {int((~np.isfinite(shape_)).sum())} "
+                        f"entries beyond it (`x_g` up to {float(np.max(mu)):.3g}).  Rescale "
+                        "x_g by c and var_g by c², or use shared_stream=True.")
+                ybar[ok] = gen.gamma(shape_, var_mean / mu)
+            else:
+                ybar[ok] = _draw_mean(dist, mu, var_mean, u, z, (lo, hi))
+        n = (sb + sm)[..., None]
+        has = n > 0
+        y = np.where(has, (sb[..., None] * xt + sm[..., None] * ybar) / np.where(has, n, 1.0), xt)
+        if ndim == 2:
+            y = y[..., 0]
+        y = y.astype(out_dtype, copy=False)
+    _check_moments_overflow(
+        (y,), xt, sb, sm, xg, vg, None, "the future render",
+        _MOMENTS_RANGE + (", and the gamma shape x_g² s/var_g below 1.8e308"
+                          if dist == "gamma" else "")
+        + (" (a float32 `x_t` gives a float32 render: below 3.4e38)"
+           if out_dtype == np.float32 else ""))
+    return y
 
 
 # =========================================================================== kernels
@@ -542,9 +622,12 @@ def kernel_bias_variance(kernels, x_t, s_bar, s, x_g, var_g, *, mean_var_t=None)
     K = _check_kernels(kernels, xt.shape[:2])
     _, _, bias, v = _evaluate(K, xt, sb, sm, xg, vg, mvt, "mse", 0.0, False)
     bias, v = np.ascontiguousarray(bias), np.ascontiguousarray(v)
+    _check_moments_overflow((bias, v), xt, sb, sm, xg, vg, mvt, "the bias and variance",
+                            _KBV_RANGE, K)
     if ndim == 2:
         bias, v = bias[..., 0], v[..., 0]
     return bias, v
+
 
 
 def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=RELMSE_EPS,
@@ -587,6 +670,9 @@ def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=
     (``mean_var_t = var_g/s_bar``) the variance is ``var_g/(s_bar+s)`` and the bias the
     denoiser's own.
 
+    A loss or gradient beyond float64's range (errors above ~1e154 squared) is an
+    :class:`~statmc.errors.InputError` naming the inputs, not Inf/NaN.
+
     The compiled kernel runs in parallel over rows; a 1920×1080×3 image with 7×7
     kernels takes 0.4–0.6 s on 2 busy cores (``bench/bench_analytic.py``).
     """
@@ -596,6 +682,8 @@ def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=
     K = _check_kernels(kernels, xt.shape[:2])
     _check_rel_denominator(loss, eps, xg)
     value, grad, _, _ = _evaluate(K, xt, sb, sm, xg, vg, mvt, loss, eps, return_grad)
+    what = f"the expected {loss.upper()}" + (" or its gradient" if return_grad else "")
+    _check_moments_overflow((value, grad), xt, sb, sm, xg, vg, mvt, what, _LOSS_RANGE, K)
     return (value, grad) if return_grad else value
 
 
@@ -751,6 +839,8 @@ def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss=
 
     uniform = _project(np.full(hw, b / sb.size), b, upper)
     f_uniform = f(uniform)[0]
+    _check_moments_overflow((f_uniform,), xt, sb, uniform, xg, vg, mvt,
+                            f"the expected {loss.upper()} at uniform sampling", _LOSS_RANGE, K)
     info = {"objective_uniform": f_uniform, "iterations": 0, "converged": b == 0}
     if b == 0:
         info.update(objective_start=f_uniform, objective=f_uniform, start="uniform")
@@ -767,6 +857,8 @@ def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss=
             x, fx, start = wf, f_wf, "water-filling"
     info.update(objective_start=fx, start=start)
     fx, g = f(x, True)
+    _check_moments_overflow((g,), xt, sb, x, xg, vg, mvt,
+                            f"the gradient of the expected {loss.upper()}", _LOSS_RANGE, K)
     pg = _project(x - (g - g.mean()), b, upper) - x
     alpha = 1.0 / max(np.max(np.abs(pg)), 1e-300)
     # BB steps live in the units of s²/loss.  The projection ignores a constant added to
@@ -895,7 +987,13 @@ def pooled_sample_variance(sample_var, n, *, sigma=POOL_SIGMA, prior_dof=None):
     from .filters import gaussian_filter
     dof = np.maximum(cnt - 1.0, 0.0)
     dof_c = dof if sv.ndim == 2 else dof[..., None]
-    num = gaussian_filter(dof_c * sv, sigma) if sigma > 0 else dof_c * sv
+    with np.errstate(over="ignore"):
+        num = dof_c * sv
+    # checked here: gaussian_filter named its own `image` when handed the Inf
+    pooled_range = "(n − 1)·sample_var, and its Gaussian-weighted sums, below 1.8e308"
+    check_overflow(num, "the weighted sample variance (n − 1)·sample_var",
+                   {"sample_var": sv, "n": cnt}, pooled_range)
+    num = gaussian_filter(num, sigma) if sigma > 0 else num
     den = gaussian_filter(dof, sigma) if sigma > 0 else dof
     den_c = den if sv.ndim == 2 else den[..., None]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -903,6 +1001,7 @@ def pooled_sample_variance(sample_var, n, *, sigma=POOL_SIGMA, prior_dof=None):
         nu = dof_c if prior_dof is None else nu0
         tot = nu + dof_c
         out = np.where(tot > 0, (nu * pool + dof_c * sv) / np.where(tot > 0, tot, 1.0), pool)
+    check_overflow(out, "the pooled sample variance", {"sample_var": sv, "n": cnt}, pooled_range)
     return np.maximum(out, 0.0)
 
 

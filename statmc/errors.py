@@ -206,3 +206,36 @@ def as_broadcast_arrays(arrays: dict, *, nonnegative=()) -> list:
         raise InputError(f"the arrays must have shapes that broadcast together (e.g. all the "
                          f"same); got {shapes}.") from None
     return out
+
+
+def _largest(a) -> float:
+    """Largest magnitude in ``a`` (for messages; NaN if ``a`` is empty)."""
+    a = np.asarray(a, dtype=np.float64)
+    return float(max(-a.min(), a.max())) if a.size else math.nan
+
+
+def check_overflow(result, what: str, given: dict, expected: str) -> None:
+    """Raise :class:`InputError` when ``result``, computed from finite (already checked)
+    input, holds NaN or Inf: the float64 arithmetic overflowed (a square of a value
+    beyond ~1.3e154, a product or sum beyond ~1.8e308) where a caller would otherwise get
+    Inf/NaN back silently.
+
+    One pass and no temporary when all is well (a sum: NaN/Inf propagate into it; a sum
+    that overflows although every entry is finite is then checked entry by entry).  The
+    message says what overflowed, the largest magnitude of each array in ``given``
+    (``{name: array}``, the inputs that bound it) and the range ``expected``.
+    """
+    a = np.asarray(result)
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(np.sum(a)):
+            return
+    n_bad = int(a.size - np.count_nonzero(np.isfinite(a)))
+    if n_bad == 0:                          # only the sum overflowed
+        return
+    where = f" in {n_bad} of {a.size} entries" if a.ndim else ""
+    parts = ", ".join(f"`{name}` up to {_largest(v):.3g}" for name, v in given.items())
+    raise InputError(
+        f"{what} left float64's range (largest finite {np.finfo(np.float64).max:.3g}){where} "
+        f"for the finite input given ({parts} in magnitude); expected {expected}. Rescale "
+        "the input (e.g. divide the images by their largest value and variances by its "
+        "square).")

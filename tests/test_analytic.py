@@ -1234,3 +1234,21 @@ def test_boolean_options_of_analytic_are_checked():
     a = an.sample_future(x, n, n, x, v, rng=0, shared_stream=np.False_)
     b = an.sample_future(x, n, n, x, v, rng=0, shared_stream=False)
     assert np.array_equal(a, b)
+
+
+def test_gamma_parameters_whose_products_leave_float64_are_computed_exactly():
+    """α = x_g² s/var_g with x_g = var_g = 2**700·a came back Inf although α is about
+    2**700 (x_g² overflowed), and with x_g = 2**-600·a it came back 0 (x_g² underflowed).
+    Scaling by powers of two is exact, so the result must equal the plain formula on
+    the unscaled numbers, scaled back, to the bit."""
+    rng = np.random.default_rng(3)
+    a, b, s = rng.uniform(0.1, 2.0, 50), rng.uniform(0.1, 2.0, 50), rng.uniform(1.0, 64.0, 50)
+    for ex, ev in ((700, 700), (-600, -1000), (500, 0)):
+        alpha, beta = an.gamma_parameters(np.ldexp(a, ex), np.ldexp(b, ev), s)
+        assert np.array_equal(alpha, np.ldexp(a * a * s / b, 2 * ex - ev))
+        assert np.array_equal(beta, np.ldexp(a * s / b, ex - ev))
+    # mixed with ordinary and undefined entries: those keep their plain values / NaN
+    alpha, beta = an.gamma_parameters(np.array([0.5, 2.0 ** 700, 0.0]),
+                                      np.array([0.1, 2.0 ** 700, 1.0]), 4.0)
+    assert np.array_equal(alpha, [0.5 * 0.5 * 4.0 / 0.1, 4.0 * 2.0 ** 700, np.nan], equal_nan=True)
+    assert np.array_equal(beta, [0.5 * 4.0 / 0.1, 4.0, np.nan], equal_nan=True)
