@@ -42,7 +42,7 @@ import numpy as np
 
 from .analytic import _numeric_kernels, apply_kernels
 from .errors import (InputError, as_bool, as_float_array, as_int, as_number, as_rng,
-                     check_finite, check_nonempty, check_nonnegative)
+                     check_finite, check_nonempty, check_nonnegative, check_overflow)
 from .stats import check_stats
 
 __all__ = ["sure", "mc_sure", "kernel_variance", "output_variance", "double_buffer_estimates",
@@ -72,6 +72,24 @@ def _image(x):
 
 
 _F32_MAX = float(np.finfo(np.float32).max)
+
+#: The range named when a result overflows (:func:`statmc.errors.check_overflow`).
+_SURE_RANGE = ("the squared residuals (f(x) − x)² and 2·(J Σ)_ii below 1.8e308, i.e. "
+               "|x| below about 1e154 and `mean_var` below about 1e308")
+_VARIANCE_RANGE = ("(J v)² below 1.8e308 for the ±σ probes v, i.e. `mean_var` below "
+                   "about 1e308 (times the denoiser's gain squared)")
+
+
+def _mean(a) -> float:
+    """``float(a.mean())``, also where the sum overflows although the mean does not
+    (entries near 1.8e308): then the mean of ``a·2⁻⁶⁴`` times ``2⁶⁴`` (scaling by a power
+    of two is exact).  Unchanged, to the bit, wherever the plain mean is finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        m = float(np.mean(a))
+    if not np.isfinite(m):
+        with np.errstate(over="ignore", invalid="ignore"):
+            m = float(np.ldexp(np.mean(np.ldexp(a, -64)), 64))
+    return m
 
 
 def _check_float32(name, x):
@@ -138,7 +156,7 @@ class _Noise:
 
     @property
     def rms(self) -> float:
-        return float(np.sqrt(np.mean(self.diag)))
+        return float(np.sqrt(_mean(self.diag)))
 
 
 def _call(denoiser, x32):
@@ -224,6 +242,10 @@ def sure(kernels, x, mean_var, *, extra_output: bool = False):
     noise law with the given variance, not only the normal one, because ``f`` is linear
     (``E[(x_i − μ_i) f(x)_i] = K_ii σ_i²``).
 
+    Terms beyond float64's range (``|x|`` above ~1e154) raise
+    :class:`~statmc.errors.InputError` instead of coming back as Inf/NaN; ``mse`` is
+    exact also where the sum of the terms would overflow.
+
     Examples
     --------
     >>> from statmc.denoisers import gaussian
@@ -242,10 +264,13 @@ def sure(kernels, x, mean_var, *, extra_output: bool = False):
     fx = apply_kernels(K, xx)   # validates the kernels and their shape
     K = np.asarray(K)
     r = K.shape[2] // 2
-    div = K[:, :, r, r].astype(np.float64)[..., None] * noise.diag
-    out = (fx - xx) ** 2 + 2.0 * div - noise.diag
+    with np.errstate(over="ignore", invalid="ignore"):     # checked just below
+        div = K[:, :, r, r].astype(np.float64)[..., None] * noise.diag
+        out = (fx - xx) ** 2 + 2.0 * div - noise.diag
+    check_overflow(out, "the SURE map", {"kernels": K, "x": xx, "mean_var": noise.diag},
+                   _SURE_RANGE)
     if extra_output:
-        return out, {"denoised": fx, "divergence": div, "mse": float(out.mean())}
+        return out, {"denoised": fx, "divergence": div, "mse": _mean(out)}
     return out
 
 
@@ -343,9 +368,11 @@ def mc_sure(denoiser, x, mean_var, *, eps: float = DEFAULT_EPS, k: int = DEFAULT
             fp *= b
             div += fp
         div /= h * k
-    out = (fx - xx) ** 2 + 2.0 * div - noise.diag
+    with np.errstate(over="ignore", invalid="ignore"):     # checked just below
+        out = (fx - xx) ** 2 + 2.0 * div - noise.diag
+    check_overflow(out, "the MC-SURE map", {"x": xx, "mean_var": noise.diag}, _SURE_RANGE)
     if extra_output:
-        return out, {"denoised": fx, "divergence": div, "mse": float(out.mean()),
+        return out, {"denoised": fx, "divergence": div, "mse": _mean(out),
                      "step": h, "calls": calls}
     return out
 
@@ -463,6 +490,11 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
         calls = 1
         h = _step(as_number("eps", eps, lo=0.0, lo_open=True), relative, xx, noise)
     if noise.rms > 0.0 and (method == "jvp" or h is not None):
+        # The standard error squares (J v)² once more: beyond σ ~ 1e77 that overflowed
+        # (and the sum of k values (J v)² beyond 1.8e308/k).  When the σ are that large,
+        # accumulate (J v)²·c² instead, c a power of two (exact scaling).
+        top = float(np.sqrt(np.max(noise.diag)))
+        c2 = np.ldexp(1.0, -2 * int(np.frexp(top)[1])) if top > 2.0 ** 128 else 1.0
         for _ in range(k):
             v = noise.apply(gen.integers(0, 2, xx.shape) * 2.0 - 1.0)
             if method == "fd":
@@ -474,10 +506,18 @@ def output_variance(denoiser, x, mean_var, *, k: int = 16, method: str = "fd", r
                     fx = _checked_output(y, xx.shape)
             calls += 1
             jv *= jv
+            if c2 != 1.0:
+                jv *= c2
             acc += jv
             acc2 += jv * jv
         var = acc / k
         se = np.sqrt(np.clip(acc2 / k - var * var, 0.0, None) / max(k - 1, 1))
+        if c2 != 1.0:
+            var /= c2
+            se /= c2
+        given = {"x": xx, "mean_var": noise.diag}
+        check_overflow(var, "the output variance", given, _VARIANCE_RANGE)
+        check_overflow(se, "the standard error of the output variance", given, _VARIANCE_RANGE)
     else:
         var = np.zeros_like(xx)
         se = np.zeros_like(xx)

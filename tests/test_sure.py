@@ -654,3 +654,47 @@ def test_relative_must_be_a_bool(call):
     with pytest.raises(InputError, match=r"`relative` must be True or False; got 'no'\."):
         call(x, v, "no")
     assert np.array_equal(call(x, v, np.False_), call(x, v, False))
+
+
+def test_variances_near_the_top_of_float64_give_exactly_scaled_results():
+    """With every σ² near 1e308 the mean of ``mean_var`` overflowed: rms(σ) = Inf, the
+    finite-difference step h = 0, and mc_sure / output_variance returned NaN; the
+    standard error squared (J v)² once more and overflowed from σ ~ 1e77 (σ² ~ 1e154).  The probes
+    h·v do not depend on a power-of-two scale c of σ, so the divergence, the variance
+    and its standard error must be c² times the unscaled ones, to the bit."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0.2, 1.0, (12, 13, 3))
+    v = rng.uniform(0.2, 1.0, x.shape)
+    e = 1022                                  # σ² up to 4.5e307: their sum overflows
+    with np.errstate(over="ignore"):
+        assert not np.isfinite(np.sum(np.ldexp(v, e)))
+    g = D.gaussian(1.0)
+    for method in ("fd", "exact"):
+        small = S.output_variance(g, x, v, rng=2, method=method, extra_output=True)
+        big = S.output_variance(g, x, np.ldexp(v, e), rng=2, method=method, extra_output=True)
+        assert np.array_equal(big[0], np.ldexp(small[0], e))
+        assert np.array_equal(big[1]["std_error"], np.ldexp(small[1]["std_error"], e))
+    for e in (1022, 600):                     # σ ~ 1e90: (J v)⁴ of the error overflowed
+        small = S.output_variance(g, x, v, rng=2, extra_output=True)[1]["std_error"]
+        big = S.output_variance(g, x, np.ldexp(v, e), rng=2, extra_output=True)[1]["std_error"]
+        assert np.array_equal(big, np.ldexp(small, e))
+    _, small = S.mc_sure(g, x, v, rng=4, extra_output=True)
+    out, big = S.mc_sure(g, x, np.ldexp(v, 1022), rng=4, extra_output=True)
+    assert np.array_equal(big["divergence"], np.ldexp(small["divergence"], 1022))
+    assert np.isfinite(out).all() and np.isfinite(big["mse"])
+
+
+def test_sure_mse_whose_sum_overflows_is_the_scaled_mean():
+    """``extra_output["mse"]`` was ``out.mean()``, -Inf where the SURE terms (each finite,
+    near -1e308) summed beyond float64; SURE is homogeneous (x·c, σ²·c² give c² times the
+    terms), so it must be 2**(2e) times the unscaled mean, to the bit."""
+    rng = np.random.default_rng(6)
+    x = rng.uniform(0.2, 1.0, (12, 13, 3))
+    v = rng.uniform(0.5, 1.0, x.shape)
+    g = D.gaussian(1.0)
+    out0, small = S.sure(g, x, v, extra_output=True)
+    out, big = S.sure(g, np.ldexp(x, 511), np.ldexp(v, 1022), extra_output=True)
+    assert np.array_equal(out, np.ldexp(out0, 1022))
+    with np.errstate(over="ignore"):
+        assert not np.isfinite(out.mean())     # the plain mean overflows here
+    assert big["mse"] == np.ldexp(small["mse"], 1022)
