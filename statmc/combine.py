@@ -1055,8 +1055,18 @@ def filter_covariance(kernels, var, *, size=None, cross=False):
         outside the image.
     cross_cov : (H, W, m, m, C) float64 ndarray
         Only with ``cross=True``.
+
+    Raises
+    ------
+    InputError
+        Besides bad shapes and values: where a covariance leaves float64's range (a
+        product ``K·K·var`` or its sum beyond 1.8e308, e.g. ``var`` near 1e308 or
+        kernel weights beyond 1e154), naming ``kernels`` and ``var`` with their largest
+        magnitudes, instead of returning Inf/NaN.  Checked on the result (one sum
+        pass), so every representable result is returned.
     """
     from .analytic import _numeric_kernels
+    from .errors import check_overflow
 
     K = _numeric_kernels(kernels)
     if K.ndim != 4 or K.shape[2] != K.shape[3] or K.shape[2] % 2 == 0:
@@ -1086,14 +1096,24 @@ def filter_covariance(kernels, var, *, size=None, cross=False):
                     if not 0 <= bx < kf:
                         continue
                     kq = _shift(K[:, :, by, bx], vy, vx)
-                    acc += (K[:, :, ay, ax] * kq)[..., None] * _shift(v, ay - r, ax - r)
+                    with np.errstate(over="ignore", invalid="ignore"):
+                        acc += (K[:, :, ay, ax] * kq)[..., None] * _shift(v, ay - r, ax - r)
+    given = {"kernels": K, "var": v}
+    check_overflow(cov, "the covariance stencil", given, _FILTER_COV_RANGE)
     if not cross:
         return cov
     xc = np.zeros_like(cov)
     for vy in range(-min(R, r), min(R, r) + 1):
         for vx in range(-min(R, r), min(R, r) + 1):
-            xc[:, :, R + vy, R + vx] = _shift(K[:, :, r - vy, r - vx], vy, vx)[..., None] * v
+            with np.errstate(over="ignore", invalid="ignore"):
+                xc[:, :, R + vy, R + vx] = _shift(K[:, :, r - vy, r - vx], vy, vx)[..., None] * v
+    check_overflow(xc, "the cross-covariance stencil", given, _FILTER_COV_RANGE)
     return cov, xc
+
+
+#: The range named when :func:`filter_covariance` overflows.
+_FILTER_COV_RANGE = ("the products K_p[a]·K_q[b]·var and their sums Σ_a below 1.8e308, e.g. "
+                     "kernel weights up to 1 and `var` below 1.8e308 / k²")
 
 
 def buffer_moments(ys, zs, *, size):
@@ -1122,8 +1142,18 @@ def buffer_moments(ys, zs, *, size):
     var_y : (H, W, C), cov_z : (H, W, m, m, C), cov_yz : (H, W, m, m, C) float64 ndarrays
         Shared by all bins (pass them as they are to :func:`statistical_weights` or
         :func:`combine_bias_variance` with multi-buffer weights).
+
+    Raises
+    ------
+    InputError
+        Besides bad shapes and values: ``|ys|`` or ``|zs|`` above ``VALUE_LIMIT``
+        (1e140), the limit of :func:`statistical_weights`, which then accepts the
+        moments returned (at most ``8·1e280``).  Beyond ~1e154 the squared spreads
+        overflowed float64 and came back as Inf/NaN.
     """
     ysa, zsa, _ = _pair("ys", ys, "zs", zs, multi=True)
+    _check_limit("ys", ysa, VALUE_LIMIT)     # squares of the spread stay finite
+    _check_limit("zs", zsa, VALUE_LIMIT)
     B, H, W, C = ysa.shape
     if B < 2:
         raise InputError(f"`ys` must hold B >= 2 buffers to estimate moments from their "
