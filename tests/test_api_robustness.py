@@ -1442,3 +1442,60 @@ def test_feature_buffers_of_the_wrong_channel_count_are_refused(feature, shape):
     with pytest.raises(InputError, match=rf"feature `{feature}` must be an \(H, W"):
         st.with_features(**{feature: np.ones(shape)})
     assert st.with_features(depth=np.ones((7, 9, 1))).depth.shape == (7, 9, 1)   # still fine
+
+
+def _overflowing_calls():
+    """(id, call, message pattern): finite input near the top of float64's range whose
+    result left it.  Each returned Inf or NaN without an error before session 17."""
+    x, v, n, k = _small(21)
+    ys = np.stack([x, 0.5 * x, 0.8 * x])
+    return [
+        ("gamma_parameters", lambda: analytic.gamma_parameters(1e300 * x, v, 4.0),
+         r"`x_g`, `var_g` and `s` must give a gamma shape .* within float64's range"),
+        ("future_moments", lambda: analytic.future_moments(1e308 * x, n, 4.0, x, v),
+         r"the future moments left float64's range .*`x_t` up to [\d.]+e\+307"),
+        ("sample_future", lambda: analytic.sample_future(1e200 * x, n, 4.0, 1e200 * x, v, rng=1),
+         r"the future render left float64's range .*`x_g` up to [\d.]+e\+\d+"),
+        ("kernel_bias_variance", lambda: analytic.kernel_bias_variance(k * 1e160, x, n, 4.0, x, v),
+         r"the bias and variance left float64's range .*`kernels` up to"),
+        ("expected_kernel_loss", lambda: analytic.expected_kernel_loss(k, 1e200 * x, n, 4.0, x, v),
+         r"the expected MSE left float64's range .*`x_t` up to [\d.]+e\+\d+.*expected squared errors"),
+        ("expected_kernel_loss_grad",
+         lambda: analytic.expected_kernel_loss(k, x, n, 4.0, 1e160 * x, v, return_grad=True),
+         r"the expected MSE or its gradient left float64's range"),
+        ("expected_kernel_loss_mrse",
+         lambda: analytic.expected_kernel_loss(k, 1e200 * x, n, 4.0, 1e200 * x, v, loss="mrse"),
+         r"the expected MRSE left float64's range .*for loss='mrse' also x_g² \+ eps"),
+        ("optimal_sample_map", lambda: analytic.optimal_sample_map(k, x, n, 1e200 * x, v, 100),
+         r"the expected MSE at uniform sampling left float64's range .*`x_g` up to [\d.]+e\+\d+"),
+        ("sure", lambda: sure.sure(k, 1e200 * x, v),
+         r"the SURE map left float64's range .*`x` up to [\d.]+e\+\d+.*expected the squared residuals"),
+        ("filter_covariance", lambda: combine.filter_covariance(k * 1e160, v),
+         r"the covariance stencil left float64's range .*`kernels` up to"),
+        ("buffer_moments", lambda: combine.buffer_moments(1e200 * ys, ys, size=3),
+         r"`ys` holds values up to [\d.]+e\+\d+ in magnitude"),
+        ("buffer_moments_z", lambda: combine.buffer_moments(ys, -1e160 * ys, size=3),
+         r"`zs` holds values up to [\d.]+e\+\d+ in magnitude"),
+    ]
+
+
+@pytest.mark.parametrize("call,match", [c[1:] for c in _overflowing_calls()],
+                         ids=[c[0] for c in _overflowing_calls()])
+def test_results_beyond_float64_are_refused_not_returned_as_inf(call, match):
+    """Session-16 fuzz (helper C): finite input near the top of the float range made these
+    functions return Inf or NaN silently.  Now an InputError names the inputs with their
+    largest magnitudes and the range expected."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # and quietly: no overflow RuntimeWarning
+        with pytest.raises(InputError, match=match):
+            call()
+
+
+def test_pooled_sample_variance_names_sample_var_when_its_weighting_overflows():
+    """With sample variances near 1e308, (n − 1)·sample_var overflowed and the Gaussian
+    filter refused its own argument: "`image` holds 0 NaN and 95 Inf values", a name the
+    caller never gave."""
+    _, v, n, _ = _small(22)
+    with pytest.raises(InputError, match=r"the weighted sample variance \(n − 1\)·sample_var "
+                                         r"left float64's range .*`sample_var` up to 1e\+308"):
+        analytic.pooled_sample_variance(1e308 * v / v.max(), n)
