@@ -423,8 +423,9 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
                     raise InputError(
                         f"`x_g`, `var_g` and `s` must give a gamma shape s·x_g²/var_g below "
                         f"1.8e308 for dist='gamma'; got {int((~np.isfinite(shape_)).sum())} "
-                        f"entries beyond it (`x_g` up to {float(np.max(mu)):.3g}).  Rescale "
-                        "x_g by c and var_g by c², or use shared_stream=True.")
+                        f"entries beyond it (`x_g` up to {float(np.max(mu)):.3g}).  The shape "
+                        "does not change when x_g is scaled by c and var_g by c²; such a law "
+                        "is a point mass at x_g to float64 precision (var_g = 0 gives it).")
                 ybar[ok] = gen.gamma(shape_, var_mean / mu)
             else:
                 ybar[ok] = _draw_mean(dist, mu, var_mean, u, z, (lo, hi))
