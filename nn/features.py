@@ -37,8 +37,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import (MAX_BUDGET, InputError, as_float_array, as_int, as_number, as_whole,
-                           check_finite)
+from statmc.errors import (MAX_BUDGET, InputError, as_bool, as_float_array, as_int, as_number,
+                           as_whole, check_finite)
 from statmc.progressive import as_mix_inputs, bind_denoiser
 from statmc.stats import PixelStats, check_stats
 
@@ -72,10 +72,8 @@ def feature_channels(channels: int = 3, *, extra: int = 0, budget: bool = False)
         ``2C + 6 + 2C·extra + 2·budget``.
     """
     channels, extra = as_int("channels", channels, lo=0), as_int("extra", extra, lo=0)
-    if not isinstance(budget, (bool, np.bool_)):
-        raise InputError(f"`budget` must be a bool (whether pixel_features gets a budget); "
-                         f"got {budget!r}.")
-    return 2 * channels + 6 + 2 * channels * extra + 2 * bool(budget)
+    budget = as_bool("budget", budget, why="whether pixel_features gets a budget")
+    return 2 * channels + 6 + 2 * channels * extra + 2 * budget
 
 
 def _extra(extra, shape):
@@ -172,9 +170,9 @@ def mix_feature_channels(channels: int = 3) -> int:
 def _check_mix_options(relative=True, gain=MIX_GAIN):
     """``(relative, gain)`` of :func:`mix_features` checked: ``relative`` a bool, ``gain``
     a finite number > 0 (``InputError`` otherwise); returns them (``gain`` as a float)."""
-    if not isinstance(relative, (bool, np.bool_)):
-        raise InputError(f"`relative` must be a bool; got {relative!r}.")
-    return bool(relative), as_number("gain", gain, lo=0.0, lo_open=True)
+    relative = as_bool("relative", relative,
+                       why="whether mix_features divides by (x² + y²)/2 + 0.01 before the arctan")
+    return relative, as_number("gain", gain, lo=0.0, lo_open=True)
 
 
 def mix_features(x, mean_var, y, sure_y, divergence, *, relative: bool = True,

@@ -38,8 +38,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statmc.errors import (MAX_BUDGET, InputError, as_float_array, as_int, as_number, as_whole,
-                           check_finite)
+from statmc.errors import (MAX_BUDGET, InputError, as_bool, as_float_array, as_int, as_number,
+                           as_whole, check_finite)
 from statmc.sampling import counts_from_density
 from statmc.stats import check_stats
 
@@ -347,14 +347,12 @@ class MixNet(_Net):
                              f"mix_features options (relative, gain); got {mix_options!r}.")
         if mix_options:                    # refused here, not at the first alpha_from
             _check_mix_options(**mix_options)
-        if not isinstance(per_channel, (bool, np.bool_)):
-            raise InputError(f"`per_channel` must be a bool (one α per pixel and channel); "
-                             f"got {per_channel!r}.")
+        per_channel = as_bool("per_channel", per_channel, why="one α per pixel and channel")
         self.activation = activation
         self.inputs = inputs
         self.mix_options = dict(mix_options or {})
         C = _int("channels", channels, 1)
-        self.per_channel = bool(per_channel)
+        self.per_channel = per_channel
         K = C if self.per_channel else 1   # α maps: one per channel, or one shared
         F = feature_channels(C, extra=1) if inputs == "pixel" else mix_feature_channels(C)
         super().__init__(C, F, K if activation == "sigmoid" else 3 * K, width, seed)

@@ -142,12 +142,15 @@ def as_int(name: str, value, *, lo: int = 1) -> int:
     return int(value)
 
 
-def as_bool(name: str, value) -> bool:
+def as_bool(name: str, value, *, why: str | None = None) -> bool:
     """``value`` of a True/False option as a Python bool; anything but a bool or NumPy
     bool (``"no"`` was taken as True, None as False) is an :class:`InputError`:
-    "`name` must be True or False; got 'no'."."""
+    "`name` must be True or False; got 'no'.".  ``why``, if given, says what the option
+    means, in parentheses: "`per_channel` must be True or False (one α per pixel and
+    channel); got 'yes'."."""
     if not isinstance(value, (bool, np.bool_)):
-        raise InputError(f"`{name}` must be True or False; got {value!r}.")
+        hint = f" ({why})" if why else ""
+        raise InputError(f"`{name}` must be True or False{hint}; got {value!r}.")
     return bool(value)
 
 

@@ -345,7 +345,8 @@ def _frozen_net():
     (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), "abc"), "budget", "number"),
     (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), float("nan")), "budget", "finite"),
     (lambda: snn.SamplingNet().sample_map(snn.pixel_features(_ST, budget=9), -1), "budget", ">="),
-    (lambda: snn.feature_channels(3, budget=5), "budget", "bool"),
+    (lambda: snn.feature_channels(3, budget=5), "budget",
+     "`budget` must be True or False (whether pixel_features gets a budget); got 5."),
     # the networks' NumPy methods name their own arguments (not pixel_features' `extra`)
     (lambda: snn.MixNet().alpha(_ST, np.ones((4, 5, 1))), "y", "(4, 5, 3)"),
     (lambda: snn.MixNet().alpha(_ST, np.full((4, 5, 3), np.nan)), "y", "NaN"),
@@ -1080,13 +1081,16 @@ def test_per_channel_alpha_goes_through_progressive_denoise():
     (lambda a: snn.MixNet(inputs="mix").alpha(_render(size=6), a[0][:6, :6] * 0 + 0.5), "needs `sure`"),
     (lambda a: snn.MixNet().alpha_from({}), "alpha_from"),
     (lambda a: snn.MixNet(inputs="mix", mix_options={"gain": -1.0}), "`gain`"),
-    (lambda a: snn.MixNet(inputs="mix", mix_options={"relative": "no"}), "`relative` must be a bool"),
+    (lambda a: snn.MixNet(inputs="mix", mix_options={"relative": "no"}),
+     r"^`relative` must be True or False \(whether mix_features divides by \(x² \+ y²\)/2 \+ 0.01 "
+     r"before the arctan\); got 'no'\.$"),
     (lambda a: snn.MixNet(inputs="mix").alpha(_ST1, a[0][:4, :5], sure=a[3][:4, :5], divergence=a[4][:4, :5]),
      "samples in every pixel"),
     (lambda a: snn.MixNet(inputs="mix", channels=1).alpha_from(dict(zip(("x", "mean_var", "y", "sure", "divergence"), a))),
      "statmc.nn.mix_features with this"),
     (lambda a: snn.mix_features(a[0], a[1][..., None].repeat(2, -1), a[2], a[3], a[4]), "covariance"),
-    (lambda a: snn.MixNet(per_channel="yes"), "`per_channel` must be a bool"),
+    (lambda a: snn.MixNet(per_channel="yes"),
+     r"^`per_channel` must be True or False \(one α per pixel and channel\); got 'yes'\.$"),
     (lambda a: snn.MixNet(inputs="mix", per_channel=True).mix(_mix_batch()[0], *(t[:, :2] for t in _mix_batch()[1:3])),
      "`x` must have the 3 channels"),
 ])
