@@ -1206,9 +1206,14 @@ def _box(a, radius):
 
 
 def _probe_step(x, v, eps):
-    """Finite-difference step: ``eps`` relative to the image's RMS over the probe's RMS."""
-    sx = float(np.sqrt(np.mean(x * x)))
-    sv = float(np.sqrt(np.mean(v * v)))
+    """Finite-difference step: ``eps`` relative to the image's RMS over the probe's RMS
+    (each mean exact also where its sum overflows float64, ``sure._mean``: ``mean_var``
+    near 1.8e308 made the step 0 and the moments NaN)."""
+    from .sure import _mean
+
+    with np.errstate(over="ignore"):       # x*x beyond 1.8e308: an Inf RMS, a 0 step
+        sx = float(np.sqrt(_mean(x * x)))
+    sv = float(np.sqrt(_mean(v * v)))
     if sx == 0.0 or sv == 0.0:
         return None
     return eps * sx / sv
@@ -1286,7 +1291,15 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     m = _check_size(size)
     extra_output = as_bool("extra_output", extra_output)
     pr = _probe_vectors(denoiser, x, mean_var, probes, rng, eps)
-    cov_z, cov_yz = pr.stencils(m, 0, pr.z.shape[0])
+    with np.errstate(over="ignore", invalid="ignore"):      # checked just below
+        cov_z, cov_yz = pr.stencils(m, 0, pr.z.shape[0])
+    from .errors import check_overflow
+
+    for name, a in (("cov_z", cov_z), ("cov_yz", cov_yz)):
+        check_overflow(a, f"the stencil {name}", {"mean_var": pr.sig * pr.sig},
+                       "products (J v)_p (J v)_q and v_p (J v)_q of the ±σ probes below "
+                       "1.8e308, i.e. `mean_var` below about 1e307 times the denoiser's "
+                       "gain squared")
     if extra_output:
         V = np.stack([pr.v(i) for i in range(pr.K)])
         return pr.z, cov_z, cov_yz, V, pr.jv

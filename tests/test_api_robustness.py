@@ -1502,3 +1502,28 @@ def test_pooled_sample_variance_names_sample_var_when_its_weighting_overflows():
     with pytest.raises(InputError, match=r"the weighted sample variance \(n − 1\)·sample_var "
                                          r"left float64's range .*`sample_var` up to 1e\+308"):
         analytic.pooled_sample_variance(1e308 * v / v.max(), n)
+
+
+def test_denoiser_moments_near_the_top_of_float64_are_exactly_scaled_or_refused():
+    """``denoiser_moments`` took its finite-difference step from the RMS of the ±σ probes,
+    whose sum overflowed for ``mean_var`` near 1e307: the step was 0 and every stencil NaN,
+    silently.  Now the RMS is exact (scaled mean), so the stencils at ``mean_var = 2**1020``
+    are those at ``2**-8`` times exactly ``2**1028`` (every step of the computation is a
+    power-of-two scaling), and stencils that do leave float64 are an InputError."""
+    rng = np.random.default_rng(5)
+    x = rng.random((16, 16, 3))
+    den = denoisers.gaussian(1.0)
+
+    def moments(mv):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")      # no overflow RuntimeWarning on the way
+            return combine.denoiser_moments(den, x, np.full_like(x, mv), probes=4, rng=3)
+
+    z0, cz0, cyz0 = moments(2.0 ** -8)
+    z1, cz1, cyz1 = moments(2.0 ** 1020)
+    assert np.array_equal(z0, z1)
+    assert np.array_equal(np.ldexp(cz0, 1028), cz1) and np.isfinite(cz1).all()
+    assert np.array_equal(np.ldexp(cyz0, 1028), cyz1)
+    with pytest.raises(InputError, match=r"the stencil cov_.* left float64's range .*"
+                                         r"`mean_var` up to 1e\+308"):
+        moments(1e308)
