@@ -113,7 +113,27 @@ def _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t=None, *, names=("x_t", "s_bar
     if ndim == 2:
         xt, xg, vg = xt[..., None], xg[..., None], vg[..., None]
         mvt = None if mvt is None else mvt[..., None]
+    _check_tiny_counts(sb, sm, nsb, ns, 2)
     return xt, sb, sm, xg, vg, mvt, ndim
+
+
+def _check_tiny_counts(sb, sm, nsb, ns, power):
+    """``InputError`` where ``0 < s_bar + s`` but ``(s_bar + s)**power`` is 0 in float64
+    (below about 2.2e-162 for the square that divides Eq. 19's variance, 1.7e-108 for the
+    cube in its derivative): that gave NaN/Inf or a bare ZeroDivisionError from the
+    compiled kernels."""
+    n = sb + sm
+    if not n.size or float(n.min()) ** power > 0:    # the usual case: two passes
+        return
+    tiny = (n > 0) & (n ** power == 0)
+    if tiny.any():
+        lim = float(np.finfo(np.float64).smallest_subnormal) ** (1.0 / power)
+        what = {2: "its square divides the variance (Eq. 19)",
+                3: "its cube divides the gradient of the variance"}[power]
+        raise InputError(
+            f"`{nsb}` + `{ns}` (samples per pixel once added) must be 0 or at least "
+            f"{lim:.2g} ({what} and is 0 in float64 below that); got {int(tiny.sum())} "
+            f"pixel(s) with 0 < {nsb} + {ns} < {lim:.2g}, e.g. {float(n[tiny][0]):.3g}.")
 
 
 def _numeric_kernels(kernels) -> np.ndarray:
@@ -263,8 +283,9 @@ def gamma_parameters(x_g, var_g, s):
     ``x_g·s·var_g = 0`` — those pixels are point masses at ``x_g``.  ``x_g`` must be
     ``>= 0``: a gamma law has a positive mean (a negative ``x_g`` would give a negative
     rate ``β``).  Where ``x_g²`` or a product leaves float64's range but ``α`` and ``β`` do
-    not, they are computed exactly from mantissas and exponents; an ``α`` or ``β`` beyond
-    float64 (5e-324 to 1.8e308) is an :class:`~statmc.errors.InputError`.
+    not, they are computed exactly from mantissas and exponents; an ``α`` or ``β`` above
+    1.8e308 is an :class:`~statmc.errors.InputError`, one below 5e-324 is 0 (rounded as
+    float64 arithmetic rounds it).
     """
     if np.ndim(s) == 2 and np.ndim(x_g) == 3 and np.shape(s) == np.shape(x_g)[:2]:
         s = np.asarray(s)[..., None]                    # per-pixel counts, all channels
@@ -287,22 +308,25 @@ def _gamma_rescaled(xg, v, s, ok, alpha, beta):
     """:func:`gamma_parameters` where the plain products over- or underflowed: the same
     products of the mantissas (``np.frexp``), scaled back by the summed exponents with
     ``np.ldexp`` — scaling by powers of two is exact, so an entry comes out as the plain
-    formula would give it with an unlimited exponent range.  A result outside float64's
-    range is an :class:`InputError`."""
+    formula would give it with an unlimited exponent range (rounded to a subnormal or 0
+    below 5e-324).  A result above 1.8e308 is an :class:`InputError`."""
     alpha, beta = np.array(alpha, dtype=np.float64), np.array(beta, dtype=np.float64)
     bad = ok & ~((alpha > 0) & (alpha < np.inf) & (beta > 0) & (beta < np.inf))
     xb, sb, vb = (np.broadcast_to(a, alpha.shape)[bad] for a in (xg, s, v))
     (mx, ex), (ms, es), (mv, ev) = np.frexp(xb), np.frexp(sb), np.frexp(vb)
     a = np.ldexp(mx * mx * ms / mv, 2 * ex + es - ev)
     b = np.ldexp(mx * ms / mv, ex + es - ev)
-    out = ~((a > 0) & (a < np.inf) & (b > 0) & (b < np.inf))
+    # Below the smallest float, ldexp rounds to a subnormal or 0, as the plain formula
+    # did (x_g = 1e-200, var_g = s = 1 gave α = 0 before and must not be refused);
+    # only a value beyond 1.8e308 has no float64 to round to.
+    out = (a == np.inf) | (b == np.inf)
     if out.any():
         i = int(np.argmax(out))
         x0, s0, v0 = float(xb[i]), float(sb[i]), float(vb[i])
         lb = np.log10(x0) + np.log10(s0) - np.log10(v0)
         raise InputError(
             f"`x_g`, `var_g` and `s` must give a gamma shape α = x_g² s / var_g and rate "
-            f"β = x_g s / var_g within float64's range (5e-324 to 1.8e308); got "
+            f"β = x_g s / var_g within float64's range (below 1.8e308); got "
             f"{int(out.sum())} entries outside it, e.g. x_g = {x0:.3g}, var_g = {v0:.3g}, "
             f"s = {s0:.3g} (α ≈ 1e{lb + np.log10(x0):.0f}, β ≈ 1e{lb:.0f}).  Scaling x_g by "
             "c and var_g by c² divides β by c and leaves α (the squared signal-to-noise "
@@ -680,6 +704,8 @@ def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=
     loss, eps = _check_loss(loss, eps)
     return_grad = as_bool("return_grad", return_grad)
     xt, sb, sm, xg, vg, mvt, _ = _prepare(x_t, s_bar, s, x_g, var_g, mean_var_t)
+    if return_grad:
+        _check_tiny_counts(sb, sm, "s_bar", "s", 3)
     K = _check_kernels(kernels, xt.shape[:2])
     _check_rel_denominator(loss, eps, xg)
     value, grad, _, _ = _evaluate(K, xt, sb, sm, xg, vg, mvt, loss, eps, return_grad)
@@ -829,6 +855,7 @@ def optimal_sample_map(kernels, x_t, s_bar, x_g_est, var_g_est, budget, *, loss=
             f"`s_bar` must be > 0 in every pixel for optimal_sample_map (the analytic model "
             f"needs a current estimate); got {int((sb <= 0).sum())} pixels with 0 samples. "
             "Render at least one sample per pixel first.")
+    _check_tiny_counts(sb, 0.0, "s_bar", "s", 3)     # the gradient's n³, n >= s_bar
     upper = None if max_count is None else _count_map("max_count", max_count, hw)
     b = _check_budget(budget, sb.size, upper)
     max_iter = as_whole("max_iter", max_iter, lo=1, what="number of iterations")

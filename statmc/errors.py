@@ -214,7 +214,7 @@ def as_broadcast_arrays(arrays: dict, *, nonnegative=()) -> list:
 def _largest(a) -> float:
     """Largest magnitude in ``a`` (for messages; NaN if ``a`` is empty)."""
     a = np.asarray(a, dtype=np.float64)
-    return float(max(-a.min(), a.max())) if a.size else math.nan
+    return float(max(a.max(), -a.min())) if a.size else math.nan   # 0, not -0, for zeros
 
 
 def check_overflow(result, what: str, given: dict, expected: str) -> None:

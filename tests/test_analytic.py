@@ -1252,3 +1252,43 @@ def test_gamma_parameters_whose_products_leave_float64_are_computed_exactly():
                                       np.array([0.1, 2.0 ** 700, 1.0]), 4.0)
     assert np.array_equal(alpha, [0.5 * 0.5 * 4.0 / 0.1, 4.0 * 2.0 ** 700, np.nan], equal_nan=True)
     assert np.array_equal(beta, [0.5 * 4.0 / 0.1, 4.0, np.nan], equal_nan=True)
+
+
+def test_gamma_parameters_that_underflow_are_rounded_not_refused():
+    """x_g = 1e-200, var_g = s = 1 gives α = 1e-400, below float64's smallest value: the
+    plain formula returned α = 0 (float64's rounding of it), and c8f78e2 turned that into
+    an InputError for the whole array — an ordinary tiny input refused.  Underflow rounds
+    (to 0 or a subnormal, as np.ldexp rounds the exact value); only overflow is refused."""
+    alpha, beta = an.gamma_parameters(np.array([1e-200, 1.0, 2.0 ** -530]), 1.0, 1.0)
+    assert np.array_equal(alpha, [0.0, 1.0, np.ldexp(1.0, -1060)])
+    assert np.array_equal(beta, [1e-200, 1.0, 2.0 ** -530])
+    with pytest.raises(InputError, match=r"below 1\.8e308.*x_g = 1e\+10, var_g = 1e-300"):
+        an.gamma_parameters(1e10, 1e-300, 1.0)
+
+
+def test_sample_counts_whose_square_or_cube_underflows_are_refused_by_name():
+    """0 < s_bar + s below ~2.2e-162 makes (s_bar + s)² = 0, which divides Eq. 19's
+    variance: future_moments gave NaN, kernel_bias_variance and expected_kernel_loss a
+    bare ZeroDivisionError from the compiled kernel; the gradient's cube does so below
+    ~1.7e-108 (expected_kernel_loss(return_grad=True), optimal_sample_map).  Counts of 0
+    and counts from 1e-100 up still work."""
+    x, v = np.full((4, 4, 1), 0.5), np.full((4, 4, 1), 0.1)
+    K = np.zeros((4, 4, 3, 3))
+    K[:, :, 1, 1] = 1.0
+    sq, cube = r"must be 0 or at least 2\.2e-162", r"must be 0 or at least 1\.7e-108"
+    for call, msg in (
+            (lambda: future_moments(x, 0.0, 1e-170, x, v), sq),
+            (lambda: future_moments(x, 1e-170, 0.0, x, v, mean_var_t=v), sq),
+            (lambda: an.sample_future(x, 0.0, 1e-170, x, v, rng=0), sq),
+            (lambda: an.kernel_bias_variance(K, x, 0.0, 1e-170, x, v), sq),
+            (lambda: expected_kernel_loss(K, x, 0.0, 1e-170, x, v), sq),
+            (lambda: expected_kernel_loss(K, x, 0.0, 1e-120, x, v, return_grad=True), cube),
+            (lambda: an.optimal_sample_map(K, x, 1e-120, x, v, 1.0), cube)):
+        with pytest.raises(InputError, match=r"`s_bar` \+ `s` .*" + msg + r".*e\.g\. 1e-1[27]0"):
+            call()
+    s = np.array([[0.0, 1e-100], [1.0, 2.0]])
+    xs, vs = x[:2, :2], v[:2, :2]
+    m, var = future_moments(xs, 0.0, s, xs, vs)
+    assert np.array_equal(var[:, :, 0], [[0.0, 0.1 / 1e-100], [0.1, 0.05]])
+    value, grad = expected_kernel_loss(K[:2, :2], xs, 0.0, s, xs, vs, return_grad=True)
+    assert np.isfinite(value) and np.all(np.isfinite(grad))
