@@ -159,8 +159,8 @@ def _combine_group(w, d, zs, c0, nc, out, bad, ya, yb):  # pragma: no cover - co
         c2 = c0 + min(2, nc - 1)   # their results are never written
         dy0 = max(0, r - y)
         dy1 = min(k, H - y + r)
-        nbad = 0
-        x = 0
+        nbad = np.int64(0)         # typed, not literal 0 (see _weights_rows)
+        x = np.int64(0)
         while x < Wd:
             if x >= r and x + 3 + r < Wd:
                 # Four interior pixels x .. x+3 at once: 16 independent accumulator chains.
@@ -573,7 +573,9 @@ def _weights_rows(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
     for y in range(ya, yb):
         for x in range(W):
             top = 0.0
-            bad = False               # a tap's Var(e_t) or squared bias is not finite
+            # typed initial values, not literals (False, 0): numba's type inference runs
+            # over the whole function once more for each literal it has to widen
+            bad = np.bool_(False)     # a tap's Var(e_t) or squared bias is not finite
             for b in range(B):
                 bv = b if var_y.shape[0] > 1 else 0
                 bp = b if P.shape[0] > 1 else 0
@@ -712,7 +714,7 @@ def _weights_rows(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                 # a_i = d_i (> 0).  (``a`` of inactive taps is never read.)  Each dropped
                 # tap's update of G0, rhs0 comes in ascending order after its a_i, from
                 # the same solution, as when all a are formed first: bit for bit the same.
-                nl = 0
+                nl = np.int64(0)
                 for i in range(n):
                     if act[i]:
                         a[i] = di[i]
@@ -731,8 +733,8 @@ def _weights_rows(var_y, P, cov_z, cov_yz, has_yz, zb, bias_mode, s2, method, k,
                         # G = I + Σ d_i U_i U_iᵀ is positive definite, so only a numerically
                         # singular elimination gets here: the pixel falls back (below)
                         break
-                    neg = False
-                    m = 0
+                    neg = np.bool_(False)
+                    m = np.int64(0)
                     for li in range(nl):
                         i = lst[li]
                         s = 0.0
