@@ -335,14 +335,30 @@ def _gamma_rescaled(xg, v, s, ok, alpha, beta):
     return alpha, beta
 
 
+_TINY = float(np.finfo(np.float64).tiny)       # smallest normal float64, 2.2e-308
+
+
 def _draw_mean(dist, mu, var_mean, u, z, bounds):
     """Mean of the new samples with mean ``mu`` and variance ``var_mean`` (non-degenerate)."""
     if dist == "gamma":
         alpha = mu * mu / var_mean                      # Eq. 9 with var_mean = var_g / s
         rate = mu / var_mean
-        return special.gammaincinv(alpha, u) / rate
+        q = special.gammaincinv(alpha, u)
+        # A shape below float64's smallest normal (x_g² underflowed: x_g = 1e-200) gave
+        # NaN; the quantile u**(1/α)-like is 0 there for every u < 1, as scipy gives it
+        # from α = 2.2e-308 up.
+        small = alpha < _TINY
+        if small.any():
+            q[small] = 0.0
+        return q / rate
     if dist == "lognormal":
-        s2 = np.log1p(var_mean / (mu * mu))
+        mm = mu * mu
+        with np.errstate(divide="ignore"):              # mm = 0: redone just below
+            r = var_mean / mm
+        low = mm < _TINY                                # x_g² underflowed: divide twice
+        if low.any():
+            r[low] = var_mean[low] / mu[low] / mu[low]
+        s2 = np.log1p(r)
         return np.exp(np.log(mu) - 0.5 * s2 + np.sqrt(s2) * z)
     sd = np.sqrt(var_mean)
     if dist == "truncnorm":                              # N(mu, sd²) restricted to [0, ∞)

@@ -4,6 +4,8 @@ Statistical claims are tested statistically: fixed seeds, real p-values (KS, z-t
 Bonferroni-corrected within a test; compiled kernels are compared with NumPy references.
 """
 
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -1292,3 +1294,25 @@ def test_sample_counts_whose_square_or_cube_underflows_are_refused_by_name():
     assert np.array_equal(var[:, :, 0], [[0.0, 0.1 / 1e-100], [0.1, 0.05]])
     value, grad = expected_kernel_loss(K[:2, :2], xs, 0.0, s, xs, vs, return_grad=True)
     assert np.isfinite(value) and np.all(np.isfinite(grad))
+
+
+def test_sample_future_with_tiny_x_g_gives_the_limit_not_nan():
+    """x_g = 1e-200 with var_g = 1e-300: x_g² underflows to 0, so the gamma shape
+    x_g²·s/var_g came out 0 and scipy's gammaincinv(0, u) NaN (ce3409f returned NaN
+    renders; c8f78e2 then refused them as 'left float64's range (largest 1.8e308)', an
+    overflow that was none).  The shape is ~1e-100: the mean of the new samples is 0
+    for every u < 1, so the render is s_bar·x_t/(s_bar + s).  lognormal divided by
+    x_g² = 0 (σ² = Inf, NaN renders) and now divides twice."""
+    rng = np.random.default_rng(4)
+    xg = rng.uniform(0.5, 2.0, (6, 5, 3)) * 1e-200
+    vg = rng.uniform(0.5, 2.0, (6, 5, 3)) * 1e-300
+    xt = xg * rng.uniform(0.5, 1.5, xg.shape)
+    sb, s = rng.integers(1, 64, (6, 5)).astype(float), rng.integers(1, 64, (6, 5)).astype(float)
+    n = (sb + s)[..., None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for shared in (True, False):
+            y = an.sample_future(xt, sb, s, xg, vg, rng=0, shared_stream=shared)
+            assert np.array_equal(y, sb[..., None] * xt / n)
+            y = an.sample_future(xt, sb, s, xg, vg, dist="lognormal", rng=0, shared_stream=shared)
+            assert np.all(np.isfinite(y)) and np.all(y >= sb[..., None] * xt / n)
