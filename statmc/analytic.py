@@ -459,10 +459,13 @@ def sample_future(x_t, s_bar, s, x_g, var_g, *, dist="gamma", rng=None, shared_s
             if dist == "gamma" and not shared_stream:
                 # NumPy's sampler refuses a NaN or Inf shape: say which input caused it
                 shape_ = mu * mu / var_mean
-                if not np.isfinite(np.sum(shape_)):
+                # the sum also overflows for finite shapes (1000 entries of 1e306): count
+                n_inf = 0 if np.isfinite(np.sum(shape_)) else int(shape_.size - np.count_nonzero(
+                    np.isfinite(shape_)))
+                if n_inf:
                     raise InputError(
                         f"`x_g`, `var_g` and `s` must give a gamma shape s·x_g²/var_g below "
-                        f"1.8e308 for dist='gamma'; got {int((~np.isfinite(shape_)).sum())} "
+                        f"1.8e308 for dist='gamma'; got {n_inf} "
                         f"entries beyond it (`x_g` up to {float(np.max(mu)):.3g}).  The shape "
                         "does not change when x_g is scaled by c and var_g by c²; such a law "
                         "is a point mass at x_g to float64 precision (var_g = 0 gives it).")

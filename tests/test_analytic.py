@@ -1316,3 +1316,17 @@ def test_sample_future_with_tiny_x_g_gives_the_limit_not_nan():
             assert np.array_equal(y, sb[..., None] * xt / n)
             y = an.sample_future(xt, sb, s, xg, vg, dist="lognormal", rng=0, shared_stream=shared)
             assert np.all(np.isfinite(y)) and np.all(y >= sb[..., None] * xt / n)
+
+
+def test_sample_future_unshared_takes_finite_gamma_shapes_whose_sum_overflows():
+    """d6b5be1/c8f78e2 refused sample_future(shared_stream=False) when the *sum* of the
+    gamma shapes s·x_g²/var_g was not finite: 1200 shapes of 6.4e305 each (x_g = 1e152,
+    var_g = 1, s = 64) were refused with 'got 0 entries beyond it', where ce3409f drew
+    them (a gamma law that narrow is x_g to float64 precision)."""
+    x, v = np.full((20, 20, 3), 1e152), np.ones((20, 20, 3))
+    y = an.sample_future(x, 4.0, 64.0, x, v, rng=0, shared_stream=False)
+    assert np.allclose(y, 1e152, rtol=1e-12, atol=0)
+    x[0, 0, 0] = 1e160                      # a shape of 6.4e321 is refused, counted
+    with pytest.raises(InputError, match=r"gamma shape s·x_g²/var_g below 1\.8e308 for "
+                                         r"dist='gamma'; got 1 entries beyond it"):
+        an.sample_future(x, 4.0, 64.0, x, v, rng=0, shared_stream=False)
