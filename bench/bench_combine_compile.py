@@ -4,7 +4,8 @@
 the kernels.
 
 Each call runs in a fresh process with its own empty ``NUMBA_CACHE_DIR`` on a 40x48x3
-float64 image (``combine_bins``: 4 bins), with a SciPy box blur as the denoiser, so only
+float64 image (``combine_bins``: 4 bins; ``both``: ``combine_denoised`` then
+``combine_bins`` in one process), with a SciPy box blur as the denoiser, so only
 the combination's own kernels compile (those of ``statmc.analytic`` that the SURE mix
 uses included; GEM's or OIDN's are not).  It prints process CPU seconds
 (``time.process_time``, all threads) and wall seconds of the call, and with
@@ -23,7 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 
-CALLS = ("weights", "denoised", "bins")
+CALLS = ("weights", "denoised", "bins", "both")
 
 from _timing import run_cold  # noqa: E402  (bench/ is the script's folder)
 
@@ -68,7 +69,9 @@ cov[:, :, 2, 2] = 0.004
 ys = rng.uniform(0.1, 1.0, (4, H, W, C))
 call = {"weights": lambda: cb.statistical_weights(y, blur(y), mv, cov, 7),
         "denoised": lambda: cb.combine_denoised(y, mv, blur, rng=0),
-        "bins": lambda: cb.combine_bins(ys, mv, blur, rng=0)}[sys.argv[2]]
+        "bins": lambda: cb.combine_bins(ys, mv, blur, rng=0),
+        "both": lambda: (cb.combine_denoised(y, mv, blur, rng=0),
+                         cb.combine_bins(ys, mv, blur, rng=0))}[sys.argv[2]]
 c, w = time.process_time(), time.perf_counter()
 call()
 print(json.dumps({"cpu": time.process_time() - c, "wall": time.perf_counter() - w,
@@ -85,7 +88,7 @@ def main() -> None:
     p.add_argument("checkouts", nargs="*",
                    default=[os.path.dirname(os.path.dirname(os.path.abspath(__file__)))])
     p.add_argument("--repeat", type=int, default=1)
-    p.add_argument("--calls", nargs="+", choices=CALLS, default=list(CALLS))
+    p.add_argument("--calls", nargs="+", choices=CALLS, default=list(CALLS[:3]))
     p.add_argument("--breakdown", action="store_true")
     a = p.parse_args()
     for r in range(a.repeat):

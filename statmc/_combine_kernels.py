@@ -495,8 +495,9 @@ def _bias_planes(ys, zs, P, cov_z, cov_yz, has_yz, k, patch, loo, y0, y1, s2, pa
     nt = (ys.shape[2] + BIAS_TILE - 1) // BIAS_TILE
     # Each mode passes None for what it does not read ("pairs": P; the others: the flag),
     # so numba compiles only that mode's branch, once per mode used: on a cold cache the
-    # pairs kernel of combine_bins compiled in 2.6-3.3 s of CPU instead of 4.7-5.7 s, the
-    # "estimate" one of combine_denoised in 3.6-4.0 s instead of 4.4-4.8 s (session 17).
+    # pairs kernel of combine_bins compiled in 2.3-3.3 s of CPU instead of 3.9-5.7 s, the
+    # "estimate" one of combine_denoised in 3.6-4.6 s instead of 4.4-5.5 s (session 17;
+    # both in one process: 6.8-8.0 s, docs/combine.md "First call").
     P, flag = (None, True) if pairs else (P, None)
     run_rows(_bias_tasks, 0, nt * k * k, ys, zs, P, cov_z, cov_yz, bool(has_yz), int(k),
              int(patch), bool(loo), int(y0), int(y1), s2, flag)

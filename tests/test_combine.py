@@ -666,8 +666,8 @@ def test_combination_kernels_compile_no_parallel_loops():
 def test_bias_planes_compile_only_the_mode_used():
     """``z_bias="pairs"`` and the other modes reach ``_bias_tasks`` with ``None`` for what
     they do not read (``P`` and the pairs flag), so numba drops the other mode's branch
-    when it compiles: ``combine_bins`` (pairs) compiled the kernel in 2.6–3.3 s of CPU
-    instead of 4.7–5.7 s on a cold cache (session 17).  The weights stay those of the
+    when it compiles: ``combine_bins`` (pairs) compiled the kernel in 2.3–3.3 s of CPU
+    instead of 3.9–5.7 s on a cold cache (session 17).  The weights stay those of the
     NumPy path.  Fails before: the kernel took an array ``P`` and a bool flag in every
     mode (one signature holding both branches)."""
     from numba import types
