@@ -1296,6 +1296,9 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     from .errors import check_overflow
 
     for name, a in (("cov_z", cov_z), ("cov_yz", cov_yz)):
+        with np.errstate(over="ignore", invalid="ignore"):
+            if np.isfinite(np.sum(a)):      # the usual case: no σ² temporary for the message
+                continue
         check_overflow(a, f"the stencil {name}", {"mean_var": pr.sig * pr.sig},
                        "products (J v)_p (J v)_q and v_p (J v)_q of the ±σ probes below "
                        "1.8e308, i.e. `mean_var` below about 1e307 times the denoiser's "
