@@ -49,7 +49,7 @@ import numpy as np
 from . import _combine_kernels as _ck
 from ._stencil_kernels import add_neighbour_products_sum, shift_slices
 from .errors import (InputError, as_bool, as_float_array, as_number, as_rng, check_finite,
-                     check_nonempty, check_nonnegative)
+                     check_nonempty, check_nonnegative, check_overflow)
 
 __all__ = [
     "combine", "combine_multi", "combine_boosting",
@@ -1066,8 +1066,6 @@ def filter_covariance(kernels, var, *, size=None, cross=False):
         pass), so every representable result is returned.
     """
     from .analytic import _numeric_kernels
-    from .errors import check_overflow
-
     K = _numeric_kernels(kernels)
     if K.ndim != 4 or K.shape[2] != K.shape[3] or K.shape[2] % 2 == 0:
         raise InputError(f"`kernels` must have shape (H, W, k, k) with odd k; got {K.shape}.")
@@ -1146,30 +1144,34 @@ def buffer_moments(ys, zs, *, size):
     Raises
     ------
     InputError
-        Besides bad shapes and values: ``|ys|`` or ``|zs|`` above ``VALUE_LIMIT``
-        (1e140), the limit of :func:`statistical_weights`, which then accepts the
-        moments returned (at most ``8·1e280``).  Beyond ~1e154 the squared spreads
-        overflowed float64 and came back as Inf/NaN.
+        Besides bad shapes and values: a moment that leaves float64's range (the
+        squared spreads, for ``|ys|`` or ``|zs|`` beyond about 1e154), which came back
+        as Inf/NaN before session 17; every representable moment is returned.
+        (:func:`statistical_weights` takes images up to ``VALUE_LIMIT`` = 1e140, whose
+        moments stay below its ``MOMENT_LIMIT``.)
     """
     ysa, zsa, _ = _pair("ys", ys, "zs", zs, multi=True)
-    _check_limit("ys", ysa, VALUE_LIMIT)     # squares of the spread stay finite
-    _check_limit("zs", zsa, VALUE_LIMIT)
     B, H, W, C = ysa.shape
     if B < 2:
         raise InputError(f"`ys` must hold B >= 2 buffers to estimate moments from their "
                          f"spread; got shape {np.shape(ys)}.")
     m = _check_size(size)
     R = m // 2
-    dy = ysa.astype(np.float64) - ysa.mean(axis=0, dtype=np.float64)
-    dz = zsa.astype(np.float64) - zsa.mean(axis=0, dtype=np.float64)
-    var_y = (dy * dy).sum(axis=0) / (B - 1)
-    cov_z = np.zeros((H, W, m, m, C))
-    cov_yz = np.zeros((H, W, m, m, C))
-    for vy in range(-R, R + 1):
-        for vx in range(-R, R + 1):
-            sz = np.stack([_shift(dz[b], vy, vx) for b in range(B)])
-            cov_z[:, :, R + vy, R + vx] = (dz * sz).sum(axis=0) / (B - 1)
-            cov_yz[:, :, R + vy, R + vx] = (dy * sz).sum(axis=0) / (B - 1)
+    with np.errstate(over="ignore", invalid="ignore"):      # the results are checked below
+        dy = ysa.astype(np.float64) - ysa.mean(axis=0, dtype=np.float64)
+        dz = zsa.astype(np.float64) - zsa.mean(axis=0, dtype=np.float64)
+        var_y = (dy * dy).sum(axis=0) / (B - 1)
+        cov_z = np.zeros((H, W, m, m, C))
+        cov_yz = np.zeros((H, W, m, m, C))
+        for vy in range(-R, R + 1):
+            for vx in range(-R, R + 1):
+                sz = np.stack([_shift(dz[b], vy, vx) for b in range(B)])
+                cov_z[:, :, R + vy, R + vx] = (dz * sz).sum(axis=0) / (B - 1)
+                cov_yz[:, :, R + vy, R + vx] = (dy * sz).sum(axis=0) / (B - 1)
+    for name, a in (("var_y", var_y), ("cov_z", cov_z), ("cov_yz", cov_yz)):
+        check_overflow(a, f"the moment {name}", {"ys": ysa, "zs": zsa},
+                       "squared spreads of the bins below 1.8e308, i.e. |ys| and |zs| "
+                       "below about 1e154")
     return var_y, cov_z, cov_yz
 
 
@@ -1293,8 +1295,6 @@ def denoiser_moments(denoiser, x, mean_var, *, size=DEFAULT_STENCIL, probes=DEFA
     pr = _probe_vectors(denoiser, x, mean_var, probes, rng, eps)
     with np.errstate(over="ignore", invalid="ignore"):      # checked just below
         cov_z, cov_yz = pr.stencils(m, 0, pr.z.shape[0])
-    from .errors import check_overflow
-
     for name, a in (("cov_z", cov_z), ("cov_yz", cov_yz)):
         with np.errstate(over="ignore", invalid="ignore"):
             if np.isfinite(np.sum(a)):      # the usual case: no σ² temporary for the message

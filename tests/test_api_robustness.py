@@ -1476,9 +1476,9 @@ def _overflowing_calls():
         ("filter_covariance", lambda: combine.filter_covariance(k * 1e160, v),
          r"the covariance stencil left float64's range .*`kernels` up to"),
         ("buffer_moments", lambda: combine.buffer_moments(1e200 * ys, ys, size=3),
-         r"`ys` holds values up to [\d.]+e\+\d+ in magnitude"),
+         r"the moment var_y left float64's range .*`ys` up to [\d.]+e\+\d+"),
         ("buffer_moments_z", lambda: combine.buffer_moments(ys, -1e160 * ys, size=3),
-         r"`zs` holds values up to [\d.]+e\+\d+ in magnitude"),
+         r"the moment cov_z left float64's range .*`zs` up to [\d.]+e\+1[56]\d"),
     ]
 
 
@@ -1527,3 +1527,17 @@ def test_denoiser_moments_near_the_top_of_float64_are_exactly_scaled_or_refused(
     with pytest.raises(InputError, match=r"the stencil cov_.* left float64's range .*"
                                          r"`mean_var` up to 1e\+308"):
         moments(1e308)
+
+
+def test_buffer_moments_of_large_but_representable_bins_are_exactly_scaled():
+    """95015d6 refused bins above VALUE_LIMIT (1e140), although ce3409f returned their
+    moments finite up to about 1e154.  The moments are now checked, not the inputs: bins
+    scaled by 2**480 (about 3e144) give the moments times exactly 2**960."""
+    rng = np.random.default_rng(8)
+    ys, zs = rng.random((4, 9, 10, 3)), rng.random((4, 9, 10, 3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        small = combine.buffer_moments(ys, zs, size=3)
+        big = combine.buffer_moments(np.ldexp(ys, 480), np.ldexp(zs, 480), size=3)
+    for a, b in zip(small, big):
+        assert np.isfinite(b).all() and np.array_equal(np.ldexp(a, 960), b)
