@@ -134,12 +134,28 @@ def test_small_gem_and_filter_calls_run_on_one_thread(monkeypatch):
     assert _threads.thread_count() == before
 
 
+def _first_stop_threads(monkeypatch):
+    """A list that gets ``_threads.thread_count()`` at each call of
+    ``_filter_kernels.first_stop`` (every select/reconstruct/sampling_map calls it once)."""
+    from statmc import _filter_kernels, _threads
+
+    threads = []
+    first_stop = _filter_kernels.first_stop
+
+    def spy(*args):
+        threads.append(_threads.thread_count())
+        return first_stop(*args)
+
+    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    return threads
+
+
 def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monkeypatch):
     """``threshold_of`` picks the threshold per call: gem.select/reconstruct/selected_filter
     with the pooled selection (bias="pooled", or the default of final=True), whose stages
     run fused, use the pool from ``gem.FUSED_SERIAL_VALUES`` values; the paper's selection
     (final=False) keeps ``SERIAL_VALUES``."""
-    from statmc import _filter_kernels, _threads, gem
+    from statmc import _threads, gem
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one numba thread only")
@@ -156,14 +172,7 @@ def test_gem_calls_with_the_fused_selection_go_parallel_from_a_smaller_size(monk
     probe(np.zeros(50))
     assert seen == [1, before]
 
-    threads = []
-    first_stop = _filter_kernels.first_stop           # every select/reconstruct calls it once
-
-    def spy(*args):
-        threads.append(_threads.thread_count())
-        return first_stop(*args)
-
-    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    threads = _first_stop_threads(monkeypatch)
     h = w = 240                                       # 172,800 values: between the thresholds
     assert gem.FUSED_SERIAL_VALUES < h * w * 3 < _threads.SERIAL_VALUES
     m = np.random.default_rng(1).random((h, w, 3))
@@ -183,20 +192,13 @@ def test_pooled_reconstruct_of_a_small_image_runs_on_one_thread(monkeypatch):
     task threads (the fused threshold was 50,000 values, tuned for numba's OpenMP pool) and
     took 1.4-1.8x as long as on one thread at load 2; below ``gem.FUSED_SERIAL_VALUES``
     they now run on the calling thread, and a 256x256 one still on every thread."""
-    from statmc import _filter_kernels, _threads, gem
+    from statmc import _threads, gem
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one numba thread only")
     for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
         monkeypatch.delenv(k, raising=False)
-    threads = []
-    first_stop = _filter_kernels.first_stop
-
-    def spy(*args):
-        threads.append(_threads.thread_count())
-        return first_stop(*args)
-
-    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    threads = _first_stop_threads(monkeypatch)
     before = _threads.thread_count()
     rng = np.random.default_rng(2)
     for side in (136, 192, 256):
@@ -211,18 +213,11 @@ def test_unfused_calls_of_a_256_image_use_every_thread(monkeypatch):
     about 224x224 RGB for the paper selection, ``sampling_map`` and the filter bank, so
     ``_threads.SERIAL_VALUES`` is 180,000 (was 300,000): a 240x240 image still runs on
     the calling thread, a 256x256 one on every thread."""
-    from statmc import _filter_kernels, _threads, gem
+    from statmc import _threads, gem
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one numba thread only")
-    threads = []
-    first_stop = _filter_kernels.first_stop
-
-    def spy(*args):
-        threads.append(_threads.thread_count())
-        return first_stop(*args)
-
-    monkeypatch.setattr(_filter_kernels, "first_stop", spy)
+    threads = _first_stop_threads(monkeypatch)
     before = _threads.thread_count()
     rng = np.random.default_rng(3)
     for side in (240, 256):
