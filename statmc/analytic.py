@@ -673,7 +673,6 @@ def kernel_bias_variance(kernels, x_t, s_bar, s, x_g, var_g, *, mean_var_t=None)
     return bias, v
 
 
-
 def expected_kernel_loss(kernels, x_t, s_bar, s, x_g, var_g, *, loss="mse", eps=RELMSE_EPS,
                          mean_var_t=None, return_grad=False):
     """Expected MSE or relMSE of a kernel denoiser after adding ``s`` samples.
