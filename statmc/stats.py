@@ -302,7 +302,9 @@ class PixelStats:
         """Statistics from per-pixel sums ``Σx`` and ``Σx²`` (e.g. one render pass).
 
         ``M2 = Σx² − (Σx)²/n``, clipped at 0.  Pass float64 sums: in float32 this
-        difference cancels catastrophically at high sample counts.
+        difference cancels catastrophically at high sample counts.  Sums no samples can
+        have, whose ``(Σx)²/n`` overflows float64 although ``Σx²`` is finite (it is at most
+        ``Σx²``), are an :class:`~statmc.errors.InputError`.
 
         Parameters
         ----------
@@ -329,7 +331,18 @@ class PixelStats:
                              f"nonzero sums in {int(empty.any(axis=2).sum())} pixels.")
         safe = np.maximum(n_a, 1)[..., None]
         mean = s1 / safe
-        m2 = np.maximum(s2 - s1 * mean, 0.0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            sq = s1 * mean                                   # (Σx)² / n
+        if not np.isfinite(np.sum(sq)):
+            # (Σx)²/n <= Σx² for any samples (Cauchy-Schwarz), so with a finite Σx² this
+            # overflows only for sums no samples can have; it gave m2 = 0 silently and a
+            # refusal of `m2_cross`, a name the caller never gave
+            bad = int(np.count_nonzero(~np.isfinite(sq).all(axis=2)))
+            raise InputError(
+                f"`sum_x` and `sum_x2` must be sums of the same samples, (Σx)²/n <= Σx² "
+                f"(finite); got (Σx)²/n beyond float64's range in {bad} pixels (`sum_x` up "
+                f"to {float(np.max(np.abs(s1))):.3g}, `sum_x2` up to {float(np.max(s2)):.3g}).")
+        m2 = np.maximum(s2 - sq, 0.0)
         cross = None
         if sum_xy is not None:
             ia, ib = _pair_index(s1.shape[2])
