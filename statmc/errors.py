@@ -226,7 +226,9 @@ def check_overflow(result, what: str, given: dict, expected: str) -> None:
     One pass and no temporary when all is well (a sum: NaN/Inf propagate into it; a sum
     that overflows although every entry is finite is then checked entry by entry).  The
     message says what overflowed, the largest magnitude of each array in ``given``
-    (``{name: array}``, the inputs that bound it) and the range ``expected``.
+    (``{name: array}``, the inputs that bound it; or a function returning that dict, called
+    only when the check fails, for inputs that are costly to form) and the range
+    ``expected``.
     """
     a = np.asarray(result)
     with np.errstate(over="ignore", invalid="ignore"):
@@ -236,6 +238,8 @@ def check_overflow(result, what: str, given: dict, expected: str) -> None:
     if n_bad == 0:                          # only the sum overflowed
         return
     where = f" in {n_bad} of {a.size} entries" if a.ndim else ""
+    if callable(given):
+        given = given()
     parts = ", ".join(f"`{name}` up to {_largest(v):.3g}" for name, v in given.items())
     raise InputError(
         f"{what} left float64's range (largest finite {np.finfo(np.float64).max:.3g}){where} "
